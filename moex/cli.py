@@ -1,0 +1,127 @@
+"""`moex <verb> [overrides]`, the only module that imports Hydra.
+
+Overrides are composed and validated with Hydra's compose API before the run starts, so a bad
+value or unknown key ends with one line on stderr and exit code 2, and nothing is written.
+"""
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from moex import pipeline
+from moex.config import register_configs
+from moex.errors import ConfigError
+
+_PACKAGE_CONF = Path(__file__).resolve().parent / "conf"
+CONF_DIR = str(_PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf")
+
+USAGE = """usage: moex <verb> [-m] [key=value ...]
+
+verbs:
+  train      train both phases on a task and write a run folder (Hydra overrides)
+
+examples:
+  moex train task=lissajous2
+  moex train task=reber model.gating.context_size=50
+  moex train -m task.switch_prob=0.5,0.25,0.125 num_runs=30
+"""
+
+
+def _one_line(exc: BaseException) -> str:
+    """A readable single line from a Hydra / OmegaConf / moex exception."""
+    text = str(exc).strip()
+    first = text.splitlines()[0] if text else type(exc).__name__
+    cause = exc.__cause__
+    if "Could not override" in first and cause is not None:
+        return f"unknown key {first.split(chr(39))[1]} ({str(cause).splitlines()[0]})"
+    if "Error merging override" in first and cause is not None:
+        key = first.split()[-1].split("=")[0]
+        return f"{key}: {str(cause).splitlines()[0]}"
+    if "Could not find" in first and "Available options" in text:
+        group, option = first.split("'")[-2].split("/", 1)
+        listing = text.split("Available options")[1].split("Config search path")[0]
+        options = listing.strip().splitlines()[1:]
+        return f"{group}={option} is unknown; choose one of {', '.join(o.strip() for o in options)}"
+    full_key = getattr(exc, "full_key", None)
+    if full_key and full_key not in first:
+        return f"{full_key}: {first}"
+    return first
+
+
+def _override_variants(args: list[str]) -> list[list[str]]:
+    """Override lists to validate: the first value of every sweep, then each other value alone."""
+    parsed = OverridesParser.create().parse_overrides(
+        [a for a in args if not a.startswith("hydra.") and not a.startswith("hydra/")])
+    choices = [[o.input_line] if not o.is_sweep_override()
+               else [f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
+               for o in parsed]
+    base = [c[0] for c in choices]
+    variants = [base]
+    for i, options in enumerate(choices):
+        variants += [base[:i] + [v] + base[i + 1:] for v in options[1:]]
+    return variants
+
+
+def validate(config_name: str, args: list[str]) -> None:
+    """Compose every override variant and build its `Config` and data; raise `ConfigError`."""
+    register_configs()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            for overrides in _override_variants(args):
+                cfg = OmegaConf.to_object(compose(config_name, overrides=overrides))
+                pipeline.load_task(cfg)
+    except (HydraException, OmegaConfBaseException, ConfigError) as exc:
+        raise ConfigError(_one_line(exc)) from None
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _train(dict_cfg) -> None:
+    cfg = OmegaConf.to_object(dict_cfg)
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        pipeline.run_train(cfg, out_dir)
+    except ConfigError as exc:
+        logging.getLogger("moex").error("%s", exc)
+        print(f"moex: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    print(f"moex: run folder {out_dir}")
+
+
+VERBS = {"train": ("config", _train)}
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(USAGE)
+        return
+    verb, args = argv[0], argv[1:]
+    if verb not in VERBS:
+        print(f"moex: error: unknown verb {verb!r}; choose one of {', '.join(VERBS)}",
+              file=sys.stderr)
+        sys.exit(2)
+    config_name, task_function = VERBS[verb]
+    hydra_flags = [a for a in args if a.startswith("-")]
+    overrides = [a for a in args if not a.startswith("-")]
+    if not {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"} & set(hydra_flags):
+        try:
+            validate(config_name, overrides)
+        except ConfigError as exc:
+            print(f"moex: error: {exc}", file=sys.stderr)
+            sys.exit(2)
+    register_configs()
+    entry = hydra.main(version_base="1.3", config_path=CONF_DIR,
+                       config_name=config_name)(task_function)
+    sys.argv = [f"moex {verb}"] + args
+    entry()

@@ -1,0 +1,25 @@
+"""The one exception type for a user's bad input; the CLI turns it into a one-line error, exit 2."""
+
+
+class ConfigError(ValueError):
+    """A config value, data file or run folder the user supplied is invalid.
+
+    The message is one sentence naming the key and the allowed values.
+    """
+
+
+def check(condition: bool, message: str) -> None:
+    """Raise `ConfigError(message)` unless `condition` holds."""
+    if not condition:
+        raise ConfigError(message)
+
+
+def check_range(key: str, value: float, low: float, high: float, *, low_open=False) -> None:
+    """Check `low <= value <= high` (or `low < value` with `low_open`), naming `key` on failure."""
+    ok = (value > low if low_open else value >= low) and value <= high
+    bracket = "(" if low_open else "["
+    check(ok, f"{key}={value} is outside {bracket}{low}, {high}]")
+
+
+def check_positive(key: str, value: float) -> None:
+    check(value > 0, f"{key}={value} must be positive")

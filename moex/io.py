@@ -1,0 +1,68 @@
+"""Every artefact a run reads or writes. Writes are atomic: a temporary file in the same folder is
+renamed over the target, so a kill leaves the old file or the new one, never a truncated one."""
+
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from moex.errors import ConfigError
+
+CHECKPOINT = "checkpoint.pt"
+HISTORY = "history.csv"
+METRICS = "metrics.csv"
+SAMPLES = "samples.npz"
+FIGURES = "figures"
+LOG = "train.log"
+FORMAT_VERSION = 1
+
+
+def atomic_write(path: Path, write: Callable[[str], None]) -> Path:
+    """Call `write(tmp_path)` and rename the result onto `path`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def save_checkpoint(path: Path, payload: dict) -> Path:
+    """Save a plain dict of tensors, numbers, strings and nested dicts (no pickled objects)."""
+    payload = {"format_version": FORMAT_VERSION, **payload}
+    return atomic_write(path, lambda tmp: torch.save(payload, tmp))
+
+
+def load_checkpoint(path: Path) -> dict:
+    """Load `checkpoint.pt` with `weights_only=True`; a bad or foreign file is a `ConfigError`."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT
+    if not path.is_file():
+        raise ConfigError(f"run_dir: no {CHECKPOINT} in {path.parent}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt or foreign files
+        raise ConfigError(f"run_dir: {path} is not a readable moex checkpoint ({exc})") from None
+    version = payload.get("format_version") if isinstance(payload, dict) else None
+    if version != FORMAT_VERSION:
+        raise ConfigError(f"run_dir: {path} has checkpoint format {version}, this moex reads "
+                          f"format {FORMAT_VERSION}")
+    return payload
+
+
+def write_csv(path: Path, rows: list[dict] | pd.DataFrame) -> Path:
+    frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows)
+    return atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False))
+
+
+def read_csv(path: Path) -> pd.DataFrame:
+    return pd.read_csv(path)

@@ -1,0 +1,219 @@
+"""The mixture of RNN experts (paper Sec. 2, Eqs. 1-8) as R independent copies in one set of
+tensors.
+
+Notation (shape letters used in every signature and einsum):
+
+    R  runs: independent networks trained side by side
+    S  series (the paper's NT)          T  time steps (the paper's LT)
+    D  signal features (paper d)        K  experts (paper N)
+    M  context units of one expert      H  context units of the gating RNN (paper NC, M_g)
+
+Expert k (Eqs. 1-3):   u_n = (1-ε) u_{n-1} + ε (W_1 x_n + W_2 c_{n-1}),  c_n = tanh(u_n + v_1),
+                       y_n = tanh(W_3 c_n + v_2).
+Mixture (Eq. 4):       y_n = Σ_k g_n^k y_n^k.
+Gating RNN (Eqs. 5-8): u^g_n = (1-ε^g) u^g_{n-1}
+                             + ε^g (W^g_1 g_{n-τ} + W^g_2 x_{n-τ} + W^g_3 c^g_{n-1}),
+                       c^g_n = tanh(u^g_n + v^g_1),  g_n = softmax(W^g_4 c^g_n + v^g_2).
+
+The gating RNN is stepped in its own time m = n - τ: its step m reads (g_m, x_m) and emits g_{m+τ}.
+Parameters are plain dicts of tensors with a leading R axis, so they checkpoint as state dicts.
+The only time loop of the teacher-forced passes is `leaky_scan`, which a kernel may replace.
+"""
+
+from dataclasses import dataclass, field
+
+import torch
+
+from moex.errors import check, check_positive, check_range
+
+INIT_SCHEMES = ("paper", "mregn")
+
+
+@dataclass
+class ExpertsConfig:
+    context_size: int = 10  # M
+    time_constant: float = 0.2  # ε
+
+
+@dataclass
+class GatingConfig:
+    context_size: int = 15  # H (the paper's M_g, NC)
+    time_constant: float = 0.04  # ε^g
+
+
+@dataclass
+class ModelConfig:
+    """Sizes and constants of the mixture (paper Sec. 3.2 defaults).
+
+    `init`: `paper` draws every weight and bias from U[-1/M, 1/M] and u_0 from U[-1, 1]
+    (Sec. 2.1.5); `mregn` follows the C code (spec §1.7): input weights U[±1/inputs], biases
+    U[±1], u_0 = 0. `learn_time_constants` learns τ = 1/ε per neuron, clamped to τ >= 1, as the C
+    code does by default (spec §1.3); the paper keeps ε fixed.
+    """
+
+    num_experts: int = 2  # K (the paper's N)
+    delay: int = 1  # τ, feedback delay of Eq. 5 and of the closed loop
+    sigma_min: float = 0.05  # σ̄, the floor of every expert's σ (v = e^{2s} + σ̄², spec §1.8)
+    init: str = "paper"
+    learn_time_constants: bool = False
+    experts: ExpertsConfig = field(default_factory=ExpertsConfig)
+    gating: GatingConfig = field(default_factory=GatingConfig)
+
+    def __post_init__(self):
+        check(self.num_experts >= 1, f"model.num_experts={self.num_experts} must be >= 1")
+        check(self.delay >= 1, f"model.delay={self.delay} must be >= 1 (τ >= 1)")
+        check_positive("model.sigma_min", self.sigma_min)
+        check(self.init in INIT_SCHEMES, f"model.init={self.init!r}; choose paper or mregn")
+        for key, sub in (("model.experts", self.experts), ("model.gating", self.gating)):
+            check(sub.context_size >= 1, f"{key}.context_size={sub.context_size} must be >= 1")
+            check_range(f"{key}.time_constant", sub.time_constant, 0.0, 1.0, low_open=True)
+
+
+def leaky_scan(drive: torch.Tensor, w_rec: torch.Tensor, eps: torch.Tensor, bias: torch.Tensor,
+               u0: torch.Tensor) -> torch.Tensor:
+    """Run the leaky-tanh recurrence of Eqs. 1-2 (or 5-6) over time.
+
+    B are the batch axes of distinct networks and N the rows (series) that share a network's
+    weights; keeping N as the row axis makes every step one plain batched matmul.
+
+    Args:
+        drive: (B..., T, N, M) the input term (W_1 x_n, or W^g_1 g + W^g_2 x) at each step.
+        w_rec: (B..., M, M) recurrent weights W_2.
+        eps: (B..., 1, M) time constants ε, per neuron.
+        bias: (B..., 1, M) v_1, added inside the tanh.
+        u0: (B..., N, M) initial internal potentials.
+
+    Returns:
+        u: (B..., T, N, M) internal potentials u_1..u_T; the contexts are tanh(u + v_1).
+    """
+    u, c = u0, torch.tanh(u0 + bias)
+    decay, drive = 1 - eps, eps.unsqueeze(-3) * drive
+    w_eff = (eps.transpose(-1, -2) * w_rec).transpose(-1, -2)  # (ε W_2)ᵀ, folded once
+    us = []
+    for drive_n in drive.unbind(-3):  # unbind, not indexing: one gradient buffer, not T
+        u = decay * u + drive_n + c @ w_eff
+        c = torch.tanh(u + bias)
+        us.append(u)
+    return torch.stack(us, dim=-3)
+
+
+def _uniform(generator, shape, bound, dtype):
+    return (torch.rand(shape, generator=generator, dtype=dtype) * 2 - 1) * bound
+
+
+def _init_rnn(generator, *, inputs: int, hidden: int, outputs: int, num_series: int,
+              time_constant: float, scheme: str, dtype) -> dict[str, torch.Tensor]:
+    """One run's leaky RNN: w_in (H, inputs), w_rec (H, H), w_out (outputs, H), biases, τ, u_0."""
+    paper = scheme == "paper"
+    w_bound = 1 / hidden
+    in_bound = w_bound if paper or inputs == 0 else 1 / inputs
+    bias_bound = w_bound if paper else 1.0
+    return {
+        "w_in": _uniform(generator, (hidden, inputs), in_bound, dtype),
+        "w_rec": _uniform(generator, (hidden, hidden), w_bound, dtype),
+        "w_out": _uniform(generator, (outputs, hidden), w_bound, dtype),
+        "b_c": _uniform(generator, (hidden,), bias_bound, dtype),
+        "b_o": _uniform(generator, (outputs,), bias_bound, dtype),
+        "tau": torch.full((hidden,), 1 / time_constant, dtype=dtype),
+        "u0": _uniform(generator, (num_series, hidden), 1.0, dtype) if paper
+        else torch.zeros((num_series, hidden), dtype=dtype),
+    }
+
+
+def _stack(per_run: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    return {name: torch.stack([p[name] for p in per_run]) for name in per_run[0]}
+
+
+def init_experts(cfg: ModelConfig, num_series: int, num_features: int,
+                 generators: list[torch.Generator], dtype=torch.float64) -> dict[str, torch.Tensor]:
+    """Initial expert parameters, run r drawn from `generators[r]` alone.
+
+    Returns:
+        w_in (R, K, M, D), w_rec (R, K, M, M), w_out (R, K, D, M), b_c (R, K, M), b_o (R, K, D),
+        tau (R, K, M) = 1/ε, log_sigma (R, K) = s with σ² = e^{2s} + σ̄² (σ ≈ 1 at s = 0),
+        u0 (R, S, K, M).
+    """
+    runs = []
+    for gen in generators:
+        experts = _stack([
+            _init_rnn(gen, inputs=num_features, hidden=cfg.experts.context_size,
+                      outputs=num_features, num_series=num_series,
+                      time_constant=cfg.experts.time_constant, scheme=cfg.init, dtype=dtype)
+            for _ in range(cfg.num_experts)])
+        experts["u0"] = experts["u0"].transpose(0, 1)  # (K, S, M) -> (S, K, M)
+        experts["log_sigma"] = torch.zeros(cfg.num_experts, dtype=dtype)
+        runs.append(experts)
+    return _stack(runs)
+
+
+def init_gating(cfg: ModelConfig, num_series: int, num_features: int,
+                generators: list[torch.Generator], dtype=torch.float64) -> dict[str, torch.Tensor]:
+    """Initial gating-RNN parameters, run r drawn from `generators[r]` alone.
+
+    Returns:
+        w_in (R, H, K + D) acting on [g_{n-τ}, x_{n-τ}] (W^g_1 | W^g_2), w_rec (R, H, H),
+        w_out (R, K, H), b_c (R, H), b_o (R, K), tau (R, H) = 1/ε^g, u0 (R, S, H).
+    """
+    return _stack([
+        _init_rnn(gen, inputs=cfg.num_experts + num_features, hidden=cfg.gating.context_size,
+                  outputs=cfg.num_experts, num_series=num_series,
+                  time_constant=cfg.gating.time_constant, scheme=cfg.init, dtype=dtype)
+        for gen in generators])
+
+
+def expert_variances(experts: dict[str, torch.Tensor], sigma_min: float) -> torch.Tensor:
+    """σ_k² = e^{2 s_k} + σ̄², (R, K): a soft floor at σ̄ (spec §1.8)."""
+    return torch.exp(2 * experts["log_sigma"]) + sigma_min**2
+
+
+def expert_forward(experts: dict[str, torch.Tensor],
+                   inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Teacher-forced outputs of every expert on every series (Eqs. 1-3).
+
+    Args:
+        experts: parameters from `init_experts`.
+        inputs: (S, T, D) the inputs x_n (the series shifted by the delay).
+
+    Returns:
+        outputs (R, S, T, K, D), y^k_n for each run, series, step and expert, and the internal
+        potentials (R, S, K, T, M) that produced them.
+    """
+    drive = torch.einsum("rkmd,std->rktsm", experts["w_in"], inputs)
+    bias = experts["b_c"][:, :, None]  # (R, K, 1, M)
+    u = leaky_scan(drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
+                   experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
+    c = torch.tanh(u + bias[:, :, None])
+    outputs = torch.tanh(torch.einsum("rkdm,rktsm->rstkd", experts["w_out"], c)
+                         + experts["b_o"][:, None, None])
+    return outputs, u.permute(0, 3, 1, 2, 4)
+
+
+def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
+                   inputs: torch.Tensor, delay: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Teacher-forced gate openings (Eqs. 5-8), fed ĝ_{n-τ} instead of g_{n-τ}.
+
+    Args:
+        gating: parameters from `init_gating`.
+        gate_targets: (R, S, T, K) the estimates ĝ_n.
+        inputs: (S, T, D) the inputs x_n aligned with ĝ_n (D may be 0).
+        delay: τ.
+
+    Returns:
+        log_gates (R, S, T - τ, K), ln g_n for n = τ..T-1 (for n < τ, g_n = ĝ_n by definition),
+        and the internal potentials (R, S, T - τ, H).
+    """
+    R, S, T, K = gate_targets.shape
+    feed = torch.cat([gate_targets[:, :, : T - delay],
+                      inputs[None, :, : T - delay].expand(R, -1, -1, -1)], dim=-1)
+    drive = torch.einsum("rhi,rsti->rtsh", gating["w_in"], feed)
+    bias = gating["b_c"][:, None]  # (R, 1, H)
+    u = leaky_scan(drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
+                   gating["u0"])  # (R, T - τ, S, H)
+    c = torch.tanh(u + bias[:, None])
+    logits = torch.einsum("rkh,rtsh->rstk", gating["w_out"], c) + gating["b_o"][:, None, None]
+    return torch.log_softmax(logits, dim=-1), u.transpose(1, 2)
+
+
+def split_series(series: torch.Tensor, delay: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inputs x_n = series[n] and targets y_n = series[n + τ] (Sec. 2.2), each (S, T - τ, D)."""
+    return series[:, :-delay], series[:, delay:]

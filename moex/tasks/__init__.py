@@ -1,0 +1,187 @@
+"""Training data: deterministic task generators behind a name registry (paper Sec. 3).
+
+Every task returns a `Dataset`: series (S, T, D), the true primitive label of every step, and the
+rule that turns outputs into symbols.
+"""
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from moex.errors import check, check_positive, check_range
+from moex.tasks import files, lissajous, reber
+from moex.tasks.switching import (
+    Primitive,
+    check_transition,
+    generate_switching,
+    prototype_points,
+    symbol_table,
+)
+
+
+@dataclass
+class TaskConfig:
+    """Which task and its sizes. Keys a task does not use are ignored by it."""
+
+    name: str = "lissajous2"
+    num_series: int = 10  # the paper's NT
+    length: int = 1000  # the paper's LT (0 for `csv`: the files' own length)
+    num_test_series: int = 10  # held-out series from the same source
+    period: float = 25.0  # P, steps per Lissajous period
+    switch_prob: float = 0.5  # lissajous2: probability of switching curve at the origin
+    transition_rule: str = "paper"  # lissajous9: paper | mregn
+    choice_prob: float = 0.5  # reber: probability of the first of two paths
+    burn_in: int = 100  # reber: symbols discarded from the start state
+    primitives: list[Any] = field(default_factory=list)  # markov_primitives
+    transition: list[Any] = field(default_factory=list)  # markov_primitives
+    path: str = ""  # csv: file, glob or folder
+
+    def __post_init__(self):
+        check(self.name in TASKS, f"task.name={self.name!r} is unknown; choose one of "
+                                  f"{', '.join(sorted(TASKS))}")
+        check(self.num_series >= 1, f"task.num_series={self.num_series} must be >= 1")
+        check(self.num_test_series >= 0,
+              f"task.num_test_series={self.num_test_series} must be >= 0")
+        check(self.length >= 0 if self.name == "csv" else self.length >= 3,
+              f"task.length={self.length} must be >= 3")
+        check_positive("task.period", self.period)
+        check_range("task.switch_prob", self.switch_prob, 0.0, 1.0)
+        check_range("task.choice_prob", self.choice_prob, 0.0, 1.0)
+        check(self.transition_rule in ("paper", "mregn"),
+              f"task.transition_rule={self.transition_rule!r}; choose paper or mregn")
+        check(self.burn_in >= 0, f"task.burn_in={self.burn_in} must be >= 0")
+
+
+@dataclass
+class Dataset:
+    """Training (and held-out) data of one task.
+
+    Attributes:
+        series: (S, T, D) signal; D = 0 for purely symbolic tasks.
+        labels: (S, T) index of the true primitive at each step (-1 where unknown).
+        symbol_names: the V symbols; `symbol_of[k]` is the symbol of primitive k.
+        transition: (K, K) true transition matrix between primitives, or None.
+        prototypes: (P, D) points on the primitives and their symbols (P,), used to read a
+            symbol off a generated output (nearest point); None where outputs are symbols.
+        gate_targets: (S, T, V) one-hot symbols for tasks without experts (D = 0), else None.
+        test: held-out data from the same source, or None.
+    """
+
+    series: np.ndarray
+    labels: np.ndarray
+    symbol_names: list[str]
+    symbol_of: np.ndarray
+    transition: np.ndarray | None = None
+    prototypes: np.ndarray | None = None
+    prototype_symbols: np.ndarray | None = None
+    gate_targets: np.ndarray | None = None
+    test: "Dataset | None" = None
+
+
+def _switching(primitives: list[Primitive], transition: np.ndarray, cfg: TaskConfig,
+               rng: np.random.Generator, initial: int | None = None) -> Dataset:
+    def sample(count):
+        pairs = [generate_switching(primitives, transition, cfg.length, cfg.period, rng, initial)
+                 for _ in range(count)]
+        return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
+
+    names, symbol_of = symbol_table(primitives)
+    points, point_symbols = prototype_points(primitives)
+    common = dict(symbol_names=names, symbol_of=symbol_of, transition=transition,
+                  prototypes=points, prototype_symbols=point_symbols)
+    test = Dataset(*sample(cfg.num_test_series), **common) if cfg.num_test_series else None
+    return Dataset(*sample(cfg.num_series), **common, test=test)
+
+
+def _lissajous2(cfg, rng):
+    return _switching(lissajous.two_circles(), lissajous.two_circles_transition(cfg.switch_prob),
+                      cfg, rng)
+
+
+def _lissajous9(cfg, rng):
+    return _switching(lissajous.nine_curves(),
+                      lissajous.nine_curves_transition(cfg.transition_rule), cfg, rng, initial=0)
+
+
+def _primitive_from_dict(item: Any, index: int) -> Primitive:
+    key = f"task.primitives[{index}]"
+    check(isinstance(item, dict) or hasattr(item, "keys"),
+          f"{key} must be a mapping with amplitude, frequency, phase, offset")
+    item = dict(item)
+    unknown = set(item) - {"name", "amplitude", "frequency", "phase", "offset", "length"}
+    check(not unknown, f"{key} has unknown keys {sorted(unknown)}")
+    check("amplitude" in item, f"{key}.amplitude is required")
+    dims = len(item["amplitude"])
+    vectors = {}
+    for name in ("amplitude", "frequency", "phase", "offset"):
+        value = tuple(float(v) for v in item.get(name, [1.0 if name == "frequency" else 0.0] *
+                                                 dims))
+        check(len(value) == dims, f"{key}.{name} has {len(value)} entries, expected {dims}")
+        vectors[name] = value
+    length = float(item.get("length", 1.0))
+    check_positive(f"{key}.length", length)
+    return Primitive(str(item.get("name", f"p{index}")), length=length, **vectors)
+
+
+def _markov_primitives(cfg, rng):
+    check(len(cfg.primitives) >= 1, "task.primitives is empty: list at least one primitive")
+    primitives = [_primitive_from_dict(p, i) for i, p in enumerate(cfg.primitives)]
+    dims = {len(p.amplitude) for p in primitives}
+    check(len(dims) == 1, f"task.primitives have different dimensions {sorted(dims)}")
+    transition = check_transition(np.array([list(r) for r in cfg.transition], dtype=float),
+                                  len(primitives), "task.transition")
+    return _switching(primitives, transition, cfg, rng)
+
+
+def _reber(cfg, rng):
+    def sample(count):
+        labels = np.stack([reber.generate_reber(cfg.length, cfg.burn_in, cfg.choice_prob, rng)
+                           for _ in range(count)])
+        series = np.zeros(labels.shape + (0,))
+        return series, labels, np.eye(len(reber.SYMBOLS))[labels]
+
+    common = dict(symbol_names=list(reber.SYMBOLS), symbol_of=np.arange(len(reber.SYMBOLS)))
+    test = None
+    if cfg.num_test_series:
+        s, lab, g = sample(cfg.num_test_series)
+        test = Dataset(s, lab, **common, gate_targets=g)
+    s, lab, g = sample(cfg.num_series)
+    return Dataset(s, lab, **common, gate_targets=g, test=test)
+
+
+def _csv(cfg, rng, min_length=3):
+    series = files.load_series(cfg.path, cfg.length, min_length)
+    labels = -np.ones(series.shape[:2], dtype=np.int64)
+    return Dataset(series, labels, symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
+
+
+TASKS = {
+    "lissajous2": _lissajous2,
+    "lissajous9": _lissajous9,
+    "markov_primitives": _markov_primitives,
+    "reber": _reber,
+    "csv": _csv,
+}
+
+
+def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
+    """Generate (or load) the task's data, deterministically given `seed`.
+
+    Args:
+        cfg: the task config; `cfg.name` selects the generator.
+        seed: data seed; the same seed always gives the same data.
+        min_length: shortest series the model can train on (delay + 2).
+
+    Returns:
+        the training `Dataset`, with the held-out series in `.test`.
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0xDA7A]))
+    if cfg.name == "csv":
+        return _csv(cfg, rng, min_length)
+    check(cfg.length >= min_length, f"task.length={cfg.length} is too short for "
+                                    f"model.delay: need at least {min_length} steps")
+    return TASKS[cfg.name](cfg, rng)
+
+
+__all__ = ["TaskConfig", "Dataset", "make_task", "TASKS"]

@@ -1,0 +1,61 @@
+"""The paper's Lissajous tasks (Sec. 3.2): two circles touching at the origin (spec §7.3) and the
+nine curves around a central circle (spec §7.5), built on the switching engine."""
+
+import math
+
+import numpy as np
+
+from moex.tasks.switching import Primitive
+
+HALF_PI = math.pi / 2
+
+
+def two_circles() -> list[Primitive]:
+    """L and R: circles of radius 0.4 centred at (∓0.4, 0), touching at the origin (spec §7.3)."""
+    return [
+        Primitive("L", (0.4, 0.4), (1, 1), (HALF_PI, 0.0), (-0.4, 0.0)),
+        Primitive("R", (-0.4, 0.4), (1, 1), (HALF_PI, 0.0), (0.4, 0.0)),
+    ]
+
+
+def two_circles_transition(switch_prob: float) -> np.ndarray:
+    """Stay with 1 − P, switch with P (paper Table 2)."""
+    return np.array([[1 - switch_prob, switch_prob], [switch_prob, 1 - switch_prob]])
+
+
+def nine_curves() -> list[Primitive]:
+    """Quarters 0-3 of the central circle C, then LL, LS, B0, B8, RL, RS, T0, T8 (spec §7.5)."""
+    quarters = [Primitive("C", (-0.2, 0.2), (1, 1), (0.0, HALF_PI), (0.0, 0.0), 0.25)] * 4
+    outer = [
+        Primitive("LL", (0.32, 0.32), (1, 1), (0.0, HALF_PI), (-0.52, 0.0)),
+        Primitive("LS", (0.16, 0.16), (1, 1), (0.0, HALF_PI), (-0.36, 0.0)),
+        Primitive("B0", (0.32, -0.32), (1, 1), (0.0, HALF_PI), (0.0, -0.52)),
+        Primitive("B8", (0.24, -0.32), (2, 1), (0.0, HALF_PI), (0.0, -0.52)),
+        Primitive("RL", (0.32, 0.32), (1, 1), (0.0, HALF_PI), (0.52, 0.0)),
+        Primitive("RS", (0.16, 0.16), (1, 1), (0.0, HALF_PI), (0.36, 0.0)),
+        Primitive("T0", (0.32, -0.32), (1, 1), (0.0, HALF_PI), (0.0, 0.52)),
+        Primitive("T8", (0.24, -0.32), (2, 1), (0.0, HALF_PI), (0.0, 0.52)),
+    ]
+    return quarters + outer
+
+
+def nine_curves_transition(rule: str) -> np.ndarray:
+    """(12, 12) transition matrix of the nine-curve task.
+
+    `paper`: keep the current curve or move on with equal probability (Fig. 11 caption) — a
+    quarter of C goes on to the next quarter with 1/2 or to each of the two outer curves at its
+    end point with 1/4; an outer curve repeats with 1/2, or moves to its sibling or back to the
+    next quarter of C with 1/4 each. `mregn`: the C code's 0.8/0.1/0.1 and 0.4/0.4/0.2.
+    """
+    keep, branch, repeat, sibling, back = {
+        "paper": (0.5, 0.25, 0.5, 0.25, 0.25),
+        "mregn": (0.8, 0.1, 0.4, 0.4, 0.2),
+    }[rule]
+    p = np.zeros((12, 12))
+    for k in range(4):
+        first, second = 4 + 2 * k, 5 + 2 * k  # the outer pair at the end point of quarter k
+        p[k, (k + 1) % 4] = keep
+        p[k, first] = p[k, second] = branch
+        for this, other in ((first, second), (second, first)):
+            p[this, this], p[this, other], p[this, (k + 1) % 4] = repeat, sibling, back
+    return p

@@ -1,0 +1,56 @@
+"""The ergodic Reber automaton of the preliminary experiment (paper Sec. 3.1, Fig. 2; spec §7.6)."""
+
+import numpy as np
+
+SYMBOLS = ("T", "P", "S", "X", "V", "E", "B")
+
+# state -> ((symbol, next state) of the first option, (symbol, next state) of the second)
+AUTOMATON = {
+    0: (("T", 1), ("P", 2)),
+    1: (("S", 1), ("X", 3)),
+    2: (("T", 2), ("V", 4)),
+    3: (("X", 2), ("S", 5)),
+    4: (("P", 3), ("V", 5)),
+    5: (("E", 6), ("E", 6)),
+    6: (("B", 0), ("B", 0)),
+}
+
+
+def generate_reber(length: int, burn_in: int, choice_prob: float,
+                   rng: np.random.Generator) -> np.ndarray:
+    """Symbol indices (length,) of one walk, after discarding `burn_in` symbols from state 0.
+
+    The first option is taken with probability `choice_prob` (1/2 in the paper).
+    """
+    state, out = 0, []
+    while len(out) < burn_in + length:
+        option = 0 if rng.random() < choice_prob else 1
+        symbol, state = AUTOMATON[state][option]
+        out.append(SYMBOLS.index(symbol))
+    return np.array(out[burn_in:], dtype=np.int64)
+
+
+def accepts(symbols: np.ndarray) -> bool:
+    """Whether some start state of the automaton emits exactly this symbol sequence."""
+    states = set(AUTOMATON)
+    for s in symbols:
+        states = {nxt for st in states for sym, nxt in AUTOMATON[st] if sym == SYMBOLS[s]}
+        if not states:
+            return False
+    return True
+
+
+def violations(symbols: np.ndarray) -> np.ndarray:
+    """(T,) bool: steps whose symbol cannot follow the recent history (paper Fig. 4, red labels).
+
+    The automaton state is tracked as a set of possible states and restarted after a violation.
+    """
+    bad = np.zeros(len(symbols), dtype=bool)
+    states = set(AUTOMATON)
+    for n, s in enumerate(symbols):
+        nxt = {t for st in states for sym, t in AUTOMATON[st] if sym == SYMBOLS[s]}
+        if not nxt:
+            bad[n] = True
+            nxt = {t for st in AUTOMATON for sym, t in AUTOMATON[st] if sym == SYMBOLS[s]}
+        states = nxt
+    return bad

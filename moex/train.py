@@ -1,0 +1,277 @@
+"""The two training phases (paper Sec. 2.1): experts with gate estimates, then the gating RNN.
+
+Both phases are gradient ascent with momentum (Eqs. 17-18) on R independent runs at once, with
+the C code's per-group learning-rate scaling (spec §2.2, §3.3) and the adaptive learning rate of
+Sec. 2.1.4, which each run applies to itself: it accepts or retries its own step.
+"""
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from tqdm.auto import tqdm
+
+from moex import objectives
+from moex.errors import check, check_positive, check_range
+from moex.model import ModelConfig, expert_forward, expert_variances, gating_forward
+
+MOMENTUM_FORMS = ("paper", "mregn")
+
+
+@dataclass
+class AdaptiveLRConfig:
+    """The adaptive rule of Sec. 2.1.4: retry at α·decrease while r > max_ratio, α·increase
+    after a step with r < 1, give up (reject the step, zero the momentum) after max_retries."""
+
+    max_ratio: float = 1.1  # r_th
+    decrease: float = 0.7  # α_dec
+    increase: float = 1.05  # α_inc
+    max_retries: int = 1000
+
+
+@dataclass
+class ExpertPhaseConfig:
+    steps: int = 30000
+    learning_rate: float = 0.01  # α̃
+    momentum: float = 0.9  # η
+    adaptive_lr: bool = False  # spec §2.4; criterion: the mixture MSE E
+    gate_prior_std: float = 10.0  # ς of the Brownian prior on β (Eq. 13)
+    attraction: bool = False  # the C code's u_0 attraction term (spec §9.5)
+    log_every: int = 100
+
+
+@dataclass
+class GatingPhaseConfig:
+    steps: int = 10000
+    learning_rate: float = 0.01  # α̃
+    momentum: float = 0.9  # η
+    adaptive_lr: bool = True  # Sec. 2.1.4; criterion: the teacher-forced KL
+    attraction: bool = False
+    log_every: int = 100
+
+
+@dataclass
+class TrainConfig:
+    """Both phases. `momentum_form`: `paper` keeps the step Δθ = αg + ηΔθ in the momentum
+    buffer (Eq. 17); `mregn` keeps the raw gradient sum and scales the whole step by the adaptive
+    rate (spec §2.2, §2.4). The two agree whenever the rate is constant."""
+
+    experts: ExpertPhaseConfig = field(default_factory=ExpertPhaseConfig)
+    gating: GatingPhaseConfig = field(default_factory=GatingPhaseConfig)
+    adaptive: AdaptiveLRConfig = field(default_factory=AdaptiveLRConfig)
+    momentum_form: str = "paper"
+
+    def __post_init__(self):
+        for key, phase in (("train.experts", self.experts), ("train.gating", self.gating)):
+            check(phase.steps >= 0, f"{key}.steps={phase.steps} must be >= 0")
+            check_positive(f"{key}.learning_rate", phase.learning_rate)
+            check_range(f"{key}.momentum", phase.momentum, 0.0, 1.0)
+            check(phase.log_every >= 1, f"{key}.log_every={phase.log_every} must be >= 1")
+        check_positive("train.experts.gate_prior_std", self.experts.gate_prior_std)
+        check(self.adaptive.max_ratio >= 1,
+              f"train.adaptive.max_ratio={self.adaptive.max_ratio} must be >= 1")
+        check_range("train.adaptive.decrease", self.adaptive.decrease, 0.0, 1.0, low_open=True)
+        check(self.adaptive.increase >= 1,
+              f"train.adaptive.increase={self.adaptive.increase} must be >= 1")
+        check(self.adaptive.max_retries >= 1,
+              f"train.adaptive.max_retries={self.adaptive.max_retries} must be >= 1")
+        check(self.momentum_form in MOMENTUM_FORMS,
+              f"train.momentum_form={self.momentum_form!r}; choose paper or mregn")
+
+
+Objective = Callable[[dict[str, torch.Tensor]], tuple[torch.Tensor, dict[str, torch.Tensor]]]
+
+
+def _per_run(scale: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return scale.view((-1,) + (1,) * (like.dim() - 1))
+
+
+def _stepper(grads, velocity, rates, momentum, paper_form):
+    """The step Δθ as a function of the per-run rate scale (Eq. 17 or the C code's form)."""
+    if paper_form:
+        return lambda scale: {k: rates[k] * _per_run(scale, g) * g + momentum * velocity[k]
+                              for k, g in grads.items()}
+    return lambda scale: {k: rates[k] * _per_run(scale, v) * v for k, v in velocity.items()}
+
+
+def _ascend(params: dict[str, torch.Tensor], rates: dict[str, float], objective: Objective,
+            criterion: str, steps: int, momentum: float, adaptive: bool,
+            rule: TrainConfig, phase: str, log_every: int) -> tuple[dict, list[dict]]:
+    """Momentum gradient ascent on `objective` (Eqs. 17-18), optionally with the adaptive rate.
+
+    Args:
+        params: leaf tensors with a leading run axis R; the dict is updated in place.
+        rates: the scaled learning rate of each parameter (spec §2.2).
+        objective: params -> (ln L per run (R,), named statistics per run (R,)).
+        criterion: statistic whose ratio r drives the adaptive rate (E or the KL).
+        rule: supplies the adaptive thresholds and the momentum form.
+
+    Returns:
+        the trained parameters and history rows (one per run every `log_every` steps).
+    """
+    first = next(iter(params.values()))
+    R, device = first.shape[0], first.device
+    lr_scale = torch.ones(R, dtype=first.dtype, device=device)
+    velocity = {k: torch.zeros_like(p) for k, p in params.items()}
+    rows = []
+    paper_form = rule.momentum_form == "paper"
+    for step in tqdm(range(steps), desc=phase, disable=None, mininterval=1.0, leave=False):
+        # ---- gradient of ln L at the current parameters
+        leaves = {k: p.detach().requires_grad_(True) for k, p in params.items()}
+        log_l, stats = objective(leaves)
+        grads = dict(zip(leaves, torch.autograd.grad(log_l.sum(), list(leaves.values())),
+                         strict=True))
+        with torch.no_grad():
+            if not paper_form:  # mregn: the buffer sums raw gradients
+                velocity = {k: grads[k] + momentum * velocity[k] for k in params}
+            propose = _stepper(grads, velocity, rates, momentum, paper_form)
+            delta, retries = propose(lr_scale), torch.zeros(R, dtype=torch.long, device=device)
+            # ---- adaptive rate: each run shrinks its own rate until r <= r_th (Sec. 2.1.4)
+            if adaptive:
+                base = stats[criterion]
+                pending = torch.ones(R, dtype=torch.bool, device=device)
+                for _ in range(rule.adaptive.max_retries):
+                    _, trial = objective({k: params[k] + delta[k] for k in params})
+                    ratio = trial[criterion] / base
+                    failed = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
+                    lr_scale = torch.where(pending & (ratio < 1), lr_scale *
+                                           rule.adaptive.increase, lr_scale)
+                    pending = failed
+                    if not pending.any():
+                        break
+                    lr_scale = torch.where(failed, lr_scale * rule.adaptive.decrease, lr_scale)
+                    retries += failed
+                    retry = propose(lr_scale)
+                    delta = {k: torch.where(_per_run(failed, d), retry[k], d)
+                             for k, d in delta.items()}
+                if pending.any():  # give up this step for the runs still failing
+                    delta = {k: torch.where(_per_run(pending, d), 0.0, d)
+                             for k, d in delta.items()}
+                    velocity = {k: torch.where(_per_run(pending, v), 0.0, v)
+                                for k, v in velocity.items()}
+            # ---- update
+            for k in params:
+                params[k] = params[k] + delta[k]
+            if paper_form:
+                velocity = delta
+            if "tau" in params:
+                params["tau"] = params["tau"].clamp_min(1.0)  # ε <= 1 (spec §1.3)
+        if step % log_every == 0 or step == steps - 1:
+            for r in range(R):
+                rows.append({"run": r, "phase": phase, "step": step, "objective": log_l[r].item(),
+                             **{k: v[r].item() for k, v in stats.items()},
+                             "lr_scale": lr_scale[r].item(), "retries": retries[r].item()})
+    return {k: p.detach() for k, p in params.items()}, rows
+
+
+def expert_objective(inputs: torch.Tensor, targets: torch.Tensor, fixed: dict[str, torch.Tensor],
+                     model: ModelConfig, cfg: ExpertPhaseConfig) -> Objective:
+    """ln L(D, θ) of phase 1 (Eqs. 11-13) as a function of the learned parameters (and β).
+
+    Args:
+        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
+        fixed: parameters held constant (τ unless time constants are learned).
+    """
+
+    def objective(p):
+        net = {**p, **fixed}
+        outputs, potentials = expert_forward(net, inputs)
+        log_ghat = torch.log_softmax(p["beta"], dim=-1)
+        log_lik = objectives.mixture_log_likelihood(
+            outputs, targets, log_ghat, expert_variances(net, model.sigma_min))
+        log_prior = objectives.gate_prior_log_density(p["beta"], cfg.gate_prior_std)
+        total = log_lik + log_prior
+        if cfg.attraction:
+            total = total + objectives.initial_state_attraction(p["u0"], potentials,
+                                                                model.sigma_min**2)
+        error = objectives.mixture_mse(outputs, targets, log_ghat.exp())
+        return total, {"log_likelihood": log_lik, "log_prior": log_prior, "E": error}
+
+    return objective
+
+
+def gating_objective(gate_targets: torch.Tensor, inputs: torch.Tensor,
+                     fixed: dict[str, torch.Tensor], model: ModelConfig,
+                     cfg: GatingPhaseConfig) -> Objective:
+    """ln L(D^g, θ^g) of phase 2 (Eqs. 14-15) up to ln Z, as a function of the gating parameters.
+
+    Args:
+        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n.
+        fixed: parameters held constant (τ unless time constants are learned).
+    """
+    R, S, T, K = gate_targets.shape
+    targets = gate_targets[:, :, model.delay:]
+
+    def objective(p):
+        log_gates, potentials = gating_forward({**p, **fixed}, gate_targets, inputs, model.delay)
+        log_lik = objectives.gating_log_likelihood(log_gates, targets)
+        kl = objectives.gating_kl(log_gates, targets)
+        total = log_lik
+        if cfg.attraction:
+            total = total + objectives.initial_state_attraction(p["u0"], potentials,
+                                                                model.sigma_min**2)
+        return total, {"log_likelihood": log_lik, "kl": kl,
+                       "E_g": kl / (S * (T - model.delay) * K)}
+
+    return objective
+
+
+def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model: ModelConfig,
+                  cfg: ExpertPhaseConfig, rule: TrainConfig
+                  ) -> tuple[dict[str, torch.Tensor], torch.Tensor, list[dict]]:
+    """Phase 1 (Sec. 2.1.2-2.1.3): maximum likelihood of the experts and the gate logits β.
+
+    Args:
+        experts: initial parameters from `init_experts` (R runs).
+        series: (S, L, D) training series; inputs x_n = series[n], targets series[n + τ].
+        model: the model config (delay, σ̄, whether τ = 1/ε is learned).
+        cfg: this phase's settings; rule: adaptive thresholds and momentum form.
+
+    Returns:
+        trained experts, gate logits β (R, S, T, K) with T = L - τ (ĝ = softmax β, Eq. 9), and
+        history rows with the columns objective, log_likelihood, log_prior, E.
+    """
+    inputs, targets = series[:, : -model.delay], series[:, model.delay:]
+    S, T, D = targets.shape
+    R, K = experts["log_sigma"].shape
+    fixed = {} if model.learn_time_constants else {"tau": experts["tau"]}
+    params = {k: v for k, v in experts.items() if k not in fixed}
+    params["beta"] = torch.zeros((R, S, T, K), dtype=series.dtype, device=series.device)
+    # spec §2.2: weights, biases, τ and σ at α̃/(T d), initial states at α̃/d, β at α̃
+    alpha = cfg.learning_rate
+    rates = {k: alpha / (S * T * D) for k in params}
+    rates.update(u0=alpha / D, beta=alpha)
+
+    objective = expert_objective(inputs, targets, fixed, model, cfg)
+    trained, rows = _ascend(params, rates, objective, "E", cfg.steps, cfg.momentum,
+                            cfg.adaptive_lr, rule, "experts", cfg.log_every)
+    beta = trained.pop("beta")
+    return {**trained, **fixed}, beta, rows
+
+
+def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
+                 inputs: torch.Tensor, model: ModelConfig, cfg: GatingPhaseConfig,
+                 rule: TrainConfig) -> tuple[dict[str, torch.Tensor], list[dict]]:
+    """Phase 2 (Sec. 2.1.2-2.1.4): fit the gating RNN to the estimates ĝ by teacher forcing.
+
+    Args:
+        gating: initial parameters from `init_gating` (R runs).
+        gate_targets: (R, S, T, K) ĝ_n, soft targets from phase 1 (or one-hot symbols).
+        inputs: (S, T, D) inputs x_n aligned with ĝ_n (D = 0 for symbolic tasks).
+        model: the model config; cfg: this phase's settings; rule: adaptive thresholds.
+
+    Returns:
+        trained gating parameters and history rows with objective, log_likelihood, kl, E_g.
+    """
+    R, S, T, K = gate_targets.shape
+    T_g = T - model.delay
+    fixed = {} if model.learn_time_constants else {"tau": gating["tau"]}
+    params = {k: v for k, v in gating.items() if k not in fixed}
+    # spec §3.3: weights at α̃/(T_g N), initial states at α̃/N
+    rates = {k: cfg.learning_rate / (S * T_g * K) for k in params}
+    rates["u0"] = cfg.learning_rate / K
+
+    objective = gating_objective(gate_targets, inputs, fixed, model, cfg)
+    trained, rows = _ascend(params, rates, objective, "kl", cfg.steps, cfg.momentum,
+                            cfg.adaptive_lr, rule, "gating", cfg.log_every)
+    return {**trained, **fixed}, rows

@@ -1,0 +1,92 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
+TINY = ["task.num_series=2", "task.length=40", "task.num_test_series=1",
+        "model.experts.context_size=4", "model.gating.context_size=5",
+        "train.experts.steps=6", "train.gating.steps=4", "train.experts.log_every=2",
+        "train.gating.log_every=2", "num_runs=2"]
+
+
+def _moex(args, cwd):
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run(MOEX + args, cwd=cwd, capture_output=True, text=True, env=env,
+                          timeout=300)
+
+
+def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
+    run_dir = tmp_path / "run"
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    result = _moex(["train", "task=lissajous2", *TINY, f"hydra.run.dir={run_dir}"], cwd=work)
+    assert result.returncode == 0, result.stderr
+    for name in ("checkpoint.pt", "history.csv", "train.log", ".hydra/config.yaml",
+                 "figures/learning_curves.png"):
+        assert (run_dir / name).is_file(), name
+    assert list(work.iterdir()) == []  # nothing written to the working directory
+    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert checkpoint["gating"]["w_out"].shape == (2, 2, 5)
+    history = pd.read_csv(run_dir / "history.csv")
+    assert {"run", "phase", "step", "E", "E_g", "log_likelihood", "lr_scale"} <= set(history)
+    assert set(history["phase"]) == {"experts", "gating"}
+    assert set(history["run"]) == {0, 1}
+
+
+def test_reber_trains_the_gating_network_only(tmp_path):
+    run_dir = tmp_path / "run"
+    result = _moex(["train", "task=reber", "task.length=30", "task.num_series=2",
+                    "train.gating.steps=3", "model.gating.context_size=4",
+                    f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    history = pd.read_csv(run_dir / "history.csv")
+    assert set(history["phase"]) == {"gating"}
+
+
+@pytest.mark.parametrize("override, message", [
+    ("task=nope", "task=nope is unknown; choose one of"),
+    ("model.nope=1", "unknown key model.nope"),
+    ("model.num_experts=0", "model.num_experts=0 must be >= 1"),
+    ("model.experts.time_constant=1.5", "model.experts.time_constant=1.5 is outside (0.0, 1.0]"),
+    ("model.gating.time_constant=0", "model.gating.time_constant=0.0 is outside (0.0, 1.0]"),
+    ("model.delay=0", "model.delay=0 must be >= 1"),
+    ("model.sigma_min=0", "model.sigma_min=0.0 must be positive"),
+    ("task.switch_prob=1.2", "task.switch_prob=1.2 is outside [0.0, 1.0]"),
+    ("task.switch_prob=0.5,1.2", "task.switch_prob=1.2 is outside [0.0, 1.0]"),
+    ("model.gating.context_size=-3", "model.gating.context_size=-3 must be >= 1"),
+    ("model.num_experts=abc", "model.num_experts"),
+    ("num_runs=0", "num_runs=0 must be >= 1"),
+])
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_path):
+    multirun = ["-m"] if "," in override else []
+    result = _moex(["train", *multirun, override, f"hydra.run.dir={tmp_path}/run",
+                    f"hydra.sweep.dir={tmp_path}/sweep"], cwd=tmp_path)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("moex: error: "), result.stderr
+    assert message in lines[0]
+    assert "Traceback" not in result.stderr + result.stdout
+    assert sorted(p.name for p in Path(tmp_path).iterdir()) == []
+
+
+def test_bad_transition_matrix_and_csv(tmp_path):
+    (tmp_path / "bad.csv").write_text("0.1,0.2\n0.3,nan\n" * 5)
+    for args, message in [
+        (["task=markov_primitives", "task.transition=[[0.5,0.4],[0.5,0.5]]"],
+         "task.transition[0] sums to 0.9, not 1"),
+        (["task=csv", f"task.path={tmp_path}/bad.csv"], "contains NaN or inf"),
+        (["task=csv"], "task.path"),
+    ]:
+        result = _moex(["train", *args, f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path)
+        assert result.returncode == 2 and message in result.stderr, result.stderr
+        assert not (tmp_path / "run").exists()
+
+
+def test_unknown_verb():
+    result = _moex(["fly"], cwd=".")
+    assert result.returncode == 2 and "unknown verb 'fly'" in result.stderr

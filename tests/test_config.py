@@ -1,0 +1,47 @@
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from moex.cli import CONF_DIR, _override_variants
+from moex.config import Config, register_configs
+from moex.pipeline import load_task
+
+TASKS = sorted(p.stem for p in (Path(CONF_DIR) / "task").glob("*.yaml"))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _schema():
+    register_configs()
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_every_task_config_composes(task, tmp_path):
+    overrides = [f"task={task}"] + ([f"task.path={tmp_path}/x.csv"] if task == "csv" else [])
+    if task == "csv":
+        (tmp_path / "x.csv").write_text("0.1 0.2\n" * 20)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = OmegaConf.to_object(compose("config", overrides=overrides))
+    assert isinstance(cfg, Config)
+    assert cfg.task.name == task
+    data = load_task(cfg)
+    assert data.series.shape[0] == cfg.task.num_series or task == "csv"
+
+
+def test_paper_settings_of_lissajous2():
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = OmegaConf.to_object(compose("config", overrides=["task=lissajous2"]))
+    assert (cfg.model.num_experts, cfg.model.delay, cfg.model.sigma_min) == (2, 1, 0.05)
+    assert (cfg.model.experts.context_size, cfg.model.gating.context_size) == (10, 15)
+    assert (cfg.model.experts.time_constant, cfg.model.gating.time_constant) == (0.2, 0.04)
+    assert (cfg.train.experts.steps, cfg.train.gating.steps) == (30000, 10000)
+    assert cfg.train.experts.gate_prior_std == 10.0 and cfg.train.gating.adaptive_lr
+
+
+def test_sweep_overrides_are_validated_value_by_value():
+    variants = _override_variants(["task.switch_prob=0.5,0.25", "num_runs=2", "seed=1,2"])
+    assert ["task.switch_prob=0.5", "num_runs=2", "seed=1"] in variants
+    assert ["task.switch_prob=0.25", "num_runs=2", "seed=1"] in variants
+    assert ["task.switch_prob=0.5", "num_runs=2", "seed=2"] in variants
+    assert len(variants) == 3

@@ -1,0 +1,116 @@
+import numpy as np
+import pytest
+
+from moex.errors import ConfigError
+from moex.tasks import TaskConfig, lissajous, make_task, reber
+from moex.tasks.switching import generate_switching
+
+
+def _switch_stats(labels_at_boundaries):
+    """Empirical transition matrix from a sequence of primitive indices at decision points."""
+    K = labels_at_boundaries.max() + 1
+    counts = np.zeros((K, K))
+    np.add.at(counts, (labels_at_boundaries[:-1], labels_at_boundaries[1:]), 1)
+    return counts / counts.sum(1, keepdims=True)
+
+
+@pytest.mark.parametrize("name", ["lissajous2", "lissajous9", "reber", "markov_primitives"])
+def test_same_seed_same_data_and_shapes(name):
+    cfg = TaskConfig(name=name, num_series=3, length=200, num_test_series=2,
+                     primitives=[{"amplitude": [0.5, 0.5]}, {"amplitude": [0.3, 0.2],
+                                                             "frequency": [2, 1]}],
+                     transition=[[0.5, 0.5], [0.5, 0.5]])
+    a, b, c = make_task(cfg, 1), make_task(cfg, 1), make_task(cfg, 2)
+    assert np.array_equal(a.series, b.series) and np.array_equal(a.labels, b.labels)
+    assert not np.array_equal(a.labels, c.labels) or not np.array_equal(a.series, c.series)
+    assert a.series.shape[:2] == (3, 200) and a.labels.shape == (3, 200)
+    assert a.test.series.shape[:2] == (2, 200)
+    assert np.all(np.abs(a.series) <= 1.0)
+
+
+@pytest.mark.parametrize("p", [0.5, 0.25, 0.125])
+def test_lissajous2_transition_and_residence(p, period=25, length=200_000):
+    rng = np.random.default_rng(0)
+    series, labels = generate_switching(lissajous.two_circles(),
+                                        lissajous.two_circles_transition(p), length, period, rng)
+    at_decisions = labels[::period]  # one primitive per period; switches only at the origin
+    assert (labels.reshape(-1, period) == at_decisions[:, None]).all()
+    empirical = _switch_stats(at_decisions)
+    n = len(at_decisions)
+    assert abs(empirical[0, 1] - p) < 4 * np.sqrt(p * (1 - p) / (n / 2))
+    assert abs(empirical[1, 0] - p) < 4 * np.sqrt(p * (1 - p) / (n / 2))
+    # residence time (repetitions of a curve) is geometric with mean 1/p
+    runs = np.diff(np.flatnonzero(np.diff(at_decisions) != 0))
+    assert abs(runs.mean() - 1 / p) < 0.05 / p
+    # continuity: the orbit moves about 2π·0.4/P per step and never jumps
+    steps = np.linalg.norm(np.diff(series, axis=0), axis=1)
+    assert steps.max() < 1.05 * 2 * np.pi * 0.4 / period
+
+
+@pytest.mark.parametrize("rule", ["paper", "mregn"])
+def test_lissajous9_transitions_and_continuity(rule, period=32, length=400_000):
+    prims = lissajous.nine_curves()
+    transition = lissajous.nine_curves_transition(rule)
+    assert np.allclose(transition.sum(1), 1)
+    series, labels = generate_switching(prims, transition, length, period, np.random.default_rng(1),
+                                        initial=0)
+    # decisions happen when a primitive ends; recover the visited sequence
+    visits, n = [], 0
+    while n < length:
+        visits.append(labels[n])
+        n += int(prims[labels[n]].length * period)
+    visits = np.array(visits[:-1])
+    counts = np.zeros((12, 12))
+    np.add.at(counts, (visits[:-1], visits[1:]), 1)
+    empirical = counts / counts.sum(1, keepdims=True)
+    assert np.abs(empirical - transition).max() < 0.03
+    steps = np.linalg.norm(np.diff(series, axis=0), axis=1)
+    assert steps.max() < 0.12  # no jumps at period 32 (spec §7.5: max step 0.111)
+
+
+def test_reber_strings_obey_grammar_and_choice_probability():
+    rng = np.random.default_rng(2)
+    symbols = reber.generate_reber(50_000, 100, 0.5, rng)
+    assert reber.accepts(symbols)
+    assert not reber.violations(symbols).any()
+    # after T from state 0 the automaton is in state 1; state 1 emits S or X with 1/2 each
+    T, S = reber.SYMBOLS.index("T"), reber.SYMBOLS.index("S")
+    B = reber.SYMBOLS.index("B")
+    after_b = symbols[1:][symbols[:-1] == B]
+    assert abs((after_b == T).mean() - 0.5) < 0.02
+    broken = symbols.copy()
+    broken[10] = S if symbols[10] != S else B
+    assert not reber.accepts(broken) or reber.violations(broken).any()
+
+
+def test_reber_one_hot_targets():
+    data = make_task(TaskConfig(name="reber", num_series=4, length=500), 0)
+    assert data.series.shape == (4, 500, 0)
+    assert data.gate_targets.shape == (4, 500, 7)
+    assert np.array_equal(data.gate_targets.argmax(-1), data.labels)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(switch_prob=1.5), "task.switch_prob=1.5 is outside"),
+    (dict(num_series=0), "task.num_series=0"),
+    (dict(name="nope"), "task.name='nope' is unknown"),
+    (dict(name="markov_primitives", primitives=[{"amplitude": [1, 1]}],
+          transition=[[0.5]]), "task.transition\\[0\\] sums to 0.5"),
+])
+def test_bad_task_config(bad, match):
+    with pytest.raises(ConfigError, match=match):
+        make_task(TaskConfig(**bad), 0)
+
+
+def test_csv_task(tmp_path):
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        np.savetxt(tmp_path / f"s{i}.csv", rng.uniform(-1, 1, (50, 2)), delimiter=",")
+    data = make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
+    assert data.series.shape == (3, 50, 2)
+    (tmp_path / "s1.csv").write_text("0.1,0.2\nnan,0.3\n" * 30)
+    with pytest.raises(ConfigError, match="NaN or inf"):
+        make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
+    (tmp_path / "s1.csv").write_text("0.1,0.2\n0.3\n" * 30)
+    with pytest.raises(ConfigError, match="ragged rows"):
+        make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)

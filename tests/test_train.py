@@ -1,0 +1,178 @@
+import dataclasses
+
+import pytest
+import torch
+
+from moex.model import ModelConfig, init_experts, init_gating
+from moex.pipeline import run_seeds
+from moex.tasks import TaskConfig, make_task
+from moex.train import (
+    ExpertPhaseConfig,
+    GatingPhaseConfig,
+    TrainConfig,
+    expert_objective,
+    gating_objective,
+    train_experts,
+    train_gating,
+)
+from tests.conftest import generators
+
+
+def _tiny(S=2, T=6, D=2, K=2, learn_tau=True, attraction=True):
+    model = ModelConfig(num_experts=K, learn_time_constants=learn_tau)
+    model.experts.context_size, model.gating.context_size = 3, 4
+    g = torch.Generator().manual_seed(0)
+    series = torch.randn(S, T + 1, D, generator=g).tanh()
+    experts = init_experts(model, S, D, generators([1, 2]))
+    experts["beta"] = torch.randn(2, S, T, K, generator=g)
+    experts["log_sigma"] = torch.randn(2, K, generator=g) * 0.3
+    gating = init_gating(model, S, D, generators([3, 4]))
+    ghat = torch.softmax(torch.randn(2, S, T, K, generator=g), -1)
+    return model, series, experts, gating, ghat, attraction
+
+
+@pytest.mark.parametrize("group", ["w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "log_sigma",
+                                   "u0", "beta"])
+def test_phase1_gradient_equals_finite_differences(group):
+    model, series, experts, _, _, attraction = _tiny()
+    cfg = ExpertPhaseConfig(gate_prior_std=0.8, attraction=False)
+    objective = expert_objective(series[:, :-1], series[:, 1:], {}, model, cfg)
+
+    def f(x):
+        return objective({**experts, group: x})[0]
+
+    assert torch.autograd.gradcheck(f, experts[group].clone().requires_grad_(True))
+
+
+@pytest.mark.parametrize("group", ["w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0"])
+def test_phase2_gradient_equals_finite_differences(group):
+    model, series, _, gating, ghat, _ = _tiny()
+    objective = gating_objective(ghat, series[:, :-1], {}, model, GatingPhaseConfig())
+
+    def f(x):
+        return objective({**gating, group: x})[0]
+
+    assert torch.autograd.gradcheck(f, gating[group].clone().requires_grad_(True))
+
+
+def test_attraction_term_gradient_equals_finite_differences():
+    """With the u_0 attraction on, its statistics are constants (spec §9.5): compare against
+    finite differences of the objective with those statistics frozen at the current point."""
+    model, series, experts, _, _, _ = _tiny()
+    cfg = ExpertPhaseConfig(attraction=True)
+    objective = expert_objective(series[:, :-1], series[:, 1:], {}, model, cfg)
+    u0 = experts["u0"].clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(objective({**experts, "u0": u0})[0].sum(), u0)
+    plain = expert_objective(series[:, :-1], series[:, 1:], {}, model,
+                             dataclasses.replace(cfg, attraction=False))
+    (grad_plain,) = torch.autograd.grad(plain({**experts, "u0": u0})[0].sum(), u0)
+    from moex.model import expert_forward
+    from moex.objectives import initial_state_attraction
+    _, potentials = expert_forward(experts, series[:, :-1])
+    u0b = u0.detach().requires_grad_(True)
+    (grad_attr,) = torch.autograd.grad(
+        initial_state_attraction(u0b, potentials, model.sigma_min**2).sum(), u0b)
+    torch.testing.assert_close(grad, grad_plain + grad_attr)
+
+
+def _train_both(model, rule, series, seeds, S, D, phase1, phase2):
+    experts = init_experts(model, S, D, generators(seeds))
+    experts, beta, _ = train_experts(experts, series, model, phase1, rule)
+    gating = init_gating(model, S, D, generators(seeds))
+    ghat = torch.softmax(beta, -1)
+    gating, _ = train_gating(gating, ghat, series[:, :-model.delay], model, phase2, rule)
+    return experts, beta, gating
+
+
+@pytest.mark.parametrize("form", ["paper", "mregn"])
+def test_batch_of_runs_equals_runs_trained_alone(form):
+    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    series = torch.as_tensor(task.series)
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 4, 5
+    phase1 = ExpertPhaseConfig(steps=12, adaptive_lr=True, learning_rate=0.05)
+    phase2 = GatingPhaseConfig(steps=12, adaptive_lr=True, learning_rate=1.0)
+    rule = TrainConfig(momentum_form=form)
+    seeds = run_seeds(7, 3)
+    together = _train_both(model, rule, series, seeds, 2, 2, phase1, phase2)
+    for r, seed in enumerate(seeds):
+        alone = _train_both(model, rule, series, [seed], 2, 2, phase1, phase2)
+        for part_t, part_a in zip(together, alone, strict=True):
+            if isinstance(part_t, dict):
+                for k in part_t:
+                    torch.testing.assert_close(part_a[k][0], part_t[k][r], rtol=0, atol=1e-10)
+            else:
+                torch.testing.assert_close(part_a[0], part_t[r], rtol=0, atol=1e-10)
+
+
+def test_learning_rate_scaling_per_group():
+    """One step from rest moves each group by its rate times the gradient (spec §2.2, §3.3)."""
+    task = make_task(TaskConfig(num_series=3, length=21), seed=0)
+    series = torch.as_tensor(task.series)
+    model = ModelConfig()
+    S, T, D, K, alpha = 3, 20, 2, 2, 0.01
+    experts = init_experts(model, S, D, generators([0]))
+    phase1 = ExpertPhaseConfig(steps=1, learning_rate=alpha)
+    trained, beta, _ = train_experts(experts, series, model, phase1, TrainConfig())
+    start = {k: v.clone().requires_grad_(True) for k, v in experts.items() if k != "tau"}
+    start["beta"] = torch.zeros(1, S, T, K, requires_grad=True)
+    objective = expert_objective(series[:, :-1], series[:, 1:], {"tau": experts["tau"]}, model,
+                                 phase1)
+    grads = dict(zip(start, torch.autograd.grad(objective(start)[0].sum(), list(start.values())),
+                     strict=True))
+    torch.testing.assert_close(trained["w_rec"] - experts["w_rec"],
+                               alpha / (S * T * D) * grads["w_rec"])
+    torch.testing.assert_close(trained["u0"] - experts["u0"], alpha / D * grads["u0"])
+    torch.testing.assert_close(beta, alpha * grads["beta"])
+    assert torch.equal(trained["tau"], experts["tau"])  # ε fixed by default (paper)
+
+    gating = init_gating(model, S, D, generators([0]))
+    ghat = torch.softmax(beta, -1).detach()
+    phase2 = GatingPhaseConfig(steps=1, adaptive_lr=False, learning_rate=alpha)
+    trained_g, _ = train_gating(gating, ghat, series[:, :-1], model, phase2, TrainConfig())
+    start = {k: v.clone().requires_grad_(True) for k, v in gating.items() if k != "tau"}
+    objective = gating_objective(ghat, series[:, :-1], {"tau": gating["tau"]}, model, phase2)
+    grads = dict(zip(start, torch.autograd.grad(objective(start)[0].sum(), list(start.values())),
+                     strict=True))
+    T_g = T - 1
+    torch.testing.assert_close(trained_g["w_out"] - gating["w_out"],
+                               alpha / (S * T_g * K) * grads["w_out"])
+    torch.testing.assert_close(trained_g["u0"] - gating["u0"], alpha / K * grads["u0"])
+
+
+def test_both_phases_reduce_their_errors():
+    task = make_task(TaskConfig(num_series=2, length=60), seed=1)
+    series = torch.as_tensor(task.series)
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 5, 6
+    experts = init_experts(model, 2, 2, generators([0, 1]))
+    _, beta, rows = train_experts(experts, series, model,
+                                  ExpertPhaseConfig(steps=60, log_every=59), TrainConfig())
+    first, last = [r for r in rows if r["step"] == 0], [r for r in rows if r["step"] == 59]
+    for a, b in zip(first, last, strict=True):
+        assert b["objective"] > a["objective"]
+        assert b["E"] < a["E"]
+    gating = init_gating(model, 2, 2, generators([0, 1]))
+    _, rows = train_gating(gating, torch.softmax(beta, -1), series[:, :-1], model,
+                           GatingPhaseConfig(steps=40, log_every=39), TrainConfig())
+    first, last = [r for r in rows if r["step"] == 0], [r for r in rows if r["step"] == 39]
+    for a, b in zip(first, last, strict=True):
+        assert b["E_g"] < a["E_g"]
+        assert b["lr_scale"] != 1.0  # the adaptive rate moved
+
+
+def test_adaptive_rate_never_accepts_a_large_increase():
+    task = make_task(TaskConfig(num_series=2, length=40), seed=2)
+    series = torch.as_tensor(task.series)
+    model = ModelConfig()
+    experts = init_experts(model, 2, 2, generators([0]))
+    _, beta, _ = train_experts(experts, series, model, ExpertPhaseConfig(steps=5), TrainConfig())
+    gating = init_gating(model, 2, 2, generators([0, 1]))
+    _, rows = train_gating(gating, torch.softmax(beta, -1).expand(2, -1, -1, -1),
+                           series[:, :-1], model,
+                           GatingPhaseConfig(steps=30, learning_rate=50.0, log_every=1),
+                           TrainConfig())
+    for run in (0, 1):
+        kl = [r["kl"] for r in rows if r["run"] == run]
+        assert all(b <= 1.1 * a + 1e-12 for a, b in zip(kl, kl[1:], strict=False))
+    assert any(r["retries"] > 0 for r in rows)
