@@ -16,6 +16,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from moex import pipeline
 from moex.config import register_configs
@@ -27,12 +28,16 @@ CONF_DIR = str(_PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent
 USAGE = """usage: moex <verb> [-m] [key=value ...]
 
 verbs:
-  train      train both phases on a task and write a run folder (Hydra overrides)
+  train      train both phases on a task, evaluate, and write a run folder
+  evaluate   recompute metrics.csv, samples.npz and figures of a run folder (run_dir=...)
+  generate   closed-loop samples from random initial states (run_dir=... steps=... noise_var=...)
 
 examples:
   moex train task=lissajous2
   moex train task=reber model.gating.context_size=50
   moex train -m task.switch_prob=0.5,0.25,0.125 num_runs=30
+  moex evaluate run_dir=outputs/lissajous2/2026-11-24_12-00-00 eval.noise_var=0.001
+  moex generate run_dir=outputs/lissajous2/2026-11-24_12-00-00 steps=10000 noise_var=0.001
 """
 
 
@@ -72,33 +77,46 @@ def _override_variants(args: list[str]) -> list[list[str]]:
 
 
 def validate(config_name: str, args: list[str]) -> None:
-    """Compose every override variant and build its `Config` and data; raise `ConfigError`."""
+    """Compose every override variant, build its config and load its data (or run folder);
+    raise `ConfigError` on the first problem."""
     register_configs()
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             for overrides in _override_variants(args):
                 cfg = OmegaConf.to_object(compose(config_name, overrides=overrides))
-                pipeline.load_task(cfg)
+                VERBS_CHECK[config_name](cfg)
     except (HydraException, OmegaConfBaseException, ConfigError) as exc:
         raise ConfigError(_one_line(exc)) from None
     finally:
         GlobalHydra.instance().clear()
 
 
-def _train(dict_cfg) -> None:
-    cfg = OmegaConf.to_object(dict_cfg)
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
-    try:
-        pipeline.run_train(cfg, out_dir)
-    except ConfigError as exc:
-        logging.getLogger("moex").error("%s", exc)
-        print(f"moex: error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    print(f"moex: run folder {out_dir}")
+def _job(run):
+    """A Hydra task function calling `run(cfg, out_dir)`; a late `ConfigError` exits 2."""
+
+    def task_function(dict_cfg) -> None:
+        cfg = OmegaConf.to_object(dict_cfg)
+        out_dir = Path(HydraConfig.get().runtime.output_dir)
+        try:
+            with logging_redirect_tqdm():
+                run(cfg, out_dir)
+        except ConfigError as exc:
+            logging.getLogger("moex").error("%s", exc)
+            print(f"moex: error: {exc}", file=sys.stderr)
+            sys.exit(2)
+        print(f"moex: run folder {out_dir}")
+
+    return task_function
 
 
-VERBS = {"train": ("config", _train)}
+VERBS = {
+    "train": ("config", _job(pipeline.run_train)),
+    "evaluate": ("evaluate", _job(lambda tool, _: pipeline.run_evaluate(tool))),
+    "generate": ("generate", _job(lambda tool, _: pipeline.run_generate(tool))),
+}
+VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
+               "generate": pipeline.load_run}
 
 
 def main(argv: list[str] | None = None) -> None:

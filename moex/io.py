@@ -6,6 +6,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import torch
 
@@ -43,11 +44,10 @@ def save_checkpoint(path: Path, payload: dict) -> Path:
 
 def load_checkpoint(path: Path) -> dict:
     """Load `checkpoint.pt` with `weights_only=True`; a bad or foreign file is a `ConfigError`."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT
+    given = Path(path)
+    path = given / CHECKPOINT if given.is_dir() or given.suffix != ".pt" else given
     if not path.is_file():
-        raise ConfigError(f"run_dir: no {CHECKPOINT} in {path.parent}")
+        raise ConfigError(f"run_dir={given} holds no {CHECKPOINT}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt or foreign files
@@ -66,3 +66,8 @@ def write_csv(path: Path, rows: list[dict] | pd.DataFrame) -> Path:
 
 def read_csv(path: Path) -> pd.DataFrame:
     return pd.read_csv(path)
+
+
+def save_arrays(path: Path, arrays: dict) -> Path:
+    """`samples.npz`: named numpy arrays, compressed."""
+    return atomic_write(path, lambda tmp: np.savez_compressed(tmp, **arrays))

@@ -217,3 +217,107 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
 def split_series(series: torch.Tensor, delay: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Inputs x_n = series[n] and targets y_n = series[n + τ] (Sec. 2.2), each (S, T - τ, D)."""
     return series[:, :-delay], series[:, delay:]
+
+
+@dataclass
+class ClosedLoopState:
+    """State of the autonomous mixture (Sec. 2.2) for R runs × N samples.
+
+    experts_u (R, N, K, M) and gating_u (R, N, H) are internal potentials; inputs (R, N, τ, D)
+    holds x_m..x_{m+τ-1} (the last τ mixture outputs) and gates (R, N, τ, K) holds g_m..g_{m+τ-1}.
+    """
+
+    experts_u: torch.Tensor
+    gating_u: torch.Tensor
+    inputs: torch.Tensor
+    gates: torch.Tensor
+
+    def flat(self, lead: int = 2) -> torch.Tensor:
+        """(R, N, dim) with dim = K·M + H + τ·D + τ·K, the phase space of the Lyapunov analysis
+        (`lead` = 3 for tangents (k, R, N, ...))."""
+        parts = (self.experts_u, self.gating_u, self.inputs, self.gates)
+        return torch.cat([p.flatten(lead) for p in parts], dim=-1)
+
+    def like(self, flat: torch.Tensor) -> "ClosedLoopState":
+        """Unpack (R, N, ..., dim) — extra axes before dim allowed — into this state's layout."""
+        parts, start, lead = [], 0, flat.shape[:-1]
+        for p in (self.experts_u, self.gating_u, self.inputs, self.gates):
+            size = p[0, 0].numel()
+            parts.append(flat[..., start:start + size].reshape(lead + p.shape[2:]))
+            start += size
+        return ClosedLoopState(*parts)
+
+
+def _mv(w: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return (w @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def _leaky(u, drive, d_drive, du, w_rec, eps, bias):
+    """One step of Eqs. 1-2 / 5-6 and, when `du` is given, its tangent (forward derivative)."""
+    c = torch.tanh(u + bias)
+    u_next = (1 - eps) * u + eps * (drive + _mv(w_rec, c))
+    if du is None:
+        return u_next, None
+    return u_next, (1 - eps) * du + eps * (d_drive + _mv(w_rec, (1 - c.square()) * du))
+
+
+def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
+                     state: ClosedLoopState, noise: torch.Tensor | None = None,
+                     tangents: ClosedLoopState | None = None):
+    """Advance the closed loop one step: x_m = y_{m-τ} (+ noise), experts, gating, mixture.
+
+    With `tangents` it also propagates tangent vectors through the exact Jacobian of the whole
+    system (all contexts and both delay lines, with the real gates), written out by hand.
+
+    Args:
+        experts, gating: parameters (R leading); experts is empty for symbolic tasks (D = 0).
+        state: the current `ClosedLoopState` (R, N, ...).
+        noise: (R, N, D) Gaussian noise added to x_m (Sec. 4.3), or None.
+        tangents: a `ClosedLoopState` of tangent vectors (k, R, N, ...), or None.
+
+    Returns:
+        the next state, the mixture output y_m (R, N, D), the gates g_m that mixed it (R, N, K),
+        the gating potentials (R, N, H), and the next tangents (or None).
+    """
+    R = state.gates.shape[0]
+    x, g = state.inputs[..., 0, :], state.gates[..., 0, :]
+    dx = dg = None
+    if tangents is not None:
+        dx, dg = tangents.inputs[..., 0, :], tangents.gates[..., 0, :]
+    if noise is not None:
+        x = x + noise
+    experts_u, d_experts_u, y, dy = state.experts_u, None, x, dx
+    if experts:  # Eqs. 1-4, every expert on the same input
+        w = {k: v.view((R, 1) + v.shape[1:]) for k, v in experts.items() if k != "u0"}
+        dxe = None if dx is None else _mv(w["w_in"], dx[..., None, :])
+        experts_u, d_experts_u = _leaky(
+            state.experts_u, _mv(w["w_in"], x[..., None, :]), dxe,
+            None if tangents is None else tangents.experts_u, w["w_rec"], 1 / w["tau"], w["b_c"])
+        c = torch.tanh(experts_u + w["b_c"])
+        outputs = torch.tanh(_mv(w["w_out"], c) + w["b_o"])  # (R, N, K, D)
+        y = (g[..., None] * outputs).sum(-2)
+        if tangents is not None:
+            d_out = (1 - outputs.square()) * _mv(w["w_out"], (1 - c.square()) * d_experts_u)
+            dy = (dg[..., None] * outputs + g[..., None] * d_out).sum(-2)
+    # Eqs. 5-8: the gating RNN reads (g_m, x_m) and emits g_{m+τ}
+    w = {k: v.view((R, 1) + v.shape[1:]) for k, v in gating.items() if k != "u0"}
+    d_drive = None if tangents is None else _mv(w["w_in"], torch.cat([dg, dx], -1))
+    gating_u, d_gating_u = _leaky(state.gating_u, _mv(w["w_in"], torch.cat([g, x], -1)), d_drive,
+                                  None if tangents is None else tangents.gating_u, w["w_rec"],
+                                  1 / w["tau"], w["b_c"])
+    c_g = torch.tanh(gating_u + w["b_c"])
+    new_gates = torch.softmax(_mv(w["w_out"], c_g) + w["b_o"], -1)
+
+    def shifted(s, y_new, g_new):
+        return ClosedLoopState(s.experts_u, s.gating_u,
+                               torch.cat([s.inputs[..., 1:, :], y_new[..., None, :]], -2),
+                               torch.cat([s.gates[..., 1:, :], g_new[..., None, :]], -2))
+
+    nxt = shifted(ClosedLoopState(experts_u, gating_u, state.inputs, state.gates), y, new_gates)
+    d_nxt = None
+    if tangents is not None:
+        d_logits = _mv(w["w_out"], (1 - c_g.square()) * d_gating_u)
+        d_gates = new_gates * (d_logits - (new_gates * d_logits).sum(-1, keepdim=True))
+        d_nxt = shifted(ClosedLoopState(d_experts_u if experts else tangents.experts_u,
+                                        d_gating_u, tangents.inputs, tangents.gates), dy, d_gates)
+    return nxt, y, g, gating_u, d_nxt

@@ -4,15 +4,18 @@ import dataclasses
 import logging
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 import torch
 
 from moex import io, plotting
-from moex.config import Config
+from moex.config import Config, ToolConfig, config_from_dict
 from moex.errors import check
+from moex.evaluate import EvalConfig, evaluate, generate, random_state
+from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
 from moex.model import init_experts, init_gating
-from moex.tasks import Dataset, make_task
+from moex.tasks import Dataset, make_task, reber
 from moex.train import train_experts, train_gating
 
 log = logging.getLogger(__name__)
@@ -79,7 +82,98 @@ def run_train(cfg: Config, out_dir: Path) -> dict:
     plotting.save_figure(plotting.plot_learning_curves(history),
                          out_dir / io.FIGURES / "learning_curves.png")
     _log_summary(history)
+    if cfg.eval.enabled:
+        evaluate_run(cfg, dataset, {k: v.cpu() for k, v in experts.items()},
+                     None if beta is None else beta.cpu(), payload["gating"], out_dir)
     return payload
+
+
+def _period(cfg: Config, dataset: Dataset) -> float:
+    """Steps per primitive, to count repetitions: the task's period, or 1 for symbol tasks."""
+    return cfg.task.period if dataset.prototypes is not None else 1.0
+
+
+def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path):
+    """Run every metric, then write metrics.csv, samples.npz and the figures."""
+    generator = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
+    rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay,
+                             _period(cfg, dataset), cfg.eval, generator)
+    metrics = pd.DataFrame(rows)
+    io.write_csv(out_dir / io.METRICS, metrics)
+    io.save_arrays(out_dir / io.SAMPLES, samples)
+    _plot_samples(samples, dataset, cfg, out_dir, metrics)
+    for _, row in metrics.iterrows():
+        log.info("run %d: E_closed %.3g, block KL train %.3g / test %.3g, max Lyapunov %.4g, "
+                 "switch prob %.3f (data %.3f), nonperiodic %.2f", row["run"], row["E_closed"],
+                 row["block_kl_train"], row["block_kl_test"], row["max_lyapunov"],
+                 row["switch_prob"], row["data_switch_prob"], row["nonperiodic_fraction"])
+    return metrics
+
+
+def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
+                  metrics: pd.DataFrame | None = None) -> None:
+    """Figures of the first run's closed-loop sample (and residence times over all runs)."""
+    figures = out_dir / io.FIGURES
+    outputs, gates, gating_u = samples["outputs"][0], samples["gates"][0], samples["gating_u"][0]
+    symbols = samples["symbols"][0]
+    names = dataset.symbol_names
+    if outputs.shape[-1] >= 2:
+        fig, axes = plt.subplots(1, 2, figsize=(8, 4), constrained_layout=True)
+        plotting.plot_trajectory(dataset.series[0], axes[0], "teaching data (series 0)")
+        plotting.plot_trajectory(outputs, axes[1], "closed loop, run 0",
+                                 color=gates.argmax(-1))
+        plotting.save_figure(fig, figures / "trajectory.png")
+    shown = slice(-min(len(symbols), 100), None)
+    bad = reber.violations(symbols[shown]) if cfg.task.name == "reber" else None
+    series_out = outputs[shown] if outputs.shape[-1] else gates[shown]
+    axes = plotting.plot_gate_series(series_out, gates[shown], symbols[shown], names, bad=bad)
+    plotting.save_figure(axes[0].figure, figures / "gates.png")
+    if gating_u.shape[-1] >= 2:
+        plotting.save_figure(plotting.plot_phase_portrait(gating_u).figure,
+                             figures / "phase_portrait.png")
+    if "residence_hist" in samples:
+        switch = cfg.task.switch_prob if cfg.task.name == "lissajous2" else None
+        ax = plotting.plot_residence(samples["residence_hist"], None, switch_prob=switch)
+        plotting.save_figure(ax.figure, figures / "residence_times.png")
+    if gates.shape[-1] > 2 and outputs.shape[-1] >= 2:
+        axes = plotting.plot_expert_panels(outputs, gates)
+        plotting.save_figure(axes.flat[0].figure, figures / "experts.png")
+
+
+def load_run(tool: ToolConfig) -> tuple[Config, dict, Dataset]:
+    payload = io.load_checkpoint(Path(tool.run_dir))
+    cfg = config_from_dict(payload["config"])
+    overrides = {k: v for k, v in dataclasses.asdict(tool.eval).items() if v is not None}
+    cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
+    return cfg, payload, load_task(cfg)
+
+
+def run_evaluate(tool: ToolConfig) -> pd.DataFrame:
+    """Re-run the evaluation of a trained run folder from its checkpoint (no retraining)."""
+    cfg, payload, dataset = load_run(tool)
+    return evaluate_run(cfg, dataset, payload["experts"], payload["beta"], payload["gating"],
+                        Path(tool.run_dir))
+
+
+def run_generate(tool: ToolConfig) -> dict:
+    """Closed-loop samples from random initial states of every run: samples.npz and figures."""
+    cfg, payload, dataset = load_run(tool)
+    experts, gating = payload["experts"], payload["gating"]
+    generator = torch.Generator().manual_seed(tool.seed)
+    state = random_state(experts, gating, tool.num_samples, dataset.series.shape[-1],
+                         cfg.model.delay, generator)
+    with torch.no_grad():
+        out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator)
+    samples = {k: v.numpy() for k, v in out.items()}
+    samples["symbols"] = symbolize_argmax(samples["gates"]) if dataset.prototypes is None else \
+        symbolize_nearest(samples["outputs"], dataset.prototypes, dataset.prototype_symbols)
+    out_dir = Path(tool.run_dir)
+    io.save_arrays(out_dir / io.SAMPLES, samples)
+    first = {k: v[:, 0] for k, v in samples.items()}
+    _plot_samples(first, dataset, cfg, out_dir)
+    log.info("generated %d samples x %d steps per run (noise variance %g) into %s",
+             tool.num_samples, tool.steps, tool.noise_var, out_dir / io.SAMPLES)
+    return samples
 
 
 def _log_summary(history: pd.DataFrame) -> None:

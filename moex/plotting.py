@@ -4,6 +4,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from moex.io import atomic_write  # noqa: E402
@@ -38,3 +39,82 @@ def save_figure(fig, path) -> None:
     """Write a PNG atomically and close the figure."""
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
     plt.close(fig)
+
+
+def plot_trajectory(points: np.ndarray, ax=None, title: str = "", color=None):
+    """A 2-D orbit (T, D >= 2), equal aspect, coloured by time or by `color` (T,)."""
+    ax = ax or plt.figure().gca()
+    ax.scatter(points[:, 0], points[:, 1], s=2, c=np.arange(len(points)) if color is None
+               else color, cmap="viridis" if color is None else "tab10", rasterized=True)
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    return ax
+
+
+def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray,
+                     names: list[str], axes=None, bad: np.ndarray | None = None):
+    """Outputs (T, D) over gate openings (T, K), each step labelled with its winning symbol;
+    steps flagged in `bad` (T,) are labelled in red (paper Fig. 4)."""
+    if axes is None:
+        _, axes = plt.subplots(2, 1, figsize=(10, 4), sharex=True, constrained_layout=True)
+    for d in range(outputs.shape[1]):
+        axes[0].plot(outputs[:, d], lw=1, label=f"y[{d}]")
+    axes[0].set_ylabel("output")
+    axes[1].imshow(gates.T, aspect="auto", origin="lower", cmap="Greys", vmin=0, vmax=1,
+                   interpolation="nearest")
+    axes[1].set_ylabel("gate")
+    axes[1].set_xlabel("step")
+    if names and len(symbols) <= 120:
+        for n, s in enumerate(symbols):
+            axes[1].text(n, gates.shape[1] - 0.4, names[s], ha="center", fontsize=6,
+                         color="red" if bad is not None and bad[n] else "black")
+    return axes
+
+
+def plot_phase_portrait(gating_u: np.ndarray, ax=None):
+    """Two gating potentials u^g_1 against u^g_2 (paper Figs. 4 and 15)."""
+    ax = ax or plt.figure().gca()
+    ax.plot(gating_u[:, 0], gating_u[:, 1], lw=0.3, rasterized=True)
+    ax.set_xlabel("u^g_1")
+    ax.set_ylabel("u^g_2")
+    return ax
+
+
+def plot_residence(model_hist: np.ndarray, data_hist: np.ndarray | None, ax=None,
+                   switch_prob: float | None = None):
+    """Distribution of repetitions of a curve: model (mean over runs) as bars, data or the
+    geometric law (1 - P)^(k-1) P as a line (paper Fig. 9)."""
+    ax = ax or plt.figure().gca()
+    model = model_hist.sum(0) / max(model_hist.sum(), 1)
+    k = np.arange(len(model))
+    top = max(int(np.flatnonzero(model).max()) + 2 if model.any() else 10, 10)
+    ax.bar(k[1:top], model[1:top], color="tab:blue", alpha=0.6, label="trained networks")
+    if switch_prob is not None:
+        ax.plot(k[1:top], (1 - switch_prob) ** (k[1:top] - 1) * switch_prob, "k.-",
+                label=f"geometric, P={switch_prob:g}")
+    elif data_hist is not None and data_hist.sum():
+        ax.plot(k[1:top], data_hist[1:top] / data_hist.sum(), "k.-", label="training data")
+    ax.set_xlabel("repetitions of a curve")
+    ax.set_ylabel("probability")
+    ax.set_yscale("log")
+    ax.legend()
+    return ax
+
+
+def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None):
+    """Output y_n where expert i wins (s_n = i), one panel per expert (paper Fig. 12b)."""
+    K = gates.shape[1]
+    winners = gates.argmax(1)
+    if axes is None:
+        cols = int(np.ceil(np.sqrt(K)))
+        _, axes = plt.subplots(int(np.ceil(K / cols)), cols, figsize=(2 * cols, 2 * cols),
+                               constrained_layout=True, squeeze=False)
+    for i, ax in enumerate(np.ravel(axes)):
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if i < K and (winners == i).any():
+            ax.scatter(outputs[winners == i, 0], outputs[winners == i, 1], s=1)
+            ax.set_xlim(-1, 1)
+            ax.set_ylim(-1, 1)
+        ax.set_title(f"expert {i}", fontsize=7)
+    return axes

@@ -3,6 +3,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -11,7 +12,8 @@ MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
 TINY = ["task.num_series=2", "task.length=40", "task.num_test_series=1",
         "model.experts.context_size=4", "model.gating.context_size=5",
         "train.experts.steps=6", "train.gating.steps=4", "train.experts.log_every=2",
-        "train.gating.log_every=2", "num_runs=2"]
+        "train.gating.log_every=2", "num_runs=2", "eval.num_samples=2",
+        "eval.lyapunov_steps=200", "eval.transient=20", "eval.plot_steps=100"]
 
 
 def _moex(args, cwd):
@@ -27,7 +29,8 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
     result = _moex(["train", "task=lissajous2", *TINY, f"hydra.run.dir={run_dir}"], cwd=work)
     assert result.returncode == 0, result.stderr
     for name in ("checkpoint.pt", "history.csv", "train.log", ".hydra/config.yaml",
-                 "figures/learning_curves.png"):
+                 "metrics.csv", "samples.npz", "figures/learning_curves.png",
+                 "figures/trajectory.png", "figures/gates.png", "figures/residence_times.png"):
         assert (run_dir / name).is_file(), name
     assert list(work.iterdir()) == []  # nothing written to the working directory
     checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
@@ -36,16 +39,39 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
     assert {"run", "phase", "step", "E", "E_g", "log_likelihood", "lr_scale"} <= set(history)
     assert set(history["phase"]) == {"experts", "gating"}
     assert set(history["run"]) == {0, 1}
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    assert metrics["run"].tolist() == [0, 1]
+    for column in ("E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
+                   "switch_prob", "nonperiodic_fraction"):
+        assert metrics[column].notna().all(), column
+
+    # evaluate again with other settings, then generate noisy samples, from the checkpoint
+    result = _moex(["evaluate", f"run_dir={run_dir}", "eval.num_samples=3",
+                    "eval.lyapunov_steps=100", "eval.noise_var=0.001"], cwd=work)
+    assert result.returncode == 0, result.stderr
+    again = pd.read_csv(run_dir / "metrics.csv")
+    assert (again["num_samples"] == 3).all() and (again["noise_var"] == 0.001).all()
+    result = _moex(["generate", f"run_dir={run_dir}", "steps=50", "num_samples=2",
+                    "noise_var=0.001"], cwd=work)
+    assert result.returncode == 0, result.stderr
+    samples = np.load(run_dir / "samples.npz")
+    assert samples["outputs"].shape == (2, 2, 50, 2) and samples["gates"].shape == (2, 2, 50, 2)
+    assert samples["symbols"].shape == (2, 2, 50)
+    assert list(work.iterdir()) == []
 
 
 def test_reber_trains_the_gating_network_only(tmp_path):
     run_dir = tmp_path / "run"
     result = _moex(["train", "task=reber", "task.length=30", "task.num_series=2",
-                    "train.gating.steps=3", "model.gating.context_size=4",
+                    "train.gating.steps=3", "model.gating.context_size=4", "eval.num_samples=2",
+                    "eval.lyapunov_steps=50", "eval.transient=5",
                     f"hydra.run.dir={run_dir}"], cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     history = pd.read_csv(run_dir / "history.csv")
     assert set(history["phase"]) == {"gating"}
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    assert metrics["block_length"].tolist() == [3] and metrics["E"].isna().all()
+    assert metrics["block_kl_test"].notna().all()
 
 
 @pytest.mark.parametrize("override, message", [
@@ -85,6 +111,17 @@ def test_bad_transition_matrix_and_csv(tmp_path):
         result = _moex(["train", *args, f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path)
         assert result.returncode == 2 and message in result.stderr, result.stderr
         assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("verb", ["evaluate", "generate"])
+def test_run_dir_without_checkpoint(verb, tmp_path):
+    result = _moex([verb, f"run_dir={tmp_path}/none"], cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip() == f"moex: error: run_dir={tmp_path}/none holds no checkpoint.pt"
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
+    assert result.returncode == 2 and "is not a readable moex checkpoint" in result.stderr
 
 
 def test_unknown_verb():

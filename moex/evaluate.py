@@ -1,0 +1,231 @@
+"""Every metric of a trained mixture (paper Sec. 3-4): teacher-forced E and E^g, closed-loop
+E^closed and block KL from the trained initial states, and from random initial states the
+Lyapunov exponents, the test-data block KL, switching statistics and periodicity."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from moex import objectives
+from moex.errors import check, check_positive
+from moex.metrics import switching
+from moex.metrics.errors import closed_loop_mse
+from moex.metrics.lyapunov import lyapunov_exponents
+from moex.metrics.symbols import block_kl, symbolize_nearest
+from moex.model import ClosedLoopState, closed_loop_step, expert_forward, gating_forward
+from moex.tasks import Dataset
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation settings; the paper's protocol is 50 samples × 100000 steps (Lissajous) and
+    200 × 10000 (Reber), after a discarded transient."""
+
+    enabled: bool = True  # `moex train` ends by evaluating
+    num_samples: int = 50  # closed-loop runs from random initial states, per network
+    lyapunov_steps: int = 100000
+    transient: int = 1000
+    num_exponents: int = 1  # 1 = the maximum exponent only
+    block_length: int = 5  # m of D_KL^(m) (3 for Reber)
+    kl_floor: float = 1e-3  # model probability given to data blocks it never produced
+    noise_var: float = 0.0  # ρ², Gaussian noise added to x_n each step (Sec. 4.3)
+    max_period: int = 100  # periodicity test of the symbol sequence (Sec. 4.3)
+    plot_steps: int = 2000  # closed-loop steps of the first sample kept for figures
+
+    def __post_init__(self):
+        for key in ("num_samples", "lyapunov_steps", "num_exponents", "block_length",
+                    "max_period", "plot_steps"):
+            check(getattr(self, key) >= 1, f"eval.{key}={getattr(self, key)} must be >= 1")
+        check(self.transient >= 0, f"eval.transient={self.transient} must be >= 0")
+        check(self.noise_var >= 0, f"eval.noise_var={self.noise_var} must be >= 0")
+        check_positive("eval.kl_floor", self.kl_floor)
+
+
+def trained_state(experts, gating, gate_estimates, series, delay) -> ClosedLoopState:
+    """The trained initial state of every series (N = S): u_0, and data / ĝ in the delay lines."""
+    R = gate_estimates.shape[0]
+    experts_u = experts["u0"] if experts else series.new_zeros(R, series.shape[0], 0, 0)
+    inputs = series[None, :, :delay].expand(R, -1, -1, -1)
+    return ClosedLoopState(experts_u, gating["u0"], inputs, gate_estimates[:, :, :delay])
+
+
+def random_state(experts, gating, num_samples, num_features, delay,
+                 generator) -> ClosedLoopState:
+    """Random initial states: u ~ U[-1, 1], x ~ U[-1, 1] and random probability vectors in the
+    delay lines (Sec. 4; the C code fills the gate line with U(-1, 1) instead, spec §4.4)."""
+    R, K, H = gating["w_out"].shape
+    dtype = gating["w_out"].dtype
+
+    def uniform(*shape):
+        return (torch.rand(shape, generator=generator, dtype=dtype) * 2 - 1).to(
+            gating["w_out"].device)
+
+    M = experts["w_rec"].shape[-1] if experts else 0
+    # normalised exponentials: uniform on the probability simplex
+    e = -torch.log(torch.rand((R, num_samples, delay, K), generator=generator,
+                              dtype=dtype).clamp_min(1e-300))
+    gates = e / e.sum(-1, keepdim=True)
+    return ClosedLoopState(uniform(R, num_samples, K if experts else 0, M),
+                           uniform(R, num_samples, H), uniform(R, num_samples, delay,
+                                                               num_features),
+                           gates.to(gating["w_out"].device))
+
+
+def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: float = 0.0,
+             generator=None) -> dict[str, torch.Tensor]:
+    """Run the closed loop for `steps` steps.
+
+    Returns:
+        outputs (R, N, T, D), gates (R, N, T, K) and gating potentials (R, N, T, H).
+    """
+    outputs, gates, potentials = [], [], []
+    for _ in range(steps):
+        noise = _noise(state, noise_std, generator)
+        state, y, g, u_g, _ = closed_loop_step(experts, gating, state, noise)
+        outputs.append(y)
+        gates.append(g)
+        potentials.append(u_g)
+    return {"outputs": torch.stack(outputs, 2), "gates": torch.stack(gates, 2),
+            "gating_u": torch.stack(potentials, 2)}
+
+
+def _noise(state, noise_std, generator):
+    if noise_std <= 0:
+        return None
+    x = state.inputs[..., 0, :]
+    return noise_std * torch.randn(x.shape, generator=generator, dtype=x.dtype).to(x.device)
+
+
+def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, cfg: EvalConfig, generator,
+                         on_step=None) -> torch.Tensor:
+    """Lyapunov exponents (R, N, k) of the whole closed loop (spec §5.2, real gates)."""
+    noise_std = cfg.noise_var**0.5
+
+    def tangent_step(flat, tangents):
+        st = state.like(flat)
+        tg = state.like(tangents.movedim(-1, 0))
+        nxt, y, g, u_g, d_nxt = closed_loop_step(experts, gating, st,
+                                                 _noise(st, noise_std, generator), tg)
+        return nxt.flat(), d_nxt.flat(lead=3).movedim(0, -1), (y, g, u_g)
+
+    return lyapunov_exponents(tangent_step, state.flat(), cfg.lyapunov_steps, cfg.num_exponents,
+                              cfg.transient, generator=generator, on_step=on_step,
+                              progress="lyapunov")
+
+
+def _symbols(outputs, gates, dataset: Dataset):
+    if dataset.prototypes is None:
+        return gates.argmax(-1)
+    protos = torch.as_tensor(dataset.prototypes, dtype=outputs.dtype, device=outputs.device)
+    nearest = ((outputs[..., None, :] - protos) ** 2).sum(-1).argmin(-1)
+    return torch.as_tensor(dataset.prototype_symbols, device=outputs.device)[nearest]
+
+
+def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
+             cfg: EvalConfig, generator: torch.Generator) -> tuple[list[dict], dict]:
+    """All metrics of R trained networks, one row per run, and arrays for the figures.
+
+    Args:
+        experts, beta, gating: trained parameters (experts empty and beta None for D = 0).
+        dataset: the task's data (training series, labels, test data, symbol rule).
+        delay: τ; period: steps per primitive, to count repetitions (1 for symbolic tasks).
+        cfg: evaluation settings; generator: random initial states and noise.
+
+    Returns:
+        rows (one dict per run) and samples (numpy arrays: the first random sample's last
+        `plot_steps` outputs, gates and gating potentials, residence-time histograms).
+    """
+    series = torch.as_tensor(dataset.series, dtype=gating["w_out"].dtype)
+    R, K = gating["w_out"].shape[:2]
+    S, L, D = series.shape
+    # ---- teacher forcing: E and E^g (Sec. 3)
+    if experts:
+        inputs, targets = series[:, :-delay], series[:, delay:]
+        outputs, _ = expert_forward(experts, inputs)
+        estimates = torch.softmax(beta, -1)
+        error = objectives.mixture_mse(outputs, targets, estimates)
+    else:
+        estimates = torch.as_tensor(dataset.gate_targets, dtype=series.dtype).expand(R, -1, -1,
+                                                                                      -1)
+        inputs, error = series, torch.full((R,), float("nan"))
+    T = estimates.shape[2]
+    log_gates, _ = gating_forward(gating, estimates, inputs, delay)
+    kl = objectives.gating_kl(log_gates, estimates[:, :, delay:])
+    # ---- closed loop from the trained initial states (Sec. 4.2)
+    closed = generate(experts, gating, trained_state(experts, gating, estimates, series, delay), T)
+    e_closed = (closed_loop_mse(closed["outputs"].numpy(), targets.numpy()) if experts
+                else np.full(R, np.nan))
+    data_symbols = estimates.argmax(-1).numpy()
+    model_symbols = closed["gates"].argmax(-1).numpy()
+    # ---- random initial states: Lyapunov exponents and long symbol sequences
+    recorded, kept = [], []
+
+    def on_step(aux):
+        y, g, u_g = aux
+        recorded.append(_symbols(y, g, dataset).to(torch.int16))
+        kept.append((y[:, 0], g[:, 0], u_g[:, 0]))
+        if len(kept) > cfg.plot_steps:
+            kept.pop(0)
+
+    state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
+    with torch.no_grad():
+        exponents = closed_loop_lyapunov(experts, gating, state, cfg, generator, on_step)
+    sampled = torch.stack(recorded, -1).numpy()  # (R, N, steps)
+    test = _test_symbols(dataset)
+    rows, hist = [], []
+    data_segments = [switching.segment_symbols(s, period) for s in _true_symbols(dataset)]
+    data_switch = _switch_prob(data_segments)
+    for r in range(R):
+        segments = [switching.segment_symbols(s, period) for s in sampled[r]]
+        lam = exponents[r].numpy()
+        reps = np.concatenate([np.concatenate(list(switching.residence_times(s).values()) or
+                                              [np.zeros(0, dtype=int)]) for s in segments])
+        hist.append(np.bincount(reps, minlength=cfg.max_period + 1)[: cfg.max_period + 1])
+        rows.append({
+            "run": r, "E": error[r].item(), "E_g": kl[r].item() / (S * (T - delay) * K),
+            "E_closed": float(e_closed[r]), "block_length": cfg.block_length,
+            "block_kl_train": np.mean([block_kl(data_symbols[r, s], model_symbols[r, s],
+                                                cfg.block_length, cfg.kl_floor)
+                                       for s in range(S)]),
+            "block_kl_test": (block_kl(test, sampled[r], cfg.block_length, cfg.kl_floor)
+                              if test is not None else float("nan")),
+            "max_lyapunov": float(lam[:, 0].mean()),
+            "lyapunov_positive": bool(lam[:, 0].mean() > 0),
+            "positive_sample_fraction": float((lam[:, 0] > 0).mean()),
+            **{f"lyapunov_{i + 1}": float(lam[:, i].mean()) for i in range(1, lam.shape[1])},
+            "switch_prob": _switch_prob(segments), "data_switch_prob": data_switch,
+            "mean_residence": float(reps.mean()) if len(reps) else float("nan"),
+            "nonperiodic_fraction": float(np.mean([not switching.is_periodic(s, cfg.max_period)
+                                                   for s in segments])),
+            "noise_var": cfg.noise_var, "num_samples": cfg.num_samples,
+            "lyapunov_steps": cfg.lyapunov_steps,
+        })
+    samples = {name: torch.stack([k[i] for k in kept], 1).numpy()
+               for i, name in enumerate(("outputs", "gates", "gating_u"))}
+    samples.update(residence_hist=np.stack(hist), closed_outputs=closed["outputs"][:, 0].numpy(),
+                   symbols=sampled[:, 0, -cfg.plot_steps:])
+    return rows, samples
+
+
+def _switch_prob(segments) -> float:
+    """Share of primitive completions followed by a different primitive."""
+    changes = sum(int((s[1:] != s[:-1]).sum()) for s in segments)
+    total = sum(max(len(s) - 1, 0) for s in segments)
+    return changes / total if total else float("nan")
+
+
+def _true_symbols(dataset: Dataset) -> list[np.ndarray]:
+    if dataset.labels.min() < 0:
+        return []
+    return list(dataset.symbol_of[dataset.labels])
+
+
+def _test_symbols(dataset: Dataset):
+    """Symbols of the held-out series by the same rule as the model's outputs, or None."""
+    test = dataset.test
+    if test is None:
+        return None
+    if dataset.prototypes is None:
+        return test.labels
+    return symbolize_nearest(test.series, dataset.prototypes, dataset.prototype_symbols)

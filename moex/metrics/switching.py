@@ -1,0 +1,53 @@
+"""Switching statistics of symbol sequences (paper Table 2, Fig. 9, Sec. 4.3): run-length
+encoding, transition matrices, residence times and periodicity."""
+
+import numpy as np
+
+
+def rle(seq) -> tuple[np.ndarray, np.ndarray]:
+    """Run-length encoding: `rle([0, 0, 1, 1, 1, 0])` -> values [0, 1, 0], lengths [2, 3, 1]."""
+    seq = np.asarray(seq)
+    if len(seq) == 0:
+        return seq[:0], np.zeros(0, dtype=np.int64)
+    starts = np.flatnonzero(np.r_[True, seq[1:] != seq[:-1]])
+    return seq[starts], np.diff(np.r_[starts, len(seq)])
+
+
+def segment_symbols(symbols, period: float) -> np.ndarray:
+    """Per-step symbols -> one symbol per completed primitive (a curve lasting `period` steps).
+
+    Runs shorter than half a period (jitter where curves meet) are dropped and their neighbours
+    merged; a run of L steps counts round(L / period) repetitions.
+    """
+    values, lengths = rle(symbols)
+    reps = np.rint(lengths / period).astype(np.int64)
+    keep = reps > 0
+    values, reps = rle(np.repeat(values[keep], reps[keep]))
+    return np.repeat(values, reps)
+
+
+def transition_matrix(seq, num_symbols: int) -> np.ndarray:
+    """Row-normalised counts of consecutive pairs (NaN rows for symbols never left)."""
+    seq = np.asarray(seq)
+    counts = np.zeros((num_symbols, num_symbols))
+    np.add.at(counts, (seq[:-1], seq[1:]), 1)
+    with np.errstate(invalid="ignore"):
+        return counts / counts.sum(1, keepdims=True)
+
+
+def residence_times(seq) -> dict[int, np.ndarray]:
+    """Lengths of the runs of each symbol: for a Markov source that stays with probability p
+    they are geometric with mean 1/(1 - p). The first and last (censored) runs are dropped."""
+    values, lengths = rle(seq)
+    values, lengths = values[1:-1], lengths[1:-1]
+    return {int(v): lengths[values == v] for v in np.unique(values)}
+
+
+def is_periodic(seq, max_period: int = 100) -> bool:
+    """Whether seq[i] == seq[i + p] for all i, for some p <= max_period (paper Sec. 4.3).
+
+    The sequence should be longer than 2 · max_period for the answer to mean anything.
+    """
+    seq = np.asarray(seq)
+    return any(np.array_equal(seq[p:], seq[:-p]) for p in range(1, min(max_period, len(seq) - 1)
+                                                                   + 1))

@@ -1,0 +1,46 @@
+"""Symbolic dynamics (paper Sec. 3): outputs to symbols, m-blocks and D_KL^(m)(ŝ ‖ s) (Eq. 21)."""
+
+from collections import Counter
+
+import numpy as np
+
+
+def symbolize_argmax(gates: np.ndarray) -> np.ndarray:
+    """s_n = argmax_k g^k_n (Eq. 22): (..., T, K) -> (..., T)."""
+    return np.asarray(gates).argmax(-1)
+
+
+def symbolize_nearest(points: np.ndarray, prototypes: np.ndarray,
+                      prototype_symbols: np.ndarray) -> np.ndarray:
+    """Symbol of the nearest prototype point: (..., T, D) -> (..., T)."""
+    points = np.asarray(points)
+    flat = points.reshape(-1, points.shape[-1])
+    nearest = np.empty(len(flat), dtype=np.int64)
+    for start in range(0, len(flat), 65536):  # bounded memory for long samples
+        chunk = flat[start:start + 65536]
+        dist = ((chunk[:, None, :] - prototypes[None]) ** 2).sum(-1)
+        nearest[start:start + 65536] = dist.argmin(1)
+    return np.asarray(prototype_symbols)[nearest].reshape(points.shape[:-1])
+
+
+def block_distribution(sequences, m: int) -> dict[tuple, float]:
+    """Probabilities of the overlapping length-m blocks of one or more symbol sequences."""
+    counts = Counter()
+    for seq in ([sequences] if np.ndim(sequences) == 1 else sequences):
+        seq = np.asarray(seq)
+        if len(seq) >= m:
+            windows = np.lib.stride_tricks.sliding_window_view(seq, m)
+            counts.update(map(tuple, windows.tolist()))
+    total = sum(counts.values())
+    return {block: c / total for block, c in counts.items()}
+
+
+def block_kl(data, model, m: int, floor: float = 1e-3) -> float:
+    """D_KL^(m)(ŝ ‖ s) = Σ_b p(b | ŝ) ln(p(b | ŝ) / p(b | s)) (Eq. 21), data ŝ first.
+
+    Blocks the data has and the model never produced get the model probability `floor`
+    (without renormalising), so the divergence stays finite and a model that misses a block
+    pays ln(p/floor) for it; blocks only the model produced do not enter Eq. 21.
+    """
+    p, q = block_distribution(data, m), block_distribution(model, m)
+    return float(sum(pb * np.log(pb / q.get(b, floor)) for b, pb in p.items()))

@@ -1,0 +1,81 @@
+import torch
+
+from moex.evaluate import generate, random_state, trained_state
+from moex.model import (
+    ClosedLoopState,
+    ModelConfig,
+    closed_loop_step,
+    expert_forward,
+    gating_forward,
+    init_experts,
+    init_gating,
+)
+from tests.conftest import generators
+
+
+def _model(delay=2, K=3, D=2, S=2):
+    cfg = ModelConfig(num_experts=K, delay=delay)
+    cfg.experts.context_size, cfg.gating.context_size = 4, 5
+    experts = init_experts(cfg, S, D, generators([1, 2]))
+    gating = init_gating(cfg, S, D, generators([3, 4]))
+    return cfg, experts, gating
+
+
+def test_tangent_map_equals_autograd_jacobian():
+    """The hand-written tangent of the full closed loop (all contexts, both delay lines, real
+    gates) equals forward-mode autograd of the step, column by column."""
+    _, experts, gating = _model()
+    state = random_state(experts, gating, 3, 2, 2, torch.Generator().manual_seed(0))
+    flat = state.flat()
+    k = 4
+    tangents = torch.randn((k,) + flat.shape, generator=torch.Generator().manual_seed(1))
+    _, _, _, _, d_next = closed_loop_step(experts, gating, state, None, state.like(tangents))
+
+    def step(x):
+        return closed_loop_step(experts, gating, state.like(x))[0].flat()
+
+    for i in range(k):
+        _, expected = torch.func.jvp(step, (flat,), (tangents[i],))
+        torch.testing.assert_close(d_next.flat(lead=3)[i], expected, rtol=1e-10, atol=1e-12)
+
+
+def test_tangent_map_without_experts():
+    cfg = ModelConfig(num_experts=4, delay=1)
+    gating = init_gating(cfg, 1, 0, generators([0]))
+    state = random_state({}, gating, 2, 0, 1, torch.Generator().manual_seed(0))
+    tangents = torch.randn((2,) + state.flat().shape)
+    _, _, _, _, d_next = closed_loop_step({}, gating, state, None, state.like(tangents))
+    for i in range(2):
+        _, expected = torch.func.jvp(
+            lambda x: closed_loop_step({}, gating, state.like(x))[0].flat(), (state.flat(),),
+            (tangents[i],))
+        torch.testing.assert_close(d_next.flat(lead=3)[i], expected)
+
+
+def test_closed_loop_equals_open_loop_fed_its_own_outputs(T=12, delay=2):
+    _, experts, gating = _model(delay=delay)
+    S = 2
+    series = torch.randn(S, delay, 2).tanh()
+    gates = torch.softmax(torch.randn(2, S, delay, 3), -1)
+    state = trained_state(experts, gating, gates, series, delay)
+    out = generate(experts, gating, state, T)
+    # rebuild the closed loop's input and gate sequences, then run the teacher-forced passes
+    inputs = torch.cat([series[None].expand(2, -1, -1, -1), out["outputs"][:, :, : T - delay]], 2)
+    g_seq = out["gates"]
+    for r in range(2):
+        y, _ = expert_forward({k: v[r:r + 1] for k, v in experts.items()}, inputs[r])
+        mixture = (g_seq[r:r + 1, ..., None] * y).sum(-2)
+        torch.testing.assert_close(mixture[0], out["outputs"][r])
+        log_g, _ = gating_forward({k: v[r:r + 1] for k, v in gating.items()}, g_seq[r:r + 1],
+                                  inputs[r], delay)
+        torch.testing.assert_close(log_g.exp()[0], g_seq[r, :, delay:])
+
+
+def test_state_flattening_round_trip():
+    _, experts, gating = _model()
+    state = random_state(experts, gating, 3, 2, 2, torch.Generator().manual_seed(0))
+    again = state.like(state.flat())
+    for a, b in zip(vars(state).values(), vars(again).values(), strict=True):
+        assert torch.equal(a, b)
+    assert isinstance(again, ClosedLoopState)
+    assert torch.allclose(state.gates.sum(-1), torch.ones(2, 3, 2))

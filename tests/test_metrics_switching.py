@@ -1,0 +1,37 @@
+import numpy as np
+import pytest
+
+from moex.metrics.switching import (
+    is_periodic,
+    residence_times,
+    rle,
+    segment_symbols,
+    transition_matrix,
+)
+
+
+def test_rle_worked_example():
+    values, lengths = rle([0, 0, 1, 1, 1, 0])
+    assert values.tolist() == [0, 1, 0] and lengths.tolist() == [2, 3, 1]
+
+
+@pytest.mark.parametrize("stay", [0.5, 0.75, 0.875])
+def test_markov_residence_mean_is_one_over_one_minus_p(stay, n=200_000):
+    rng = np.random.default_rng(0)
+    flips = rng.random(n) > stay
+    seq = np.cumsum(flips) % 2
+    times = np.concatenate(list(residence_times(seq).values()))
+    assert abs(times.mean() - 1 / (1 - stay)) < 0.03 / (1 - stay)
+    tm = transition_matrix(seq, 2)
+    assert abs(tm[0, 0] - stay) < 0.01 and abs(tm[1, 1] - stay) < 0.01
+
+
+def test_segment_symbols_counts_repetitions_and_drops_jitter():
+    per_step = np.array([0] * 50 + [1] * 2 + [0] * 25 + [1] * 24)  # P = 25; 2 steps of jitter
+    assert segment_symbols(per_step, 25).tolist() == [0, 0, 0, 1]
+
+
+def test_periodicity():
+    assert is_periodic(np.tile([0, 1, 1, 0, 1], 100), 100)
+    assert not is_periodic(np.random.default_rng(0).integers(0, 2, 1000), 100)
+    assert not is_periodic(np.tile(np.arange(150) % 2 + (np.arange(150) > 70), 4), 100)

@@ -1,0 +1,39 @@
+import math
+
+import numpy as np
+
+from moex.metrics.symbols import block_distribution, block_kl, symbolize_argmax, symbolize_nearest
+
+
+def test_block_kl_of_a_sequence_with_itself_is_zero():
+    seq = np.random.default_rng(0).integers(0, 3, 5000)
+    assert block_kl(seq, seq, 3) == 0.0
+
+
+def test_block_kl_matches_closed_form_for_iid_sources(n=400_000, m=2):
+    rng = np.random.default_rng(1)
+    p, q = np.array([0.7, 0.3]), np.array([0.4, 0.6])
+    a, b = rng.choice(2, n, p=p), rng.choice(2, n, p=q)
+    # blocks of i.i.d. symbols: D_KL^(m) = m · D_KL(p ‖ q)
+    expected = m * float((p * np.log(p / q)).sum())
+    assert abs(block_kl(a, b, m) - expected) < 0.01
+
+
+def test_missing_blocks_get_the_floor():
+    data, model = np.array([0, 1, 0, 1, 0]), np.array([0, 0, 0, 0])
+    # data 1-blocks: p(0) = 3/5, p(1) = 2/5; model: q(0) = 1, q(1) missing -> floor
+    expected = 0.6 * math.log(0.6) + 0.4 * math.log(0.4 / 1e-3)
+    assert abs(block_kl(data, model, 1, floor=1e-3) - expected) < 1e-12
+
+
+def test_block_distribution_counts_overlapping_windows_over_series():
+    dist = block_distribution(np.array([[0, 1, 1], [1, 1, 0]]), 2)
+    assert dist == {(0, 1): 0.25, (1, 1): 0.5, (1, 0): 0.25}
+
+
+def test_symbolizers():
+    gates = np.array([[0.1, 0.9], [0.7, 0.3]])
+    assert symbolize_argmax(gates).tolist() == [1, 0]
+    protos, labels = np.array([[-0.4, 0.0], [0.4, 0.0]]), np.array([0, 1])
+    assert symbolize_nearest(np.array([[-0.3, 0.2], [0.5, -0.1]]), protos, labels).tolist() == [
+        0, 1]
