@@ -4,8 +4,10 @@ Overrides are composed and validated with Hydra's compose API before the run sta
 value or unknown key ends with one line on stderr and exit code 2, and nothing is written.
 """
 
+import json
 import logging
 import sys
+import time
 from pathlib import Path
 
 import hydra
@@ -14,6 +16,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException
+from hydra.types import RunMode
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
@@ -21,8 +24,11 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from moex import pipeline
 from moex.config import register_configs
 from moex.errors import ConfigError
+from moex.io import atomic_write
+from moex.train import TrainingInterrupted
 
 _PACKAGE_CONF = Path(__file__).resolve().parent / "conf"
+log = logging.getLogger("moex")
 CONF_DIR = str(_PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf")
 
 USAGE = """usage: moex <verb> [-m] [key=value ...]
@@ -76,47 +82,91 @@ def _override_variants(args: list[str]) -> list[list[str]]:
     return variants
 
 
-def validate(config_name: str, args: list[str]) -> None:
+def validate(config_name: str, args: list[str]):
     """Compose every override variant, build its config and load its data (or run folder);
-    raise `ConfigError` on the first problem."""
+    raise `ConfigError` on the first problem. Returns the first variant's config."""
     register_configs()
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            for overrides in _override_variants(args):
-                cfg = OmegaConf.to_object(compose(config_name, overrides=overrides))
+            configs = [OmegaConf.to_object(compose(config_name, overrides=overrides))
+                       for overrides in _override_variants(args)]
+            for cfg in configs:
                 VERBS_CHECK[config_name](cfg)
+            return configs[0]
     except (HydraException, OmegaConfBaseException, ConfigError) as exc:
         raise ConfigError(_one_line(exc)) from None
     finally:
         GlobalHydra.instance().clear()
 
 
-def _job(run):
-    """A Hydra task function calling `run(cfg, out_dir)`; a late `ConfigError` exits 2."""
+STATUS = "status.json"
+
+
+def _write_status(out_dir: Path, **status) -> None:
+    text = json.dumps(status, indent=1)
+    atomic_write(out_dir / STATUS, lambda tmp: Path(tmp).write_text(text))
+
+
+def _job(run, verb: str):
+    """A Hydra task function calling `run(cfg, out_dir, stop)`.
+
+    Bad input exits 2; SIGINT/SIGTERM save a checkpoint and exit 128 + signal; any other error
+    is logged with its traceback to the job's log and, in a multirun, does not stop the sweep.
+    `moex train` leaves a status.json (done, failed or interrupted) in every job folder.
+    """
 
     def task_function(dict_cfg) -> None:
         cfg = OmegaConf.to_object(dict_cfg)
-        out_dir = Path(HydraConfig.get().runtime.output_dir)
+        hydra_cfg = HydraConfig.get()
+        out_dir = Path(hydra_cfg.runtime.output_dir)
+        status = (lambda **kw: _write_status(out_dir, verb=verb, **kw)) if verb == "train" \
+            else (lambda **kw: None)
+        started = time.time()
         try:
-            with logging_redirect_tqdm():
-                run(cfg, out_dir)
+            with logging_redirect_tqdm(), pipeline.StopRequest() as stop:
+                run(cfg, out_dir, stop)
         except ConfigError as exc:
-            logging.getLogger("moex").error("%s", exc)
+            log.error("%s", exc)
+            status(status="failed", error=str(exc))
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
+        except TrainingInterrupted as exc:
+            log.warning("%s; checkpoint saved in %s", exc, out_dir)
+            status(status="interrupted", error=str(exc))
+            print(f"moex: interrupted ({exc}); re-run the same command with "
+                  f"hydra.run.dir={out_dir} (or resume=true) to continue", file=sys.stderr)
+            sys.exit(128 + stop.signum)
+        except Exception as exc:
+            log.exception("job failed")
+            status(status="failed", error=f"{type(exc).__name__}: {exc}")
+            if hydra_cfg.mode == RunMode.MULTIRUN:
+                return  # the sweep goes on; moex report lists failed jobs
+            print(f"moex: error: {type(exc).__name__}: {exc} (traceback in {out_dir})",
+                  file=sys.stderr)
+            sys.exit(1)
+        status(status="done", seconds=round(time.time() - started, 1))
         print(f"moex: run folder {out_dir}")
 
     return task_function
 
 
 VERBS = {
-    "train": ("config", _job(pipeline.run_train)),
-    "evaluate": ("evaluate", _job(lambda tool, _: pipeline.run_evaluate(tool))),
-    "generate": ("generate", _job(lambda tool, _: pipeline.run_generate(tool))),
+    "train": ("config", _job(pipeline.run_train, "train")),
+    "evaluate": ("evaluate", _job(lambda tool, _, __: pipeline.run_evaluate(tool), "evaluate")),
+    "generate": ("generate", _job(lambda tool, _, __: pipeline.run_generate(tool), "generate")),
 }
 VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
                "generate": pipeline.load_run}
+
+
+def _latest_run(task: str) -> Path:
+    """The newest outputs/<task>/<date> folder holding a checkpoint, for `resume=true`."""
+    runs = sorted(Path("outputs", task).glob("*/checkpoint.pt"))
+    if not runs:
+        raise ConfigError(f"resume=true but outputs/{task}/ holds no run with a checkpoint; "
+                          f"name the folder with hydra.run.dir=")
+    return runs[-1].parent
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -134,7 +184,10 @@ def main(argv: list[str] | None = None) -> None:
     overrides = [a for a in args if not a.startswith("-")]
     if not {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"} & set(hydra_flags):
         try:
-            validate(config_name, overrides)
+            cfg = validate(config_name, overrides)
+            if verb == "train" and cfg.resume and not {"-m", "--multirun"} & set(hydra_flags) \
+                    and not any(a.startswith("hydra.run.dir=") for a in args):
+                args = args + [f"hydra.run.dir={_latest_run(cfg.task.name)}"]
         except ConfigError as exc:
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)

@@ -27,6 +27,7 @@ class Config:
     num_runs: int = 1  # R networks trained side by side, run r seeded by (seed, r)
     dtype: str = "float64"
     device: str = "cpu"
+    resume: bool = False  # continue the latest run folder of this task (or hydra.run.dir)
 
     def __post_init__(self):
         check(self.num_runs >= 1, f"num_runs={self.num_runs} must be >= 1")

@@ -2,6 +2,7 @@
 E^closed and block KL from the trained initial states, and from random initial states the
 Lyapunov exponents, the test-data block KL, switching statistics and periodicity."""
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,10 +33,14 @@ class EvalConfig:
     noise_var: float = 0.0  # ρ², Gaussian noise added to x_n each step (Sec. 4.3)
     max_period: int = 100  # periodicity test of the symbol sequence (Sec. 4.3)
     plot_steps: int = 2000  # closed-loop steps of the first sample kept for figures
+    every: int = 0  # track block KL and λ_max every N gating-phase steps (0 = off)
+    track_samples: int = 4  # random initial states per network when tracking
+    track_steps: int = 5000  # Lyapunov steps per sample when tracking
 
     def __post_init__(self):
+        check(self.every >= 0, f"eval.every={self.every} must be >= 0")
         for key in ("num_samples", "lyapunov_steps", "num_exponents", "block_length",
-                    "max_period", "plot_steps"):
+                    "max_period", "plot_steps", "track_samples", "track_steps"):
             check(getattr(self, key) >= 1, f"eval.{key}={getattr(self, key)} must be >= 1")
         check(self.transient >= 0, f"eval.transient={self.transient} must be >= 0")
         check(self.noise_var >= 0, f"eval.noise_var={self.noise_var} must be >= 0")
@@ -114,6 +119,33 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, cfg: EvalConfi
                               progress="lyapunov")
 
 
+def _train_block_kl(estimates, closed_gates, cfg: EvalConfig) -> np.ndarray:
+    """D_KL^(m)(ŝ ‖ s) per run, ŝ = argmax ĝ and s = argmax g of the closed loop from the
+    trained initial states, averaged over series (Sec. 3)."""
+    data, model = estimates.argmax(-1).cpu().numpy(), closed_gates.argmax(-1).cpu().numpy()
+    return np.array([np.mean([block_kl(d, m, cfg.block_length, cfg.kl_floor)
+                              for d, m in zip(data[r], model[r], strict=True)])
+                     for r in range(len(data))])
+
+
+def track_metrics(experts, estimates, gating, series, delay, cfg: EvalConfig,
+                  generator) -> dict[str, torch.Tensor]:
+    """The cheap subset tracked during training (paper Figs. 3, 6, 11): the training-data block
+    KL and the maximum Lyapunov exponent on `track_samples` × `track_steps`, per run (R,)."""
+    with torch.no_grad():
+        closed = generate(experts, gating,
+                          trained_state(experts, gating, estimates, series, delay),
+                          estimates.shape[2])
+        small = dataclasses.replace(cfg, num_samples=cfg.track_samples,
+                                    lyapunov_steps=cfg.track_steps, num_exponents=1,
+                                    transient=min(cfg.transient, cfg.track_steps))
+        state = random_state(experts, gating, small.num_samples, series.shape[-1], delay,
+                             generator)
+        lam = closed_loop_lyapunov(experts, gating, state, small, generator)[..., 0]
+    kl = _train_block_kl(estimates, closed["gates"], cfg)
+    return {"block_kl_train": torch.as_tensor(kl), "max_lyapunov": lam.mean(1).cpu()}
+
+
 def _symbols(outputs, gates, dataset: Dataset):
     if dataset.prototypes is None:
         return gates.argmax(-1)
@@ -156,8 +188,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
     closed = generate(experts, gating, trained_state(experts, gating, estimates, series, delay), T)
     e_closed = (closed_loop_mse(closed["outputs"].numpy(), targets.numpy()) if experts
                 else np.full(R, np.nan))
-    data_symbols = estimates.argmax(-1).numpy()
-    model_symbols = closed["gates"].argmax(-1).numpy()
+    kl_train = _train_block_kl(estimates, closed["gates"], cfg)
     # ---- random initial states: Lyapunov exponents and long symbol sequences
     recorded, kept = [], []
 
@@ -173,7 +204,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
         exponents = closed_loop_lyapunov(experts, gating, state, cfg, generator, on_step)
     sampled = torch.stack(recorded, -1).numpy()  # (R, N, steps)
     test = _test_symbols(dataset)
-    rows, hist = [], []
+    rows, hist, transitions = [], [], []
+    V = max(len(dataset.symbol_names), K)
     data_segments = [switching.segment_symbols(s, period) for s in _true_symbols(dataset)]
     data_switch = _switch_prob(data_segments)
     for r in range(R):
@@ -182,12 +214,11 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
         reps = np.concatenate([np.concatenate(list(switching.residence_times(s).values()) or
                                               [np.zeros(0, dtype=int)]) for s in segments])
         hist.append(np.bincount(reps, minlength=cfg.max_period + 1)[: cfg.max_period + 1])
+        transitions.append(switching.transition_matrix(np.concatenate(segments), V))
         rows.append({
             "run": r, "E": error[r].item(), "E_g": kl[r].item() / (S * (T - delay) * K),
             "E_closed": float(e_closed[r]), "block_length": cfg.block_length,
-            "block_kl_train": np.mean([block_kl(data_symbols[r, s], model_symbols[r, s],
-                                                cfg.block_length, cfg.kl_floor)
-                                       for s in range(S)]),
+            "block_kl_train": float(kl_train[r]),
             "block_kl_test": (block_kl(test, sampled[r], cfg.block_length, cfg.kl_floor)
                               if test is not None else float("nan")),
             "max_lyapunov": float(lam[:, 0].mean()),
@@ -203,7 +234,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
         })
     samples = {name: torch.stack([k[i] for k in kept], 1).numpy()
                for i, name in enumerate(("outputs", "gates", "gating_u"))}
-    samples.update(residence_hist=np.stack(hist), closed_outputs=closed["outputs"][:, 0].numpy(),
+    samples.update(residence_hist=np.stack(hist), transition=np.stack(transitions),
+                   closed_outputs=closed["outputs"][:, 0].numpy(),
                    symbols=sampled[:, 0, -cfg.plot_steps:])
     return rows, samples
 

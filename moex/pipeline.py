@@ -2,6 +2,8 @@
 
 import dataclasses
 import logging
+import signal
+import threading
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -12,11 +14,11 @@ import torch
 from moex import io, plotting
 from moex.config import Config, ToolConfig, config_from_dict
 from moex.errors import check
-from moex.evaluate import EvalConfig, evaluate, generate, random_state
+from moex.evaluate import EvalConfig, evaluate, generate, random_state, track_metrics
 from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
 from moex.model import init_experts, init_gating
 from moex.tasks import Dataset, make_task, reber
-from moex.train import train_experts, train_gating
+from moex.train import Hooks, train_experts, train_gating
 
 log = logging.getLogger(__name__)
 
@@ -36,55 +38,141 @@ def load_task(cfg: Config) -> Dataset:
     return dataset
 
 
-def run_train(cfg: Config, out_dir: Path) -> dict:
-    """Train R runs of the mixture on the task and write the run folder.
+class StopRequest:
+    """Turns SIGINT/SIGTERM into a flag that training checks each step (then saves and stops)."""
+
+    def __init__(self):
+        self.signum = 0
+
+    def __call__(self) -> bool:
+        return self.signum != 0
+
+    def __enter__(self):
+        self._previous = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        self.signum = signum
+
+    def __exit__(self, *exc):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _check_same_training(saved: dict, cfg: Config, path: Path) -> None:
+    """A checkpoint may only be resumed by the config that wrote it (eval settings aside)."""
+    now = dataclasses.asdict(cfg)
+    for key in ("task", "model", "train", "seed", "num_runs", "dtype"):
+        check(saved.get(key) == now[key], f"{path} was trained with a different {key} config; "
+                                          f"use another output folder or the same overrides")
+
+
+def _cpu(tree):
+    if isinstance(tree, torch.Tensor):
+        return tree.detach().cpu().clone()
+    if isinstance(tree, dict):
+        return {k: _cpu(v) for k, v in tree.items()}
+    return tree
+
+
+def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> dict:
+    """Train R runs of the mixture on the task and write the run folder; resumable.
+
+    A checkpoint already in `out_dir` (from the same config) is continued: a finished run is not
+    redone, an interrupted phase resumes at its saved step with the same result as an
+    uninterrupted run. Checkpoints are written every `train.checkpoint_every` steps and when
+    `stop` reports a signal (then `TrainingInterrupted` is raised).
 
     Args:
         cfg: the whole, validated config.
-        out_dir: the run folder; receives checkpoint.pt, history.csv and figures/.
+        out_dir: the run folder; receives checkpoint.pt, history.csv, metrics.csv, figures/.
+        stop: the interruption flag (signals are caught by the caller).
 
     Returns:
-        the checkpoint payload (plain dict).
+        the final checkpoint payload (plain dict).
     """
-    out_dir = Path(out_dir)
+    out_dir, stop = Path(out_dir), stop or StopRequest()
+    path = out_dir / io.CHECKPOINT
+    saved = io.load_checkpoint(path) if path.exists() else None
+    if saved is not None:
+        _check_same_training(saved["config"], cfg, path)
+        log.info("resuming %s from its %s phase", path, saved["phase"])
     dtype, device = getattr(torch, cfg.dtype), torch.device(cfg.device)
     dataset = load_task(cfg)
-    generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
     series = torch.as_tensor(dataset.series, dtype=dtype)
     S, L, D = series.shape
     delay = cfg.model.delay
+    if saved is not None and saved["phase"] == "done":
+        if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
+            evaluate_run(cfg, dataset, saved["experts"], saved["beta"], saved["gating"], out_dir,
+                         saved["failed"])
+        return saved
     log.info("task %s: %d series x %d steps, %d features; %d runs on %s/%s", cfg.task.name, S, L,
              D, cfg.num_runs, cfg.device, cfg.dtype)
-    experts, beta, rows = {}, None, []
-    if D > 0:
-        experts = init_experts(cfg.model, S, D, generators, dtype)
-        experts = {k: v.to(device) for k, v in experts.items()}
-        experts, beta, rows = train_experts(experts, series.to(device), cfg.model,
-                                            cfg.train.experts, cfg.train)
-        gate_targets, gating_inputs = torch.softmax(beta, dim=-1), series[:, :-delay]
-    else:  # symbolic task: the gates are the one-hot symbols themselves (paper Sec. 3.1)
+    # every draw happens on every start, so resumed and fresh runs see the same generators
+    generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
+    experts = init_experts(cfg.model, S, D, generators, dtype) if D > 0 else {}
+    gating = init_gating(cfg.model, S, D, generators, dtype)
+    track_rng = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0x7AC)
+    payload = {"config": dataclasses.asdict(cfg), "series": series,
+               "labels": torch.as_tensor(dataset.labels), "experts": {}, "beta": None,
+               "gating": {}, "experts_rows": []}
+
+    def hooks(phase: str, **extra) -> Hooks:
+        def save(state):
+            payload.update(phase=phase, train_state=_cpu(state), track_rng=track_rng.get_state())
+            io.save_checkpoint(path, payload)
+
+        resume = saved["train_state"] if saved is not None and saved["phase"] == phase else None
+        if resume is not None and "track_rng" in saved:
+            track_rng.set_state(saved["track_rng"])
+        return Hooks(save=save, save_every=cfg.train.checkpoint_every, should_stop=stop,
+                     resume=resume, **extra)
+
+    # ---- phase 1 (skipped for symbolic tasks, or when a checkpoint holds its result)
+    if D == 0:  # symbolic task: the gates are the one-hot symbols themselves (paper Sec. 3.1)
         one_hot = torch.as_tensor(dataset.gate_targets, dtype=dtype)
         gate_targets, gating_inputs = one_hot.expand(cfg.num_runs, -1, -1, -1), series
-    gating = {k: v.to(device) for k, v in init_gating(cfg.model, S, D, generators, dtype).items()}
-    gating, gating_rows = train_gating(gating, gate_targets.to(device), gating_inputs.to(device),
-                                       cfg.model, cfg.train.gating, cfg.train)
-    rows += gating_rows
-    payload = {
-        "config": dataclasses.asdict(cfg),
-        "experts": {k: v.cpu() for k, v in experts.items()},
-        "beta": None if beta is None else beta.cpu(),
-        "gating": {k: v.cpu() for k, v in gating.items()},
-        "series": series, "labels": torch.as_tensor(dataset.labels),
-    }
-    io.save_checkpoint(out_dir / io.CHECKPOINT, payload)
-    history = pd.DataFrame(rows)
+    else:
+        if saved is not None and saved["phase"] == "gating":
+            experts, beta = saved["experts"], saved["beta"]
+            payload["experts_rows"] = saved["experts_rows"]
+        else:
+            experts, beta, payload["experts_rows"] = train_experts(
+                {k: v.to(device) for k, v in experts.items()}, series.to(device), cfg.model,
+                cfg.train.experts, cfg.train, hooks("experts"))
+        payload.update(experts=_cpu(experts), beta=_cpu(beta))
+        gate_targets, gating_inputs = torch.softmax(beta, dim=-1), series[:, :-delay]
+    # ---- phase 2
+    gate_targets = gate_targets.to(device)
+    monitor = None
+    if cfg.eval.every:
+        def monitor(gating_params):
+            return track_metrics({k: v.to(device) for k, v in experts.items()}, gate_targets,
+                                 gating_params, series.to(device), delay, cfg.eval, track_rng)
+
+    gating, gating_rows = train_gating(
+        {k: v.to(device) for k, v in gating.items()}, gate_targets, gating_inputs.to(device),
+        cfg.model, cfg.train.gating, cfg.train,
+        hooks("gating", monitor=monitor, monitor_every=cfg.eval.every))
+    history = pd.DataFrame(payload["experts_rows"] + gating_rows)
+    failed = history.groupby("run")["failed"].any().reindex(range(cfg.num_runs), fill_value=False)
+    for run in np.flatnonzero(failed.to_numpy()):
+        log.warning("run %d failed: its objective or parameters became non-finite; it was "
+                    "frozen and its metrics are NaN", run)
+    payload.update(phase="done", gating=_cpu(gating), train_state=None,
+                   failed=[bool(f) for f in failed])
+    io.save_checkpoint(path, payload)
     io.write_csv(out_dir / io.HISTORY, history)
     plotting.save_figure(plotting.plot_learning_curves(history),
                          out_dir / io.FIGURES / "learning_curves.png")
     _log_summary(history)
     if cfg.eval.enabled:
-        evaluate_run(cfg, dataset, {k: v.cpu() for k, v in experts.items()},
-                     None if beta is None else beta.cpu(), payload["gating"], out_dir)
+        evaluate_run(cfg, dataset, payload["experts"], payload["beta"], payload["gating"],
+                     out_dir, payload["failed"])
     return payload
 
 
@@ -93,16 +181,23 @@ def _period(cfg: Config, dataset: Dataset) -> float:
     return cfg.task.period if dataset.prototypes is not None else 1.0
 
 
-def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path):
-    """Run every metric, then write metrics.csv, samples.npz and the figures."""
+def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path,
+                 failed: list[bool]):
+    """Run every metric, then write metrics.csv, samples.npz and the figures.
+
+    Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
+    """
     generator = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
-    rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay,
-                             _period(cfg, dataset), cfg.eval, generator)
-    metrics = pd.DataFrame(rows)
+    with np.errstate(invalid="ignore"):
+        rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay,
+                                 _period(cfg, dataset), cfg.eval, generator)
+    metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
+    metrics.loc[failed, metrics.columns.difference(["run"])] = np.nan
+    metrics["failed"] = failed
     io.write_csv(out_dir / io.METRICS, metrics)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     _plot_samples(samples, dataset, cfg, out_dir, metrics)
-    for _, row in metrics.iterrows():
+    for _, row in metrics[~metrics["failed"]].iterrows():
         log.info("run %d: E_closed %.3g, block KL train %.3g / test %.3g, max Lyapunov %.4g, "
                  "switch prob %.3f (data %.3f), nonperiodic %.2f", row["run"], row["E_closed"],
                  row["block_kl_train"], row["block_kl_test"], row["max_lyapunov"],
@@ -145,6 +240,8 @@ def load_run(tool: ToolConfig) -> tuple[Config, dict, Dataset]:
     cfg = config_from_dict(payload["config"])
     overrides = {k: v for k, v in dataclasses.asdict(tool.eval).items() if v is not None}
     cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
+    check(payload.get("phase") == "done", f"run_dir={tool.run_dir} holds an unfinished "
+                                          f"training; finish it with moex train first")
     return cfg, payload, load_task(cfg)
 
 
@@ -152,7 +249,7 @@ def run_evaluate(tool: ToolConfig) -> pd.DataFrame:
     """Re-run the evaluation of a trained run folder from its checkpoint (no retraining)."""
     cfg, payload, dataset = load_run(tool)
     return evaluate_run(cfg, dataset, payload["experts"], payload["beta"], payload["gating"],
-                        Path(tool.run_dir))
+                        Path(tool.run_dir), payload["failed"])
 
 
 def run_generate(tool: ToolConfig) -> dict:

@@ -23,10 +23,13 @@ def plot_history(history: pd.DataFrame, column: str, ax=None, log_y: bool = Fals
 
 
 def plot_learning_curves(history: pd.DataFrame):
-    """E and the log-likelihood of phase 1, E^g of phase 2, and the adaptive rate of each run."""
+    """E and the log-likelihood of phase 1; E^g, the adaptive rate and, when tracked, the block KL
+    and λ_max of phase 2 (paper Figs. 3, 6, 11), one line per run."""
     panels = [("experts", "E", True), ("experts", "log_likelihood", False),
-              ("gating", "E_g", True), ("gating", "lr_scale", True)]
-    panels = [p for p in panels if p[1] in history and (history["phase"] == p[0]).any()]
+              ("gating", "E_g", True), ("gating", "lr_scale", True),
+              ("gating", "block_kl_train", False), ("gating", "max_lyapunov", False)]
+    panels = [p for p in panels if p[1] in history
+              and history.loc[history["phase"] == p[0], p[1]].notna().any()]
     fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(4 * max(len(panels), 1), 3.2),
                              constrained_layout=True, squeeze=False)
     for ax, (phase, column, log_y) in zip(axes[0], panels, strict=False):
@@ -96,7 +99,8 @@ def plot_residence(model_hist: np.ndarray, data_hist: np.ndarray | None, ax=None
         ax.plot(k[1:top], data_hist[1:top] / data_hist.sum(), "k.-", label="training data")
     ax.set_xlabel("repetitions of a curve")
     ax.set_ylabel("probability")
-    ax.set_yscale("log")
+    if model[1:top].any():
+        ax.set_yscale("log")
     ax.legend()
     return ax
 

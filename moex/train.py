@@ -5,6 +5,7 @@ the C code's per-group learning-rate scaling (spec §2.2, §3.3) and the adaptiv
 Sec. 2.1.4, which each run applies to itself: it accepts or retries its own step.
 """
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -60,8 +61,11 @@ class TrainConfig:
     gating: GatingPhaseConfig = field(default_factory=GatingPhaseConfig)
     adaptive: AdaptiveLRConfig = field(default_factory=AdaptiveLRConfig)
     momentum_form: str = "paper"
+    checkpoint_every: int = 1000  # steps between resumable checkpoints (0 = only at the end)
 
     def __post_init__(self):
+        check(self.checkpoint_every >= 0,
+              f"train.checkpoint_every={self.checkpoint_every} must be >= 0")
         for key, phase in (("train.experts", self.experts), ("train.gating", self.gating)):
             check(phase.steps >= 0, f"{key}.steps={phase.steps} must be >= 0")
             check_positive(f"{key}.learning_rate", phase.learning_rate)
@@ -80,6 +84,7 @@ class TrainConfig:
 
 
 Objective = Callable[[dict[str, torch.Tensor]], tuple[torch.Tensor, dict[str, torch.Tensor]]]
+Monitor = Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]]
 
 
 def _per_run(scale: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -94,10 +99,35 @@ def _stepper(grads, velocity, rates, momentum, paper_form):
     return lambda scale: {k: rates[k] * _per_run(scale, v) * v for k, v in velocity.items()}
 
 
+@dataclass
+class Hooks:
+    """Side channels of a training phase: tracking, checkpoints, interruption and resuming."""
+
+    monitor: Monitor | None = None  # params -> extra statistics per run (R,)
+    monitor_every: int = 0
+    save: Callable[[dict], None] | None = None  # receives the resumable state of the phase
+    save_every: int = 0
+    should_stop: Callable[[], bool] = lambda: False  # e.g. a SIGTERM arrived
+    resume: dict | None = None  # a state from `save`, to continue from
+
+
+class TrainingInterrupted(Exception):
+    """Training stopped on request after saving its state; re-run to resume."""
+
+
+def _finite_per_run(*tensors: torch.Tensor) -> torch.Tensor:
+    return torch.stack([t.isfinite().reshape(t.shape[0], -1).all(1) for t in tensors]).all(0)
+
+
 def _ascend(params: dict[str, torch.Tensor], rates: dict[str, float], objective: Objective,
             criterion: str, steps: int, momentum: float, adaptive: bool,
-            rule: TrainConfig, phase: str, log_every: int) -> tuple[dict, list[dict]]:
+            rule: TrainConfig, phase: str, log_every: int,
+            hooks: Hooks | None = None) -> tuple[dict, list[dict]]:
     """Momentum gradient ascent on `objective` (Eqs. 17-18), optionally with the adaptive rate.
+
+    A run whose objective or gradient becomes non-finite is marked failed and frozen; the other
+    runs go on untouched (their tensors never mix). Without the adaptive rate, a step that makes
+    a run's parameters non-finite is rolled back and the run marked failed.
 
     Args:
         params: leaf tensors with a leading run axis R; the dict is updated in place.
@@ -105,62 +135,83 @@ def _ascend(params: dict[str, torch.Tensor], rates: dict[str, float], objective:
         objective: params -> (ln L per run (R,), named statistics per run (R,)).
         criterion: statistic whose ratio r drives the adaptive rate (E or the KL).
         rule: supplies the adaptive thresholds and the momentum form.
+        hooks: tracking, checkpointing and resuming (see `Hooks`).
 
     Returns:
         the trained parameters and history rows (one per run every `log_every` steps).
     """
+    hooks = hooks or Hooks()
     first = next(iter(params.values()))
     R, device = first.shape[0], first.device
-    lr_scale = torch.ones(R, dtype=first.dtype, device=device)
-    velocity = {k: torch.zeros_like(p) for k, p in params.items()}
-    rows = []
+    state = hooks.resume or {
+        "step": 0, "rows": [], "lr_scale": torch.ones(R, dtype=first.dtype, device=device),
+        "failed": torch.zeros(R, dtype=torch.bool, device=device),
+        "velocity": {k: torch.zeros_like(p) for k, p in params.items()}}
+    if hooks.resume:
+        params.update({k: v.to(device) for k, v in hooks.resume["params"].items()})
+    lr_scale, failed = state["lr_scale"].to(device), state["failed"].to(device)
+    velocity, rows = {k: v.to(device) for k, v in state["velocity"].items()}, state["rows"]
     paper_form = rule.momentum_form == "paper"
-    for step in tqdm(range(steps), desc=phase, disable=None, mininterval=1.0, leave=False):
+    for step in tqdm(range(state["step"], steps), desc=phase, disable=None, mininterval=1.0,
+                     leave=False, initial=state["step"], total=steps):
+        if hooks.should_stop() and hooks.save is not None:
+            hooks.save({"step": step, "params": params, "velocity": velocity,
+                        "lr_scale": lr_scale, "failed": failed, "rows": rows})
+            raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
         # ---- gradient of ln L at the current parameters
         leaves = {k: p.detach().requires_grad_(True) for k, p in params.items()}
         log_l, stats = objective(leaves)
         grads = dict(zip(leaves, torch.autograd.grad(log_l.sum(), list(leaves.values())),
                          strict=True))
         with torch.no_grad():
+            failed = failed | ~_finite_per_run(log_l, *grads.values())
+            grads = {k: torch.where(_per_run(failed, g), 0.0, g) for k, g in grads.items()}
             if not paper_form:  # mregn: the buffer sums raw gradients
                 velocity = {k: grads[k] + momentum * velocity[k] for k in params}
             propose = _stepper(grads, velocity, rates, momentum, paper_form)
             delta, retries = propose(lr_scale), torch.zeros(R, dtype=torch.long, device=device)
             # ---- adaptive rate: each run shrinks its own rate until r <= r_th (Sec. 2.1.4)
-            if adaptive:
-                base = stats[criterion]
-                pending = torch.ones(R, dtype=torch.bool, device=device)
-                for _ in range(rule.adaptive.max_retries):
-                    _, trial = objective({k: params[k] + delta[k] for k in params})
-                    ratio = trial[criterion] / base
-                    failed = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
-                    lr_scale = torch.where(pending & (ratio < 1), lr_scale *
-                                           rule.adaptive.increase, lr_scale)
-                    pending = failed
-                    if not pending.any():
-                        break
-                    lr_scale = torch.where(failed, lr_scale * rule.adaptive.decrease, lr_scale)
-                    retries += failed
-                    retry = propose(lr_scale)
-                    delta = {k: torch.where(_per_run(failed, d), retry[k], d)
-                             for k, d in delta.items()}
-                if pending.any():  # give up this step for the runs still failing
-                    delta = {k: torch.where(_per_run(pending, d), 0.0, d)
-                             for k, d in delta.items()}
-                    velocity = {k: torch.where(_per_run(pending, v), 0.0, v)
-                                for k, v in velocity.items()}
-            # ---- update
-            for k in params:
-                params[k] = params[k] + delta[k]
-            if paper_form:
-                velocity = delta
+            pending = ~failed if adaptive else torch.zeros_like(failed)
+            base = stats[criterion]
+            for _ in range(rule.adaptive.max_retries if pending.any() else 0):
+                _, trial = objective({k: params[k] + delta[k] for k in params})
+                ratio = trial[criterion] / base
+                rejected = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
+                lr_scale = torch.where(pending & (ratio < 1), lr_scale * rule.adaptive.increase,
+                                       lr_scale)
+                pending = rejected
+                if not pending.any():
+                    break
+                lr_scale = torch.where(rejected, lr_scale * rule.adaptive.decrease, lr_scale)
+                retries += rejected
+                retry = propose(lr_scale)
+                delta = {k: torch.where(_per_run(rejected, d), retry[k], d)
+                         for k, d in delta.items()}
+            # ---- update; give up the step of runs still rejected, roll back non-finite runs
+            updated = {k: params[k] + delta[k] for k in params}
+            if not adaptive:
+                failed = failed | ~_finite_per_run(*updated.values())
+            frozen = pending | failed
+            params.update({k: torch.where(_per_run(frozen, p), params[k], p)
+                           for k, p in updated.items()})
+            delta = {k: torch.where(_per_run(frozen, d), 0.0, d) for k, d in delta.items()}
+            velocity = delta if paper_form else {
+                k: torch.where(_per_run(frozen, v), 0.0, v) for k, v in velocity.items()}
             if "tau" in params:
                 params["tau"] = params["tau"].clamp_min(1.0)  # ε <= 1 (spec §1.3)
-        if step % log_every == 0 or step == steps - 1:
+        tracked = hooks.monitor_every > 0 and (step % hooks.monitor_every == 0
+                                               or step == steps - 1)
+        if tracked:
+            stats = {**stats, **hooks.monitor(params)}
+        if tracked or step % log_every == 0 or step == steps - 1:
             for r in range(R):
                 rows.append({"run": r, "phase": phase, "step": step, "objective": log_l[r].item(),
                              **{k: v[r].item() for k, v in stats.items()},
-                             "lr_scale": lr_scale[r].item(), "retries": retries[r].item()})
+                             "lr_scale": lr_scale[r].item(), "retries": retries[r].item(),
+                             "failed": bool(failed[r])})
+        if hooks.save is not None and hooks.save_every and (step + 1) % hooks.save_every == 0:
+            hooks.save({"step": step + 1, "params": params, "velocity": velocity,
+                        "lr_scale": lr_scale, "failed": failed, "rows": rows})
     return {k: p.detach() for k, p in params.items()}, rows
 
 
@@ -217,7 +268,7 @@ def gating_objective(gate_targets: torch.Tensor, inputs: torch.Tensor,
 
 
 def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model: ModelConfig,
-                  cfg: ExpertPhaseConfig, rule: TrainConfig
+                  cfg: ExpertPhaseConfig, rule: TrainConfig, hooks: Hooks | None = None
                   ) -> tuple[dict[str, torch.Tensor], torch.Tensor, list[dict]]:
     """Phase 1 (Sec. 2.1.2-2.1.3): maximum likelihood of the experts and the gate logits β.
 
@@ -226,6 +277,7 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
         series: (S, L, D) training series; inputs x_n = series[n], targets series[n + τ].
         model: the model config (delay, σ̄, whether τ = 1/ε is learned).
         cfg: this phase's settings; rule: adaptive thresholds and momentum form.
+        hooks: checkpointing, interruption and resuming (see `Hooks`).
 
     Returns:
         trained experts, gate logits β (R, S, T, K) with T = L - τ (ĝ = softmax β, Eq. 9), and
@@ -244,14 +296,15 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
 
     objective = expert_objective(inputs, targets, fixed, model, cfg)
     trained, rows = _ascend(params, rates, objective, "E", cfg.steps, cfg.momentum,
-                            cfg.adaptive_lr, rule, "experts", cfg.log_every)
+                            cfg.adaptive_lr, rule, "experts", cfg.log_every, hooks)
     beta = trained.pop("beta")
     return {**trained, **fixed}, beta, rows
 
 
 def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
                  inputs: torch.Tensor, model: ModelConfig, cfg: GatingPhaseConfig,
-                 rule: TrainConfig) -> tuple[dict[str, torch.Tensor], list[dict]]:
+                 rule: TrainConfig, hooks: Hooks | None = None
+                 ) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Phase 2 (Sec. 2.1.2-2.1.4): fit the gating RNN to the estimates ĝ by teacher forcing.
 
     Args:
@@ -259,6 +312,7 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
         gate_targets: (R, S, T, K) ĝ_n, soft targets from phase 1 (or one-hot symbols).
         inputs: (S, T, D) inputs x_n aligned with ĝ_n (D = 0 for symbolic tasks).
         model: the model config; cfg: this phase's settings; rule: adaptive thresholds.
+        hooks: tracking (its monitor sees the full gating parameters), checkpointing, resuming.
 
     Returns:
         trained gating parameters and history rows with objective, log_likelihood, kl, E_g.
@@ -272,6 +326,9 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     rates["u0"] = cfg.learning_rate / K
 
     objective = gating_objective(gate_targets, inputs, fixed, model, cfg)
+    if hooks is not None and hooks.monitor is not None:
+        monitor = hooks.monitor
+        hooks = dataclasses.replace(hooks, monitor=lambda p: monitor({**p, **fixed}))
     trained, rows = _ascend(params, rates, objective, "kl", cfg.steps, cfg.momentum,
-                            cfg.adaptive_lr, rule, "gating", cfg.log_every)
+                            cfg.adaptive_lr, rule, "gating", cfg.log_every, hooks)
     return {**trained, **fixed}, rows

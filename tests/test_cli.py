@@ -102,7 +102,14 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_
 
 def test_bad_transition_matrix_and_csv(tmp_path):
     (tmp_path / "bad.csv").write_text("0.1,0.2\n0.3,nan\n" * 5)
+    (tmp_path / "ragged.csv").write_text("0.1,0.2\n0.3\n" * 5)
+    (tmp_path / "short.csv").write_text("0.1,0.2\n0.3,0.1\n")
     for args, message in [
+        (["task=csv", f"task.path={tmp_path}/ragged.csv"], "ragged rows"),
+        (["task=csv", f"task.path={tmp_path}/short.csv"],
+         "series have 2 steps, need at least 3 (model.delay + 2)"),
+        (["task=csv", f"task.path={tmp_path}/short.csv", "model.delay=3"],
+         "need at least 5 (model.delay + 2)"),
         (["task=markov_primitives", "task.transition=[[0.5,0.4],[0.5,0.5]]"],
          "task.transition[0] sums to 0.9, not 1"),
         (["task=csv", f"task.path={tmp_path}/bad.csv"], "contains NaN or inf"),
@@ -122,6 +129,10 @@ def test_run_dir_without_checkpoint(verb, tmp_path):
     (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
     result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
     assert result.returncode == 2 and "is not a readable moex checkpoint" in result.stderr
+    torch.save({"format_version": 99}, tmp_path / "checkpoint.pt")
+    result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
+    assert result.returncode == 2
+    assert "has checkpoint format 99, this moex reads format 1" in result.stderr
 
 
 def test_unknown_verb():

@@ -1,0 +1,137 @@
+"""Resumable runs, fault isolation between runs, failed jobs that do not stop a sweep."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pandas as pd
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import open_dict
+
+from moex import cli
+from moex.config import register_configs
+from moex.model import ModelConfig, init_experts, init_gating
+from moex.pipeline import run_seeds
+from moex.tasks import TaskConfig, make_task
+from moex.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig, train_experts
+from tests.conftest import generators
+
+MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
+ARGS = ["train", "task=lissajous2", "task.num_series=2", "task.length=40",
+        "model.experts.context_size=4", "model.gating.context_size=5", "num_runs=2",
+        "train.experts.steps=600", "train.gating.steps=300", "train.experts.adaptive_lr=true",
+        "train.checkpoint_every=25", "eval.enabled=false"]
+
+
+def _run(args, cwd, **kw):
+    return subprocess.Popen(MOEX + args, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, **kw)
+
+
+def _tensors(checkpoint):
+    for part in ("experts", "gating"):
+        yield from ((f"{part}.{k}", v) for k, v in checkpoint[part].items())
+    yield "beta", checkpoint["beta"]
+
+
+def test_sigterm_then_resume_is_bit_identical(tmp_path):
+    clean, killed = tmp_path / "clean", tmp_path / "killed"
+    reference = _run(ARGS + [f"hydra.run.dir={clean}"], tmp_path)
+    proc = _run(ARGS + [f"hydra.run.dir={killed}"], tmp_path)
+    deadline = time.time() + 120
+    while not (killed / "checkpoint.pt").exists() and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "interrupted" in err
+    stopped = torch.load(killed / "checkpoint.pt", weights_only=True)
+    assert stopped["phase"] in ("experts", "gating") and stopped["train_state"]["step"] > 0
+    assert json.loads((killed / "status.json").read_text())["status"] == "interrupted"
+    resumed = _run(ARGS + [f"hydra.run.dir={killed}"], tmp_path)
+    _, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    _, err = reference.communicate(timeout=300)
+    assert reference.returncode == 0, err
+    a = torch.load(clean / "checkpoint.pt", weights_only=True)
+    b = torch.load(killed / "checkpoint.pt", weights_only=True)
+    for (name, x), (_, y) in zip(_tensors(a), _tensors(b), strict=True):
+        assert torch.equal(x, y), name
+    pd.testing.assert_frame_equal(pd.read_csv(clean / "history.csv"),
+                                  pd.read_csv(killed / "history.csv"))
+    assert json.loads((killed / "status.json").read_text())["status"] == "done"
+    # a finished run is not redone
+    again = _run(ARGS + [f"hydra.run.dir={killed}"], tmp_path)
+    _, err = again.communicate(timeout=120)
+    assert again.returncode == 0 and torch.equal(
+        torch.load(killed / "checkpoint.pt", weights_only=True)["gating"]["w_out"],
+        b["gating"]["w_out"])
+
+
+def test_resume_with_another_config_is_refused(tmp_path):
+    run_dir = tmp_path / "run"
+    args = ARGS[:-4] + ["train.experts.steps=3", "train.gating.steps=2", "eval.enabled=false",
+                        f"hydra.run.dir={run_dir}"]
+    assert _run(args, tmp_path).wait(timeout=120) == 0
+    proc = _run(args + ["model.gating.context_size=6"], tmp_path)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and "different model config" in err, err
+
+
+def test_a_nan_run_leaves_the_others_identical():
+    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    series = torch.as_tensor(task.series)
+    model = ModelConfig()
+    model.experts.context_size = 4
+    seeds = run_seeds(3, 3)
+    phase = ExpertPhaseConfig(steps=15, adaptive_lr=True)
+    for adaptive in (True, False):
+        phase.adaptive_lr = adaptive
+        clean = init_experts(model, 2, 2, generators(seeds))
+        broken = {k: v.clone() for k, v in clean.items()}
+        broken["w_rec"][1, 0, 0, 0] = float("nan")
+        trained_clean, beta_clean, _ = train_experts(clean, series, model, phase, TrainConfig())
+        trained, beta, rows = train_experts(broken, series, model, phase, TrainConfig())
+        for k in trained:
+            for r in (0, 2):
+                assert torch.equal(trained[k][r], trained_clean[k][r]), k
+        assert torch.equal(beta[0], beta_clean[0]) and torch.equal(beta[2], beta_clean[2])
+        assert all(row["failed"] == (row["run"] == 1) for row in rows)
+
+
+def test_a_failing_multirun_job_writes_its_status_and_the_sweep_goes_on(tmp_path):
+    register_configs()
+    with initialize_config_dir(config_dir=cli.CONF_DIR, version_base="1.3"):
+        cfg = compose("config", return_hydra_config=True)
+    with open_dict(cfg):
+        cfg.hydra.mode = RunMode.MULTIRUN
+        cfg.hydra.runtime.output_dir = str(tmp_path)
+    HydraConfig.instance().set_config(cfg)
+    with open_dict(cfg):
+        del cfg["hydra"]
+
+    def explode(*_):
+        raise RuntimeError("boom")
+
+    cli._job(explode, "train")(cfg)  # returns instead of raising: the sweep continues
+    status = json.loads((tmp_path / "status.json").read_text())
+    assert status == {"verb": "train", "status": "failed", "error": "RuntimeError: boom"}
+
+
+def test_gating_phase_also_isolates_failures():
+    model = ModelConfig()
+    gating = init_gating(model, 2, 2, generators([0, 1]))
+    gating["b_o"][0, 0] = float("inf")
+    ghat = torch.softmax(torch.randn(2, 2, 20, 2), -1)
+    from moex.train import train_gating
+    trained, rows = train_gating(gating, ghat, torch.zeros(2, 20, 2), model,
+                                 GatingPhaseConfig(steps=5, log_every=1), TrainConfig())
+    assert all(row["failed"] == (row["run"] == 0) for row in rows)
+    assert torch.isfinite(trained["w_out"][1]).all()
