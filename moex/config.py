@@ -50,6 +50,7 @@ class ToolConfig:
     steps: int = 10000  # generate: closed-loop steps per sample
     num_samples: int = 4  # generate: random initial states per network
     noise_var: float = 0.0  # generate: ρ²
+    from_series: int = -1  # generate: -1 random initial states, k the trained state of series k
     seed: int = 0
 
     def __post_init__(self):

@@ -14,7 +14,14 @@ import torch
 from moex import io, plotting
 from moex.config import Config, ToolConfig, config_from_dict
 from moex.errors import check
-from moex.evaluate import EvalConfig, evaluate, generate, random_state, track_metrics
+from moex.evaluate import (
+    EvalConfig,
+    evaluate,
+    generate,
+    random_state,
+    track_metrics,
+    trained_state,
+)
 from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
 from moex.model import init_experts, init_gating
 from moex.tasks import Dataset, make_task, reber
@@ -253,12 +260,23 @@ def run_evaluate(tool: ToolConfig) -> pd.DataFrame:
 
 
 def run_generate(tool: ToolConfig) -> dict:
-    """Closed-loop samples from random initial states of every run: samples.npz and figures."""
+    """Closed-loop samples of every run from random initial states (or the trained state of
+    series `from_series`): samples.npz and figures."""
     cfg, payload, dataset = load_run(tool)
     experts, gating = payload["experts"], payload["gating"]
     generator = torch.Generator().manual_seed(tool.seed)
-    state = random_state(experts, gating, tool.num_samples, dataset.series.shape[-1],
-                         cfg.model.delay, generator)
+    S, _, D = dataset.series.shape
+    check(-1 <= tool.from_series < S, f"from_series={tool.from_series} is outside [-1, {S - 1}]")
+    if tool.from_series < 0:
+        state = random_state(experts, gating, tool.num_samples, D, cfg.model.delay, generator)
+    else:  # the trained initial state of one series, repeated for every (noisy) sample
+        estimates = (torch.softmax(payload["beta"], -1) if experts else
+                     torch.as_tensor(dataset.gate_targets, dtype=gating["w_out"].dtype).expand(
+                         cfg.num_runs, -1, -1, -1))
+        k = [tool.from_series] * tool.num_samples
+        state = trained_state({n: v[:, k] if n == "u0" else v for n, v in experts.items()},
+                              {n: v[:, k] if n == "u0" else v for n, v in gating.items()},
+                              estimates[:, k], payload["series"][k], cfg.model.delay)
     with torch.no_grad():
         out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator)
     samples = {k: v.numpy() for k, v in out.items()}
@@ -268,8 +286,10 @@ def run_generate(tool: ToolConfig) -> dict:
     io.save_arrays(out_dir / io.SAMPLES, samples)
     first = {k: v[:, 0] for k, v in samples.items()}
     _plot_samples(first, dataset, cfg, out_dir)
-    log.info("generated %d samples x %d steps per run (noise variance %g) into %s",
-             tool.num_samples, tool.steps, tool.noise_var, out_dir / io.SAMPLES)
+    log.info("generated %d samples x %d steps per run (noise variance %g, from %s) into %s",
+             tool.num_samples, tool.steps, tool.noise_var,
+             "random states" if tool.from_series < 0 else f"series {tool.from_series}",
+             out_dir / io.SAMPLES)
     return samples
 
 

@@ -57,7 +57,29 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
     samples = np.load(run_dir / "samples.npz")
     assert samples["outputs"].shape == (2, 2, 50, 2) and samples["gates"].shape == (2, 2, 50, 2)
     assert samples["symbols"].shape == (2, 2, 50)
+    # from the trained state of series 1, without noise every sample is the same
+    result = _moex(["generate", f"run_dir={run_dir}", "steps=30", "num_samples=2",
+                    "from_series=1"], cwd=work)
+    assert result.returncode == 0, result.stderr
+    outputs = np.load(run_dir / "samples.npz")["outputs"]
+    assert np.array_equal(outputs[:, 0], outputs[:, 1])
+    result = _moex(["generate", f"run_dir={run_dir}", "from_series=5"], cwd=work)
+    assert result.returncode == 2 and "from_series=5 is outside [-1, 1]" in result.stderr
     assert list(work.iterdir()) == []
+
+
+def test_resume_true_continues_the_latest_run_of_the_task(tmp_path):
+    args = ["train", "task=lissajous2", *TINY, "eval.enabled=false"]
+    assert _moex(args, cwd=tmp_path).returncode == 0
+    (run_dir,) = (tmp_path / "outputs" / "lissajous2").iterdir()
+    before = (run_dir / "checkpoint.pt").stat().st_mtime_ns
+    result = _moex(args + ["resume=true"], cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert str(run_dir) in result.stdout
+    assert list((tmp_path / "outputs" / "lissajous2").iterdir()) == [run_dir]
+    assert (run_dir / "checkpoint.pt").stat().st_mtime_ns == before  # finished: not redone
+    result = _moex(["train", "task=reber", "resume=true"], cwd=tmp_path)
+    assert result.returncode == 2 and "outputs/reber/ holds no run" in result.stderr
 
 
 def test_reber_trains_the_gating_network_only(tmp_path):
