@@ -4,6 +4,7 @@ Overrides are composed and validated with Hydra's compose API before the run sta
 value or unknown key ends with one line on stderr and exit code 2, and nothing is written.
 """
 
+import hashlib
 import json
 import logging
 import sys
@@ -21,7 +22,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from moex import pipeline
+from moex import pipeline, report
 from moex.config import register_configs
 from moex.errors import ConfigError
 from moex.io import atomic_write
@@ -31,12 +32,23 @@ _PACKAGE_CONF = Path(__file__).resolve().parent / "conf"
 log = logging.getLogger("moex")
 CONF_DIR = str(_PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf")
 
+def _job_dirname(overrides: str) -> str:
+    """Multirun subfolder: the job's overrides, shortened with a hash when too long for a path."""
+    if len(overrides) <= 120:
+        return overrides
+    return f"{overrides[:100]}...{hashlib.sha1(overrides.encode()).hexdigest()[:8]}"
+
+
+# registered at import so Hydra's launchers (joblib workers too) can resolve the sweep subdir
+OmegaConf.register_new_resolver("moex_dirname", _job_dirname, replace=True)
+
 USAGE = """usage: moex <verb> [-m] [key=value ...]
 
 verbs:
   train      train both phases on a task, evaluate, and write a run folder
   evaluate   recompute metrics.csv, samples.npz and figures of a run folder (run_dir=...)
   generate   closed-loop samples from random initial states (run_dir=... steps=... noise_var=...)
+  report     tables and phase plots of a multirun folder (moex report outputs/multirun/<date>)
 
 examples:
   moex train task=lissajous2
@@ -44,6 +56,8 @@ examples:
   moex train -m task.switch_prob=0.5,0.25,0.125 num_runs=30
   moex evaluate run_dir=outputs/lissajous2/2026-11-24_12-00-00 eval.noise_var=0.001
   moex generate run_dir=outputs/lissajous2/2026-11-24_12-00-00 steps=10000 noise_var=0.001
+  moex train -m experiment=paper_table2 hydra/launcher=joblib
+  moex report outputs/multirun/2026-11-24_12-00-00
 """
 
 
@@ -175,8 +189,11 @@ def main(argv: list[str] | None = None) -> None:
         print(USAGE)
         return
     verb, args = argv[0], argv[1:]
+    if verb == "report":  # a folder in, tables out: plain argparse, no Hydra
+        report.main(args)
+        return
     if verb not in VERBS:
-        print(f"moex: error: unknown verb {verb!r}; choose one of {', '.join(VERBS)}",
+        print(f"moex: error: unknown verb {verb!r}; choose one of {', '.join(VERBS)}, report",
               file=sys.stderr)
         sys.exit(2)
     config_name, task_function = VERBS[verb]

@@ -28,6 +28,7 @@ class Config:
     dtype: str = "float64"
     device: str = "cpu"
     resume: bool = False  # continue the latest run folder of this task (or hydra.run.dir)
+    cache_dir: str = ""  # phase-1 results shared by jobs that differ only in the gating net
 
     def __post_init__(self):
         check(self.num_runs >= 1, f"num_runs={self.num_runs} must be >= 1")

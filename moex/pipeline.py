@@ -1,6 +1,8 @@
 """The glue, testable without Hydra: task → model → phase 1 → phase 2 → checkpoint → CSV → plots."""
 
 import dataclasses
+import hashlib
+import json
 import logging
 import signal
 import threading
@@ -85,6 +87,22 @@ def _cpu(tree):
     return tree
 
 
+def _phase1_cache(cfg: Config) -> Path | None:
+    """Where phase 1 of this config is cached: it does not depend on the gating network, its
+    phase or evaluation, so a sweep over those reuses one result per (task, seed)."""
+    if not cfg.cache_dir:
+        return None
+    model = dataclasses.asdict(cfg.model)
+    model.pop("gating")
+    key = {"task": dataclasses.asdict(cfg.task), "model": model,
+           "experts": dataclasses.asdict(cfg.train.experts),
+           "adaptive": dataclasses.asdict(cfg.train.adaptive),
+           "momentum_form": cfg.train.momentum_form, "seed": cfg.seed,
+           "num_runs": cfg.num_runs, "dtype": cfg.dtype, "device": cfg.device}
+    digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(cfg.cache_dir) / f"phase1-{digest}.pt"
+
+
 def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> dict:
     """Train R runs of the mixture on the task and write the run folder; resumable.
 
@@ -144,13 +162,22 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
         one_hot = torch.as_tensor(dataset.gate_targets, dtype=dtype)
         gate_targets, gating_inputs = one_hot.expand(cfg.num_runs, -1, -1, -1), series
     else:
+        cached = _phase1_cache(cfg)
         if saved is not None and saved["phase"] == "gating":
             experts, beta = saved["experts"], saved["beta"]
             payload["experts_rows"] = saved["experts_rows"]
+        elif cached is not None and cached.exists():
+            log.info("phase 1 reused from %s", cached)
+            done = torch.load(cached, map_location="cpu", weights_only=True)
+            experts, beta, payload["experts_rows"] = done["experts"], done["beta"], done["rows"]
         else:
             experts, beta, payload["experts_rows"] = train_experts(
                 {k: v.to(device) for k, v in experts.items()}, series.to(device), cfg.model,
                 cfg.train.experts, cfg.train, hooks("experts"))
+            if cached is not None:
+                io.atomic_write(cached, lambda tmp: torch.save(
+                    {"experts": _cpu(experts), "beta": _cpu(beta),
+                     "rows": payload["experts_rows"]}, tmp))
         payload.update(experts=_cpu(experts), beta=_cpu(beta))
         gate_targets, gating_inputs = torch.softmax(beta, dim=-1), series[:, :-delay]
     # ---- phase 2

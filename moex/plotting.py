@@ -122,3 +122,28 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None):
             ax.set_ylim(-1, 1)
         ax.set_title(f"expert {i}", fontsize=7)
     return axes
+
+
+def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "", ax=None):
+    """NT × LT phase plot of one column (paper Figs. 14 and 16); missing cells stay blank."""
+    grid = table.pivot_table(index=y, columns=x, values=value, aggfunc="mean")
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(4.5, 3.6), constrained_layout=True)
+    mesh = ax.imshow(grid.to_numpy(dtype=float), origin="lower", cmap="viridis", aspect="auto")
+    ax.set_xticks(range(grid.shape[1]), [f"{v:g}" for v in grid.columns])
+    ax.set_yticks(range(grid.shape[0]), [f"{v:g}" for v in grid.index])
+    ax.set_xlabel(f"{x} (NT)" if x == "num_series" else x)
+    ax.set_ylabel(f"{y} (LT)" if y == "length" else y)
+    ax.set_title(f"{value} {title}".strip())
+    ax.figure.colorbar(mesh, ax=ax)
+    return ax.figure
+
+
+def plot_residence_panels(hists: dict[float, np.ndarray]):
+    """Residence-time distributions, one panel per switching probability P (paper Fig. 9)."""
+    fig, axes = plt.subplots(1, len(hists), figsize=(4 * len(hists), 3.2),
+                             constrained_layout=True, squeeze=False)
+    for ax, (p, hist) in zip(axes[0], sorted(hists.items(), reverse=True), strict=True):
+        plot_residence(hist, None, ax=ax, switch_prob=p)
+        ax.set_title(f"P = {p:g}")
+    return fig

@@ -1,0 +1,186 @@
+"""Sweeps into tables (paper Tables 1-2, Figs. 9, 14, 16): gather every job of a multirun folder,
+aggregate over runs, and write CSV, Markdown and figures at the multirun root."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from moex import io, plotting
+
+# the paper's numbers, for the adjacent columns
+PAPER_TABLE1 = pd.DataFrame({  # Reber, mean of 50 trials (Table 1)
+    "context_size": [10, 20, 30, 50],
+    "paper_E_g": [0.144868, 0.010118, 0.005721, 0.004339],
+    "paper_block_kl_train": [2.511791, 0.258037, 0.051233, 0.006338],
+    "paper_block_kl_test": [2.388665, 0.309089, 0.327273, 0.290858],
+    "paper_max_lyapunov": [0.203512, 0.215117, 0.160728, 0.116574],
+    "paper_positive_percent": [88, 98, 100, 100],
+})
+PAPER_TABLE2 = pd.DataFrame({  # two Lissajous curves, mean of 30 trials (Table 2)
+    "switch_prob_task": [0.5, 0.25, 0.125],
+    "paper_switch_prob": [0.451033, 0.275999, 0.150866],
+    "paper_max_lyapunov": [0.001076, 0.002080, 0.002829],
+    "paper_positive_percent": [93, 96, 96],
+})
+METRICS = ["E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
+           "switch_prob", "mean_residence", "nonperiodic_fraction"]
+SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
+            "task.num_series": "num_series", "task.length": "length",
+            "model.gating.context_size": "context_size", "eval.noise_var": "noise_var_setting"}
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Every job folder below `sweep_dir` (one with .hydra/config.yaml).
+
+    Returns:
+        runs: one row per (job, run) with the job's settings and its metrics.csv columns;
+        jobs: one row per job with its status (done, failed, interrupted, missing metrics).
+    """
+    runs, jobs = [], []
+    for config_path in sorted(Path(sweep_dir).glob("**/.hydra/config.yaml")):
+        job_dir = config_path.parent.parent
+        config = _flatten(yaml.safe_load(config_path.read_text()))
+        settings = {name: config.get(key) for key, name in SETTINGS.items()}
+        status_path = job_dir / "status.json"
+        status = json.loads(status_path.read_text()) if status_path.exists() else {}
+        metrics_path = job_dir / io.METRICS
+        state = status.get("status", "running or killed")
+        if state == "done" and not metrics_path.exists():
+            state = "missing metrics"
+        jobs.append({"job": job_dir.name, **settings, "status": state,
+                     "error": status.get("error", ""), "path": str(job_dir)})
+        if metrics_path.exists():
+            frame = io.read_csv(metrics_path)
+            runs.append(frame.assign(job=job_dir.name, **settings))
+    return (pd.concat(runs, ignore_index=True) if runs else pd.DataFrame(),
+            pd.DataFrame(jobs))
+
+
+def aggregate(runs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+    """Mean and standard deviation over runs of every metric, and the share of runs with a
+    positive maximum Lyapunov exponent, per setting. Failed runs count as missing."""
+    ok = runs[~runs.get("failed", pd.Series(False, index=runs.index)).astype(bool)]
+    grouped = ok.groupby(keys, dropna=False)
+    table = grouped[[m for m in METRICS if m in ok]].agg(["mean", "std"])
+    table.columns = [f"{m}_{s}" for m, s in table.columns]
+    table["positive_percent"] = grouped["max_lyapunov"].apply(lambda x: 100 * (x > 0).mean())
+    table["num_runs"] = grouped.size()
+    table["failed_runs"] = runs.groupby(keys, dropna=False).size() - table["num_runs"]
+    return table.reset_index()
+
+
+def to_markdown(frame: pd.DataFrame) -> str:
+    """A plain Markdown table (no extra dependency)."""
+    def cell(v):
+        if isinstance(v, float):
+            return "missing" if np.isnan(v) else f"{v:.6g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(False)]
+    return "\n".join(lines) + "\n"
+
+
+def _write_table(out: Path, name: str, frame: pd.DataFrame) -> None:
+    io.write_csv(out / "tables" / f"{name}.csv", frame)
+    io.atomic_write(out / "tables" / f"{name}.md",
+                    lambda tmp: Path(tmp).write_text(to_markdown(frame)))
+
+
+def paper_tables(summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    """Table 1 (Reber, by context size) and Table 2 (two Lissajous, by P) beside the paper's
+    numbers, for the settings the sweep has; rows the sweep lacks are shown as missing."""
+    tables = {}
+    reber = summary[summary["task"] == "reber"]
+    if len(reber):
+        cols = ["context_size", "E_g_mean", "block_kl_train_mean", "block_kl_test_mean",
+                "max_lyapunov_mean", "positive_percent", "num_runs"]
+        tables["table1"] = PAPER_TABLE1.merge(reber[cols], on="context_size", how="outer")
+    liss = summary[summary["task"] == "lissajous2"]
+    if len(liss) and liss["switch_prob_task"].nunique() > 1:
+        cols = ["switch_prob_task", "switch_prob_mean", "switch_prob_std", "max_lyapunov_mean",
+                "positive_percent", "num_runs"]
+        tables["table2"] = (PAPER_TABLE2.merge(liss[cols], on="switch_prob_task", how="outer")
+                            .sort_values("switch_prob_task", ascending=False, ignore_index=True))
+    return tables
+
+
+def report(sweep_dir: Path) -> dict[str, pd.DataFrame]:
+    """Write summary.csv, tables/*.csv|md and figures/*.png into `sweep_dir`; safe to re-run."""
+    sweep_dir = Path(sweep_dir)
+    runs, jobs = gather(sweep_dir)
+    out = {"jobs": jobs}
+    if len(jobs):
+        _write_table(sweep_dir, "jobs", jobs.drop(columns=["path"]))
+    if runs.empty:
+        return out
+    io.write_csv(sweep_dir / "summary.csv", runs)
+    keys = [k for k in SETTINGS.values() if k in runs and runs[k].nunique(dropna=False) > 1]
+    summary = aggregate(runs, keys or ["task"])
+    for k in ("task", "switch_prob_task", "context_size"):  # always present for paper tables
+        if k not in summary:
+            summary[k] = runs[k].iloc[0]
+    _write_table(sweep_dir, "by_setting", summary)
+    out["summary"] = summary
+    for name, table in paper_tables(summary).items():
+        _write_table(sweep_dir, name, table)
+        out[name] = table
+    _figures(sweep_dir, runs, summary, jobs)
+    return out
+
+
+def _figures(sweep_dir: Path, runs, summary, jobs) -> None:
+    figures = sweep_dir / "figures"
+    if {"num_series", "length"} <= set(summary) and summary["num_series"].nunique() > 1 \
+            and summary["length"].nunique() > 1:
+        for column in ("E_closed_mean", "positive_percent", "nonperiodic_fraction_mean"):
+            for nc, group in summary.groupby("context_size") if "context_size" in summary \
+                    else [("all", summary)]:
+                fig = plotting.plot_heatmap(group, "num_series", "length", column,
+                                            title=f"NC = {nc}")
+                plotting.save_figure(fig, figures / f"heatmap_{column}_NC{nc}.png")
+    liss = jobs[(jobs["task"] == "lissajous2") & (jobs["status"] == "done")]
+    hists = {}
+    for _, job in liss.iterrows():
+        path = Path(job["path"]) / io.SAMPLES
+        if path.exists():
+            with np.load(path) as data:
+                if "residence_hist" in data:
+                    hists.setdefault(job["switch_prob_task"], []).append(data["residence_hist"])
+    if len(hists) > 1:
+        fig = plotting.plot_residence_panels({p: np.concatenate(h) for p, h in hists.items()})
+        plotting.save_figure(fig, figures / "residence_times.png")
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="moex report", description=__doc__)
+    parser.add_argument("sweep_dir", type=Path, help="a multirun folder (or any parent of jobs)")
+    args = parser.parse_args(argv)
+    if not args.sweep_dir.is_dir():
+        parser.exit(2, f"moex: error: {args.sweep_dir} is not a folder\n")
+    out = report(args.sweep_dir)
+    jobs = out["jobs"]
+    if jobs.empty:
+        parser.exit(2, f"moex: error: {args.sweep_dir} holds no job folder (.hydra/config.yaml)\n")
+    for _, job in jobs[jobs["status"] != "done"].iterrows():
+        print(f"job {job['job']}: {job['status']} {job['error']}".rstrip())
+    for name in ("table1", "table2", "summary"):
+        if name in out:
+            print(to_markdown(out[name]))
+    print(f"moex: report written to {args.sweep_dir} ({(jobs['status'] == 'done').sum()} of "
+          f"{len(jobs)} jobs done)")

@@ -1,0 +1,66 @@
+import json
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+from moex.report import aggregate, report, to_markdown
+from tests.test_cli import TINY
+
+MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
+
+
+@pytest.mark.parametrize("launcher", ["basic", "joblib"])
+def test_tiny_paper_table2_sweep_and_report(launcher, tmp_path):
+    sweep = tmp_path / "sweep"
+    result = subprocess.run(
+        MOEX + ["train", "-m", "experiment=paper_table2", *TINY, f"hydra/launcher={launcher}",
+                f"hydra.sweep.dir={sweep}"] +
+        (["hydra.launcher.n_jobs=2"] if launcher == "joblib" else []),
+        cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    jobs = sorted((p for p in sweep.iterdir() if p.is_dir()),
+                  key=lambda p: -float(p.joinpath(".hydra/config.yaml").read_text()
+                                       .split("switch_prob: ")[1].split()[0]))
+    assert len(jobs) == 3 and all(len(p.name) < 130 for p in jobs)
+    jobs = [p.name for p in jobs]  # P = 0.5, 0.25, 0.125
+    for job in jobs:
+        assert json.loads((sweep / job / "status.json").read_text())["status"] == "done"
+    # a partial sweep: remove one job's metrics (P = 0.125), mark another failed (P = 0.25)
+    (sweep / jobs[2] / "metrics.csv").unlink()
+    (sweep / jobs[1] / "status.json").write_text(json.dumps({"status": "failed",
+                                                             "error": "RuntimeError: boom"}))
+    out = subprocess.run(MOEX + ["report", str(sweep)], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "failed RuntimeError: boom" in out.stdout and "missing metrics" in out.stdout
+    table2 = pd.read_csv(sweep / "tables" / "table2.csv")
+    assert table2["switch_prob_task"].tolist() == [0.5, 0.25, 0.125]
+    assert table2["paper_switch_prob"].tolist() == [0.451033, 0.275999, 0.150866]
+    row = table2.set_index("switch_prob_task")
+    assert row.loc[0.125, "num_runs"] != row.loc[0.125, "num_runs"]  # missing, not zero
+    assert row.loc[0.5, "num_runs"] == 2
+    assert (sweep / "tables" / "table2.md").read_text().count("missing") >= 1
+    assert (sweep / "summary.csv").exists() and (sweep / "tables" / "jobs.md").exists()
+    # safe to re-run
+    assert report(sweep)["table2"].shape == table2.shape
+
+
+def test_aggregate_mean_sd_and_positive_share():
+    runs = pd.DataFrame({"context_size": [10, 10, 10, 20], "max_lyapunov": [0.1, -0.1, 0.3, 0.2],
+                         "E_g": [1.0, 2.0, 3.0, 4.0], "failed": [False, False, False, False]})
+    table = aggregate(runs, ["context_size"]).set_index("context_size")
+    assert table.loc[10, "E_g_mean"] == 2.0 and table.loc[10, "E_g_std"] == 1.0
+    assert abs(table.loc[10, "positive_percent"] - 200 / 3) < 1e-9
+    assert table.loc[20, "num_runs"] == 1
+
+
+def test_markdown_marks_missing_cells():
+    text = to_markdown(pd.DataFrame({"a": [1.0, float("nan")], "b": ["x", "y"]}))
+    assert text.splitlines()[0] == "| a | b |" and "| missing | y |" in text
+
+
+def test_report_of_an_empty_folder_is_an_error(tmp_path):
+    out = subprocess.run(MOEX + ["report", str(tmp_path)], capture_output=True, text=True)
+    assert out.returncode == 2 and "holds no job folder" in out.stderr
