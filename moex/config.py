@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from moex.errors import check
 from moex.evaluate import EvalConfig
-from moex.model import ModelConfig
+from moex.model import BACKENDS, ModelConfig
 from moex.tasks import TaskConfig
 from moex.train import TrainConfig
 
@@ -27,6 +27,7 @@ class Config:
     num_runs: int = 1  # R networks trained side by side, run r seeded by (seed, r)
     dtype: str = "float64"
     device: str = "cpu"
+    backend: str = "auto"  # auto | reference | compiled (numba, CPU)
     resume: bool = False  # continue the latest run folder of this task (or hydra.run.dir)
     cache_dir: str = ""  # phase-1 results shared by jobs that differ only in the gating net
 
@@ -35,6 +36,8 @@ class Config:
         check(self.seed >= 0, f"seed={self.seed} must be >= 0")
         check(self.dtype in DTYPES, f"dtype={self.dtype!r}; choose float64 or float32")
         check(self.device in DEVICES, f"device={self.device!r}; choose cpu or cuda")
+        check(self.backend in BACKENDS,
+              f"backend={self.backend!r}; choose one of {', '.join(BACKENDS)}")
 
 
 # every EvalConfig key, optional: what `moex evaluate` overrides in the run's own eval config

@@ -84,7 +84,8 @@ def leaky_scan(drive: torch.Tensor, w_rec: torch.Tensor, eps: torch.Tensor, bias
         u0: (B..., N, M) initial internal potentials.
 
     Returns:
-        u: (B..., T, N, M) internal potentials u_1..u_T; the contexts are tanh(u + v_1).
+        u: (B..., T, N, M) internal potentials u_1..u_T, and c: (B..., T, N, M) the contexts
+        tanh(u + v_1).
     """
     u, c = u0, torch.tanh(u0 + bias)
     decay, drive = 1 - eps, eps.unsqueeze(-3) * drive
@@ -94,7 +95,31 @@ def leaky_scan(drive: torch.Tensor, w_rec: torch.Tensor, eps: torch.Tensor, bias
         u = decay * u + drive_n + c @ w_eff
         c = torch.tanh(u + bias)
         us.append(u)
-    return torch.stack(us, dim=-3)
+    u = torch.stack(us, dim=-3)
+    return u, torch.tanh(u + bias.unsqueeze(-3))
+
+
+BACKENDS = ("auto", "reference", "compiled")
+_scan = {"fn": leaky_scan}
+
+
+def set_backend(backend: str, device: str = "cpu") -> str:
+    """Choose the time loop of the teacher-forced passes; returns the one chosen.
+
+    `reference` is `leaky_scan` (PyTorch autograd); `compiled` the numba kernel with its
+    hand-written BPTT (CPU only); `auto` picks `compiled` on the CPU when numba imports.
+    """
+    check(backend in BACKENDS, f"backend={backend!r}; choose one of {', '.join(BACKENDS)}")
+    compiled = None
+    if backend != "reference" and device == "cpu":
+        try:
+            from moex.kernels import leaky_scan_compiled as compiled
+        except ImportError:
+            check(backend == "auto", "backend=compiled needs numba (pip install numba)")
+    check(backend != "compiled" or device == "cpu",
+          "backend=compiled runs on the CPU only; use backend=reference with device=cuda")
+    _scan["fn"] = compiled or leaky_scan
+    return "compiled" if compiled else "reference"
 
 
 def _uniform(generator, shape, bound, dtype):
@@ -180,9 +205,8 @@ def expert_forward(experts: dict[str, torch.Tensor],
     """
     drive = torch.einsum("rkmd,std->rktsm", experts["w_in"], inputs)
     bias = experts["b_c"][:, :, None]  # (R, K, 1, M)
-    u = leaky_scan(drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
-                   experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
-    c = torch.tanh(u + bias[:, :, None])
+    u, c = _scan["fn"](drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
+                       experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
     outputs = torch.tanh(torch.einsum("rkdm,rktsm->rstkd", experts["w_out"], c)
                          + experts["b_o"][:, None, None])
     return outputs, u.permute(0, 3, 1, 2, 4)
@@ -207,9 +231,8 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
                       inputs[None, :, : T - delay].expand(R, -1, -1, -1)], dim=-1)
     drive = torch.einsum("rhi,rsti->rtsh", gating["w_in"], feed)
     bias = gating["b_c"][:, None]  # (R, 1, H)
-    u = leaky_scan(drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
-                   gating["u0"])  # (R, T - τ, S, H)
-    c = torch.tanh(u + bias[:, None])
+    u, c = _scan["fn"](drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
+                       gating["u0"])  # (R, T - τ, S, H)
     logits = torch.einsum("rkh,rtsh->rstk", gating["w_out"], c) + gating["b_o"][:, None, None]
     return torch.log_softmax(logits, dim=-1), u.transpose(1, 2)
 

@@ -25,7 +25,7 @@ from moex.evaluate import (
     trained_state,
 )
 from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
-from moex.model import init_experts, init_gating
+from moex.model import init_experts, init_gating, set_backend
 from moex.tasks import Dataset, make_task, reber
 from moex.train import Hooks, train_experts, train_gating
 
@@ -126,6 +126,7 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
         _check_same_training(saved["config"], cfg, path)
         log.info("resuming %s from its %s phase", path, saved["phase"])
     dtype, device = getattr(torch, cfg.dtype), torch.device(cfg.device)
+    backend = set_backend(cfg.backend, cfg.device)
     dataset = load_task(cfg)
     series = torch.as_tensor(dataset.series, dtype=dtype)
     S, L, D = series.shape
@@ -135,8 +136,8 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
             evaluate_run(cfg, dataset, saved["experts"], saved["beta"], saved["gating"], out_dir,
                          saved["failed"])
         return saved
-    log.info("task %s: %d series x %d steps, %d features; %d runs on %s/%s", cfg.task.name, S, L,
-             D, cfg.num_runs, cfg.device, cfg.dtype)
+    log.info("task %s: %d series x %d steps, %d features; %d runs on %s/%s, %s backend",
+             cfg.task.name, S, L, D, cfg.num_runs, cfg.device, cfg.dtype, backend)
     # every draw happens on every start, so resumed and fresh runs see the same generators
     generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
     experts = init_experts(cfg.model, S, D, generators, dtype) if D > 0 else {}

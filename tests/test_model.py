@@ -26,7 +26,8 @@ def test_leaky_scan_matches_equations(B=3, T=6, N=2, M=4):
     drive, w = torch.randn(B, T, N, M, generator=g), torch.randn(B, M, M, generator=g)
     eps, bias = torch.rand(B, 1, M, generator=g), torch.randn(B, 1, M, generator=g)
     u0 = torch.randn(B, N, M, generator=g)
-    u = leaky_scan(drive, w, eps, bias, u0)
+    u, c = leaky_scan(drive, w, eps, bias, u0)
+    torch.testing.assert_close(c, torch.tanh(u + bias[:, None]))
     for b in range(B):
         for n in range(N):
             ref = _scan_by_hand(drive[b, :, n], w[b], eps[b, 0], bias[b, 0], u0[b, n])
