@@ -19,23 +19,25 @@ def _tanh(x):  # pragma: no cover - compiled; exp-based, 3x faster than libm tan
 @njit(parallel=True, cache=True, fastmath=True)
 def _scan_forward(drive, w_rec, eps, bias, u0, out, contexts):  # pragma: no cover - compiled
     B, T, N, M = drive.shape
-    for b in prange(B):
-        c = np.empty(M, drive.dtype)
-        u = np.empty(M, drive.dtype)
+    for b in prange(B):  # time outer, rows inner: every step reads one contiguous (N, M) block
+        c = np.empty((N, M), drive.dtype)
+        u = np.empty((N, M), drive.dtype)
         for n in range(N):
             for i in range(M):
-                u[i] = u0[b, n, i]
-                c[i] = _tanh(u[i] + bias[b, i])
-            for t in range(T):
+                u[n, i] = u0[b, n, i]
+                c[n, i] = _tanh(u[n, i] + bias[b, i])
+        for t in range(T):
+            for n in range(N):
                 for i in range(M):
                     acc = drive[b, t, n, i]
                     for j in range(M):
-                        acc += w_rec[b, i, j] * c[j]
-                    u[i] = (1.0 - eps[b, i]) * u[i] + eps[b, i] * acc
-                    out[b, t, n, i] = u[i]
+                        acc += w_rec[b, i, j] * c[n, j]
+                    u[n, i] = (1.0 - eps[b, i]) * u[n, i] + eps[b, i] * acc
+                    out[b, t, n, i] = u[n, i]
+            for n in range(N):
                 for i in range(M):
-                    c[i] = _tanh(u[i] + bias[b, i])
-                    contexts[b, t, n, i] = c[i]
+                    c[n, i] = _tanh(u[n, i] + bias[b, i])
+                    contexts[b, t, n, i] = c[n, i]
 
 
 @njit(parallel=True, cache=True, fastmath=True)
@@ -43,45 +45,45 @@ def _scan_backward(grad_u, drive, w_rec, eps, bias, u0, u, contexts,
                    g_drive, g_w, g_eps, g_bias, g_u0):  # pragma: no cover - compiled
     B, T, N, M = drive.shape
     for b in prange(B):
-        a = np.empty(M, drive.dtype)  # dL/du_t
-        ea = np.empty(M, drive.dtype)  # ε ⊙ a_{t+1}, the error entering the drive
-        back = np.empty(M, drive.dtype)  # W^T (ε ⊙ a_{t+1})
+        a = np.zeros((N, M), drive.dtype)  # dL/du_t
+        back = np.zeros((N, M), drive.dtype)  # W^T (ε ⊙ a_{t+1})
         prev_c = np.empty(M, drive.dtype)
-        cur_c = np.empty(M, drive.dtype)
+        ea = np.empty(M, drive.dtype)
         w_t = np.ascontiguousarray(w_rec[b].T)  # rows of W^T are contiguous
-        g_wb = np.zeros((M, M), drive.dtype)  # local accumulator, written once
-        for n in range(N):
-            for i in range(M):
-                ea[i] = 0.0
-                back[i] = 0.0
-                a[i] = 0.0
-                cur_c[i] = contexts[b, T - 1, n, i]
-            for t in range(T - 1, -1, -1):
+        g_wb = np.zeros((M, M), drive.dtype)  # local accumulators, written once
+        g_eb = np.zeros(M, drive.dtype)
+        g_bb = np.zeros(M, drive.dtype)
+        for t in range(T - 1, -1, -1):
+            for n in range(N):
                 # a_t = ∂L/∂u_t + (1-ε) a_{t+1} + (1 - c_t²) W^T(ε a_{t+1})
                 for i in range(M):
-                    a[i] = grad_u[b, t, n, i] + (1.0 - eps[b, i]) * a[i] \
-                        + (1.0 - cur_c[i] * cur_c[i]) * back[i]
+                    c_t = contexts[b, t, n, i]
+                    a[n, i] = grad_u[b, t, n, i] + (1.0 - eps[b, i]) * a[n, i] \
+                        + (1.0 - c_t * c_t) * back[n, i]
                     prev_c[i] = contexts[b, t - 1, n, i] if t > 0 else _tanh(u0[b, n, i]
                                                                              + bias[b, i])
                 for i in range(M):
-                    ea[i] = eps[b, i] * a[i]
+                    ea[i] = eps[b, i] * a[n, i]
                     g_drive[b, t, n, i] = ea[i]
                     rec = 0.0
                     for j in range(M):
                         rec += w_rec[b, i, j] * prev_c[j]
                         g_wb[i, j] += ea[i] * prev_c[j]
                     u_prev = u[b, t - 1, n, i] if t > 0 else u0[b, n, i]
-                    g_eps[b, i] += a[i] * (drive[b, t, n, i] + rec - u_prev)
+                    g_eb[i] += a[n, i] * (drive[b, t, n, i] + rec - u_prev)
                 for j in range(M):
                     acc = 0.0
                     for i in range(M):
                         acc += w_t[j, i] * ea[i]
-                    back[j] = acc
-                    g_bias[b, j] += (1.0 - prev_c[j] * prev_c[j]) * acc
-                    cur_c[j] = prev_c[j]  # c_{t-1} is the next iteration's c_t
-            for i in range(M):
-                g_u0[b, n, i] = (1.0 - eps[b, i]) * a[i] + (1.0 - prev_c[i] * prev_c[i]) * back[i]
+                    back[n, j] = acc
+                    g_bb[j] += (1.0 - prev_c[j] * prev_c[j]) * acc
+                if t == 0:
+                    for i in range(M):
+                        g_u0[b, n, i] = (1.0 - eps[b, i]) * a[n, i] \
+                            + (1.0 - prev_c[i] * prev_c[i]) * back[n, i]
         g_w[b] = g_wb
+        g_eps[b] = g_eb
+        g_bias[b] = g_bb
 
 
 def _flat(x: torch.Tensor, tail: int) -> np.ndarray:
@@ -120,7 +122,8 @@ class _LeakyScan(torch.autograd.Function):
 def leaky_scan_compiled(drive, w_rec, eps, bias, u0):
     """`moex.model.leaky_scan` as one compiled forward and one compiled BPTT pass (CPU).
 
-    Same arguments and results (u and c); eps and bias must have the shape (B..., 1, M) and every batch
-    axis must be explicit (no broadcasting), as in `expert_forward` and `gating_forward`.
+    Same arguments and results (u and c); eps and bias must have the shape (B..., 1, M) and
+    every batch axis must be explicit (no broadcasting), as in `expert_forward` and
+    `gating_forward`.
     """
     return _LeakyScan.apply(drive, w_rec, eps, bias, u0)

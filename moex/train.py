@@ -31,24 +31,25 @@ class AdaptiveLRConfig:
 
 
 @dataclass
-class ExpertPhaseConfig:
-    steps: int = 30000
+class PhaseConfig:
+    steps: int = 10000
     learning_rate: float = 0.01  # α̃
     momentum: float = 0.9  # η
-    adaptive_lr: bool = False  # spec §2.4; criterion: the mixture MSE E
-    gate_prior_std: float = 10.0  # ς of the Brownian prior on β (Eq. 13)
+    adaptive_lr: bool = True  # Sec. 2.1.4; criterion: the teacher-forced KL (phase 2)
     attraction: bool = False  # the C code's u_0 attraction term (spec §9.5)
     log_every: int = 100
 
 
 @dataclass
-class GatingPhaseConfig:
-    steps: int = 10000
-    learning_rate: float = 0.01  # α̃
-    momentum: float = 0.9  # η
-    adaptive_lr: bool = True  # Sec. 2.1.4; criterion: the teacher-forced KL
-    attraction: bool = False
-    log_every: int = 100
+class ExpertPhaseConfig(PhaseConfig):
+    steps: int = 30000
+    adaptive_lr: bool = False  # spec §2.4; criterion: the mixture MSE E
+    gate_prior_std: float = 10.0  # ς of the Brownian prior on β (Eq. 13)
+
+
+@dataclass
+class GatingPhaseConfig(PhaseConfig):
+    pass
 
 
 @dataclass

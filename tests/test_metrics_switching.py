@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from moex.metrics.switching import (
     is_periodic,
@@ -8,6 +10,7 @@ from moex.metrics.switching import (
     segment_symbols,
     transition_matrix,
 )
+from moex.metrics.symbols import block_kl
 
 
 def test_rle_worked_example():
@@ -35,3 +38,25 @@ def test_periodicity():
     assert is_periodic(np.tile([0, 1, 1, 0, 1], 100), 100)
     assert not is_periodic(np.random.default_rng(0).integers(0, 2, 1000), 100)
     assert not is_periodic(np.tile(np.arange(150) % 2 + (np.arange(150) > 70), 4), 100)
+
+
+symbol_lists = st.lists(st.integers(0, 3), min_size=2, max_size=200)
+
+
+@given(symbol_lists)
+def test_rle_round_trip_and_run_lengths_sum_to_length(seq):
+    values, lengths = rle(seq)
+    assert np.repeat(values, lengths).tolist() == seq
+    assert lengths.sum() == len(seq) and (values[1:] != values[:-1]).all()
+
+
+@given(symbol_lists)
+def test_transition_rows_are_distributions(seq):
+    tm = transition_matrix(seq, 4)
+    visited = ~np.isnan(tm).any(1)
+    assert np.allclose(tm[visited].sum(1), 1) and (tm[visited] >= 0).all()
+
+
+@given(symbol_lists, st.integers(1, 4))
+def test_block_kl_of_a_sequence_with_itself_is_zero(seq, m):
+    assert abs(block_kl(np.array(seq), np.array(seq), m)) < 1e-12
