@@ -232,7 +232,10 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     io.write_csv(out_dir / io.METRICS, metrics)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     _plot_samples(samples, dataset, cfg, out_dir, metrics)
-    for _, row in metrics[~metrics["failed"]].iterrows():
+    ok = metrics[~metrics["failed"]]
+    log.info("max Lyapunov exponent positive in %d of %d runs (mean %.4g)",
+             int((ok["max_lyapunov"] > 0).sum()), len(ok), ok["max_lyapunov"].mean())
+    for _, row in ok.iterrows():
         log.info("run %d: E_closed %.3g, block KL train %.3g / test %.3g, max Lyapunov %.4g, "
                  "switch prob %.3f (data %.3f), nonperiodic %.2f", row["run"], row["E_closed"],
                  row["block_kl_train"], row["block_kl_test"], row["max_lyapunov"],
