@@ -237,11 +237,6 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     return torch.log_softmax(logits, dim=-1), u.transpose(1, 2)
 
 
-def split_series(series: torch.Tensor, delay: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inputs x_n = series[n] and targets y_n = series[n + τ] (Sec. 2.2), each (S, T - τ, D)."""
-    return series[:, :-delay], series[:, delay:]
-
-
 @dataclass
 class ClosedLoopState:
     """State of the autonomous mixture (Sec. 2.2) for R runs × N samples.

@@ -266,7 +266,7 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
                              figures / "phase_portrait.png")
     if "residence_hist" in samples:
         switch = cfg.task.switch_prob if cfg.task.name == "lissajous2" else None
-        ax = plotting.plot_residence(samples["residence_hist"], None, switch_prob=switch)
+        ax = plotting.plot_residence(samples["residence_hist"], switch_prob=switch)
         plotting.save_figure(ax.figure, figures / "residence_times.png")
     if gates.shape[-1] > 2 and outputs.shape[-1] >= 2:
         axes = plotting.plot_expert_panels(outputs, gates)

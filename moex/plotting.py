@@ -83,10 +83,9 @@ def plot_phase_portrait(gating_u: np.ndarray, ax=None):
     return ax
 
 
-def plot_residence(model_hist: np.ndarray, data_hist: np.ndarray | None, ax=None,
-                   switch_prob: float | None = None):
-    """Distribution of repetitions of a curve: model (mean over runs) as bars, data or the
-    geometric law (1 - P)^(k-1) P as a line (paper Fig. 9)."""
+def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = None):
+    """Distribution of repetitions of a curve: model (pooled over runs) as bars, the geometric
+    law (1 - P)^(k-1) P of the task as a line when P is known (paper Fig. 9)."""
     ax = ax or plt.figure().gca()
     model = model_hist.sum(0) / max(model_hist.sum(), 1)
     k = np.arange(len(model))
@@ -95,8 +94,6 @@ def plot_residence(model_hist: np.ndarray, data_hist: np.ndarray | None, ax=None
     if switch_prob is not None:
         ax.plot(k[1:top], (1 - switch_prob) ** (k[1:top] - 1) * switch_prob, "k.-",
                 label=f"geometric, P={switch_prob:g}")
-    elif data_hist is not None and data_hist.sum():
-        ax.plot(k[1:top], data_hist[1:top] / data_hist.sum(), "k.-", label="training data")
     ax.set_xlabel("repetitions of a curve")
     ax.set_ylabel("probability")
     if model[1:top].any():
@@ -144,6 +141,6 @@ def plot_residence_panels(hists: dict[float, np.ndarray]):
     fig, axes = plt.subplots(1, len(hists), figsize=(4 * len(hists), 3.2),
                              constrained_layout=True, squeeze=False)
     for ax, (p, hist) in zip(axes[0], sorted(hists.items(), reverse=True), strict=True):
-        plot_residence(hist, None, ax=ax, switch_prob=p)
+        plot_residence(hist, ax=ax, switch_prob=p)
         ax.set_title(f"P = {p:g}")
     return fig
