@@ -22,8 +22,8 @@ def _time(fn, steps):
     return (time.perf_counter() - start) / steps
 
 
-def bench(runs: int, backend: str, threads: int, steps: int) -> dict:
-    torch.set_num_threads(threads)
+def bench(runs: int, backend: str, threads: int, steps: int, torch_threads: int = 0) -> dict:
+    torch.set_num_threads(torch_threads or threads)
     try:
         import numba
         numba.set_num_threads(threads)
@@ -57,13 +57,15 @@ def main():
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--backends", nargs="+", default=["reference", "compiled"])
     parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--torch-threads", type=int, default=0,
+                        help="PyTorch's own threads (default: as many as --threads)")
     args = parser.parse_args()
     print("| runs | backend | threads | phase-1 epoch (ms) | phase-2 epoch (ms) |")
     print("|---|---|---|---|---|")
     for runs in args.runs:
         for backend in args.backends:
             for threads in args.threads:
-                r = bench(runs, backend, threads, args.steps)
+                r = bench(runs, backend, threads, args.steps, args.torch_threads)
                 print(f"| {r['runs']} | {r['backend']} | {r['threads']} | "
                       f"{r['phase1_ms']:.1f} | {r['phase2_ms']:.1f} |", flush=True)
 

@@ -231,8 +231,9 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     metrics["failed"] = failed
     io.write_csv(out_dir / io.METRICS, metrics)
     io.save_arrays(out_dir / io.SAMPLES, samples)
-    _plot_samples(samples, dataset, cfg, out_dir, metrics)
     ok = metrics[~metrics["failed"]]
+    best = ok["block_kl_train"].idxmin() if ok["block_kl_train"].notna().any() else 0
+    _plot_samples(samples, dataset, cfg, out_dir, run=int(best))
     log.info("max Lyapunov exponent positive in %d of %d runs (mean %.4g)",
              int((ok["max_lyapunov"] > 0).sum()), len(ok), ok["max_lyapunov"].mean())
     for _, row in ok.iterrows():
@@ -244,22 +245,22 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
 
 
 def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
-                  metrics: pd.DataFrame | None = None) -> None:
-    """Figures of the first run's closed-loop sample (and residence times over all runs)."""
+                  run: int = 0) -> None:
+    """Figures of one run's closed-loop sample (and residence times over all runs)."""
     figures = out_dir / io.FIGURES
-    outputs, gates, gating_u = samples["outputs"][0], samples["gates"][0], samples["gating_u"][0]
-    symbols = samples["symbols"][0]
+    outputs, gates = samples["outputs"][run], samples["gates"][run]
+    gating_u, symbols = samples["gating_u"][run], samples["symbols"][run]
     names = dataset.symbol_names
     if outputs.shape[-1] >= 2:
         fig, axes = plt.subplots(1, 2, figsize=(8, 4), constrained_layout=True)
         plotting.plot_trajectory(dataset.series[0], axes[0], "teaching data (series 0)")
-        plotting.plot_trajectory(outputs, axes[1], "closed loop, run 0",
+        plotting.plot_trajectory(outputs, axes[1], f"closed loop, run {run}",
                                  color=gates.argmax(-1))
         plotting.save_figure(fig, figures / "trajectory.png")
     shown = slice(-min(len(symbols), 100), None)
     bad = reber.violations(symbols[shown]) if cfg.task.name == "reber" else None
-    series_out = outputs[shown] if outputs.shape[-1] else gates[shown]
-    axes = plotting.plot_gate_series(series_out, gates[shown], symbols[shown], names, bad=bad)
+    axes = plotting.plot_gate_series(outputs[shown], gates[shown], symbols[shown], names, bad=bad)
+    axes[0].set_title(f"closed loop, run {run}")
     plotting.save_figure(axes[0].figure, figures / "gates.png")
     if gating_u.shape[-1] >= 2:
         plotting.save_figure(plotting.plot_phase_portrait(gating_u).figure,

@@ -57,12 +57,16 @@ def plot_trajectory(points: np.ndarray, ax=None, title: str = "", color=None):
 def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray,
                      names: list[str], axes=None, bad: np.ndarray | None = None):
     """Outputs (T, D) over gate openings (T, K), each step labelled with its winning symbol;
-    steps flagged in `bad` (T,) are labelled in red (paper Fig. 4)."""
+    steps flagged in `bad` (T,) are labelled in red (paper Fig. 4). D = 0 plots the gates alone."""
     if axes is None:
-        _, axes = plt.subplots(2, 1, figsize=(10, 4), sharex=True, constrained_layout=True)
+        rows = 2 if outputs.shape[1] else 1
+        _, axes = plt.subplots(rows, 1, figsize=(10, 2 * rows + 0.5), sharex=True,
+                               constrained_layout=True, squeeze=False)
+        axes = list(axes[:, 0]) if rows == 2 else [axes[0, 0], axes[0, 0]]
     for d in range(outputs.shape[1]):
         axes[0].plot(outputs[:, d], lw=1, label=f"y[{d}]")
-    axes[0].set_ylabel("output")
+    if outputs.shape[1]:
+        axes[0].set_ylabel("output")
     axes[1].imshow(gates.T, aspect="auto", origin="lower", cmap="Greys", vmin=0, vmax=1,
                    interpolation="nearest")
     axes[1].set_ylabel("gate")
