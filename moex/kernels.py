@@ -41,8 +41,8 @@ def _scan_forward(drive, w_rec, eps, bias, u0, out, contexts):  # pragma: no cov
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def _scan_backward(grad_u, drive, w_rec, eps, bias, u0, u, contexts,
-                   g_drive, g_w, g_eps, g_bias, g_u0):  # pragma: no cover - compiled
+def _scan_backward(has_grad_u, grad_u, has_grad_c, grad_c, drive, w_rec, eps, bias, u0, u,
+                   contexts, g_drive, g_w, g_eps, g_bias, g_u0):  # pragma: no cover - compiled
     B, T, N, M = drive.shape
     for b in prange(B):
         a = np.zeros((N, M), drive.dtype)  # dL/du_t
@@ -55,10 +55,15 @@ def _scan_backward(grad_u, drive, w_rec, eps, bias, u0, u, contexts,
         g_bb = np.zeros(M, drive.dtype)
         for t in range(T - 1, -1, -1):
             for n in range(N):
-                # a_t = ∂L/∂u_t + (1-ε) a_{t+1} + (1 - c_t²) W^T(ε a_{t+1})
+                # a_t = ∂L/∂u_t + (1 - c_t²) ∂L/∂c_t + (1-ε) a_{t+1} + (1 - c_t²) W^T(ε a_{t+1})
                 for i in range(M):
                     c_t = contexts[b, t, n, i]
-                    a[n, i] = grad_u[b, t, n, i] + (1.0 - eps[b, i]) * a[n, i] \
+                    direct = grad_u[b, t, n, i] if has_grad_u else 0.0
+                    through = 0.0
+                    if has_grad_c:  # c_t = tanh(u_t + v_1)
+                        through = (1.0 - c_t * c_t) * grad_c[b, t, n, i]
+                        g_bb[i] += through
+                    a[n, i] = direct + through + (1.0 - eps[b, i]) * a[n, i] \
                         + (1.0 - c_t * c_t) * back[n, i]
                     prev_c[i] = contexts[b, t - 1, n, i] if t > 0 else _tanh(u0[b, n, i]
                                                                              + bias[b, i])
@@ -105,16 +110,15 @@ class _LeakyScan(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_u, grad_c):
         drive, w_rec, eps, bias, u0 = ctx.saved_tensors
-        d, w, e, v, z, g = (_flat(x, k) for x, k in (
-            (drive, 3), (w_rec, 2), (eps, 1), (bias, 1), (u0, 2), (grad_u, 3)))
-        if grad_c is not None:  # c = tanh(u + v_1): route its error through u (and v_1 below)
-            through = _flat(grad_c, 3) * (1.0 - ctx.arrays[1] ** 2)
-            g = g + through
+        d, w, e, v, z = (_flat(x, k) for x, k in ((drive, 3), (w_rec, 2), (eps, 1), (bias, 1),
+                                                   (u0, 2)))
+        unused = np.zeros((1, 1, 1, 1), d.dtype)  # an output nobody used has no gradient
+        g_u = unused if grad_u is None else _flat(grad_u, 3)
+        g_c = unused if grad_c is None else _flat(grad_c, 3)
         grads = [np.empty_like(d), np.zeros_like(w), np.zeros_like(e), np.zeros_like(v),
                  np.empty_like(z)]
-        _scan_backward(g, d, w, e, v, z, *ctx.arrays, *grads)
-        if grad_c is not None:
-            grads[3] += through.sum((1, 2))
+        _scan_backward(grad_u is not None, g_u, grad_c is not None, g_c, d, w, e, v, z,
+                       *ctx.arrays, *grads)
         shapes = (drive.shape, w_rec.shape, eps.shape, bias.shape, u0.shape)
         return tuple(torch.from_numpy(x).reshape(s) for x, s in zip(grads, shapes, strict=True))
 
