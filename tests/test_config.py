@@ -45,3 +45,21 @@ def test_sweep_overrides_are_validated_value_by_value():
     assert ["task.switch_prob=0.25", "num_runs=2", "seed=1"] in variants
     assert ["task.switch_prob=0.5", "num_runs=2", "seed=2"] in variants
     assert len(variants) == 3
+
+
+EXPERIMENTS = sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_composes_with_each_sweep_value(experiment):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        base = compose("config", overrides=[f"experiment={experiment}"],
+                       return_hydra_config=True)
+        params = base.hydra.sweeper.params or {}
+        variants = [[f"experiment={experiment}"]] + [
+            [f"experiment={experiment}", f"{key}={value}"]
+            for key, values in params.items() for value in str(values).split(",")]
+        for overrides in variants:
+            cfg = OmegaConf.to_object(compose("config", overrides=overrides))
+            assert isinstance(cfg, Config)
+            load_task(cfg)
