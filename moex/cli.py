@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException
 from hydra.types import RunMode
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -72,7 +72,7 @@ def _one_line(exc: BaseException) -> str:
         key = first.split()[-1].split("=")[0]
         return f"{key}: {str(cause).splitlines()[0]}"
     if "Could not find" in first and "Available options" in text:
-        group, option = first.split("'")[-2].split("/", 1)
+        group, option = first.split("'")[-2].rsplit("/", 1)
         listing = text.split("Available options")[1].split("Config search path")[0]
         options = listing.strip().splitlines()[1:]
         return f"{group}={option} is unknown; choose one of {', '.join(o.strip() for o in options)}"
@@ -85,7 +85,7 @@ def _one_line(exc: BaseException) -> str:
 def _override_variants(args: list[str]) -> list[list[str]]:
     """Override lists to validate: the first value of every sweep, then each other value alone."""
     parsed = OverridesParser.create().parse_overrides(
-        [a for a in args if not a.startswith("hydra.") and not a.startswith("hydra/")])
+        [a for a in args if not a.startswith("hydra.")])
     choices = [[o.input_line] if not o.is_sweep_override()
                else [f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
                for o in parsed]
@@ -103,13 +103,23 @@ def validate(config_name: str, args: list[str]):
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            configs = [OmegaConf.to_object(compose(config_name, overrides=overrides))
-                       for overrides in _override_variants(args)]
+            configs = []
+            for overrides in _override_variants(args):
+                composed = compose(config_name, overrides=overrides, return_hydra_config=True)
+                with open_dict(composed):
+                    del composed["hydra"]
+                configs.append(OmegaConf.to_object(composed))
             for cfg in configs:
                 VERBS_CHECK[config_name](cfg)
             return configs[0]
     except (HydraException, OmegaConfBaseException, ConfigError) as exc:
-        raise ConfigError(_one_line(exc)) from None
+        message = _one_line(exc)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        for plugin, extra in (("submitit", "slurm"), ("joblib", "parallel")):
+            if plugin in first:
+                message = (f"hydra/launcher: the {plugin} launcher plugin is not installed; "
+                           f"pip install -e '.[{extra}]'")
+        raise ConfigError(message) from None
     finally:
         GlobalHydra.instance().clear()
 

@@ -109,6 +109,7 @@ def test_reber_trains_the_gating_network_only(tmp_path):
     ("model.gating.context_size=-3", "model.gating.context_size=-3 must be >= 1"),
     ("model.num_experts=abc", "model.num_experts"),
     ("num_runs=0", "num_runs=0 must be >= 1"),
+    ("hydra/launcher=nope", "hydra/launcher=nope is unknown; choose one of basic, joblib"),
 ])
 def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_path):
     multirun = ["-m"] if "," in override else []
@@ -155,6 +156,20 @@ def test_run_dir_without_checkpoint(verb, tmp_path):
     result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
     assert result.returncode == 2
     assert "has checkpoint format 99, this moex reads format 1" in result.stderr
+
+
+def test_missing_launcher_plugin_is_named(tmp_path):
+    pytest.importorskip("hydra_plugins")
+    try:
+        import hydra_plugins.hydra_submitit_launcher  # noqa: F401
+        pytest.skip("the submitit launcher is installed here")
+    except ImportError:
+        pass
+    result = _moex(["train", "-m", "hydra/launcher=slurm", f"hydra.sweep.dir={tmp_path}/s"],
+                   cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip() == ("moex: error: hydra/launcher: the submitit launcher plugin "
+                                     "is not installed; pip install -e '.[slurm]'")
 
 
 def test_unknown_verb():
