@@ -275,13 +275,19 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
 
 
 def load_run(tool: ToolConfig) -> tuple[Config, dict, Dataset]:
+    """The config (with `eval` overrides), checkpoint and data of a finished run folder."""
     payload = io.load_checkpoint(Path(tool.run_dir))
     cfg = config_from_dict(payload["config"])
     overrides = {k: v for k, v in dataclasses.asdict(tool.eval).items() if v is not None}
     cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
     check(payload.get("phase") == "done", f"run_dir={tool.run_dir} holds an unfinished "
                                           f"training; finish it with moex train first")
-    return cfg, payload, load_task(cfg)
+    if cfg.task.name == "csv":  # the user's files may have moved: use the data trained on
+        dataset = Dataset(payload["series"].numpy(), payload["labels"].numpy(),
+                          symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
+    else:  # generated tasks are regenerated from the seed, held-out series included
+        dataset = load_task(cfg)
+    return cfg, payload, dataset
 
 
 def run_evaluate(tool: ToolConfig) -> pd.DataFrame:

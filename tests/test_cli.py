@@ -175,3 +175,20 @@ def test_missing_launcher_plugin_is_named(tmp_path):
 def test_unknown_verb():
     result = _moex(["fly"], cwd=".")
     assert result.returncode == 2 and "unknown verb 'fly'" in result.stderr
+
+
+def test_csv_run_evaluates_from_another_directory(tmp_path):
+    (tmp_path / "a" / "data").mkdir(parents=True)
+    (tmp_path / "b").mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        np.savetxt(tmp_path / "a" / "data" / f"s{i}.csv", rng.uniform(-0.5, 0.5, (30, 2)),
+                   delimiter=",")
+    run_dir = tmp_path / "run"
+    args = ["task=csv", "task.path=data", "train.experts.steps=3", "train.gating.steps=2",
+            "eval.num_samples=2", "eval.lyapunov_steps=20", "eval.transient=2"]
+    result = _moex(["train", *args, f"hydra.run.dir={run_dir}"], cwd=tmp_path / "a")
+    assert result.returncode == 0, result.stderr
+    result = _moex(["evaluate", f"run_dir={run_dir}"], cwd=tmp_path / "b")
+    assert result.returncode == 0, result.stderr
+    assert pd.read_csv(run_dir / "metrics.csv")["E"].notna().all()
