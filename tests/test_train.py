@@ -176,3 +176,21 @@ def test_adaptive_rate_never_accepts_a_large_increase():
         kl = [r["kl"] for r in rows if r["run"] == run]
         assert all(b <= 1.1 * a + 1e-12 for a, b in zip(kl, kl[1:], strict=False))
     assert any(r["retries"] > 0 for r in rows)
+
+
+def test_adaptive_retries_shrink_the_momentum_too():
+    """Ascent on -x² with a large rate: after an overshoot the momentum term alone raises the
+    criterion by more than r_th, so retries that only lower α never succeed (the rate collapses to
+    0.7^1000); shrinking the whole step recovers."""
+    from moex.train import _ascend
+
+    params = {"x": torch.ones(1, 1)}
+
+    def objective(p):
+        return -p["x"].square().sum(1), {"kl": p["x"].square().sum(1)}
+
+    trained, rows = _ascend(params, {"x": 0.9}, objective, "kl", 30, 0.9, True, TrainConfig(),
+                            "toy", 1)
+    assert rows[-1]["lr_scale"] > 1e-6  # the strict reading ends near 1e-155
+    assert max(r["retries"] for r in rows) < 100
+    assert trained["x"].abs().item() < 0.1  # the strict reading stays at x = -0.8
