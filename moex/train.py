@@ -21,8 +21,9 @@ MOMENTUM_FORMS = ("paper", "mregn")
 
 @dataclass
 class AdaptiveLRConfig:
-    """The adaptive rule of Sec. 2.1.4: retry at α·decrease while r > max_ratio, α·increase
-    after a step with r < 1, give up (reject the step, zero the momentum) after max_retries."""
+    """The adaptive rule of Sec. 2.1.4: while r > max_ratio retry with α·decrease and the whole
+    step (momentum part included) shrunk alike; α·increase after a step with r < 1; give up
+    (reject the step, zero the momentum) after max_retries."""
 
     max_ratio: float = 1.1  # r_th
     decrease: float = 0.7  # α_dec
