@@ -2,6 +2,7 @@
 E^closed and block KL from the trained initial states, and from random initial states the
 Lyapunov exponents, the test-data block KL, switching statistics and periodicity."""
 
+import collections
 import dataclasses
 from dataclasses import dataclass
 
@@ -119,6 +120,15 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, cfg: EvalConfi
                               progress="lyapunov")
 
 
+def gate_estimates(beta: torch.Tensor | None, dataset: Dataset, num_runs: int,
+                   dtype: torch.dtype) -> torch.Tensor:
+    """ĝ (R, S, T, K): softmax(β) of phase 1 (Eq. 9), or the one-hot symbols of a task without
+    experts (paper Sec. 3.1), shared by every run."""
+    if beta is not None:
+        return torch.softmax(beta, dim=-1)
+    return torch.as_tensor(dataset.gate_targets, dtype=dtype).expand(num_runs, -1, -1, -1)
+
+
 def _train_block_kl(estimates, closed_gates, cfg: EvalConfig) -> np.ndarray:
     """D_KL^(m)(ŝ ‖ s) per run, ŝ = argmax ĝ and s = argmax g of the closed loop from the
     trained initial states, averaged over series (Sec. 3)."""
@@ -172,14 +182,12 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
     R, K = gating["w_out"].shape[:2]
     S, L, D = series.shape
     # ---- teacher forcing: E and E^g (Sec. 3)
+    estimates = gate_estimates(beta, dataset, R, series.dtype)
     if experts:
         inputs, targets = series[:, :-delay], series[:, delay:]
         outputs, _ = expert_forward(experts, inputs)
-        estimates = torch.softmax(beta, -1)
         error = objectives.mixture_mse(outputs, targets, estimates)
     else:
-        estimates = torch.as_tensor(dataset.gate_targets, dtype=series.dtype).expand(R, -1, -1,
-                                                                                      -1)
         inputs, error = series, torch.full((R,), float("nan"))
     T = estimates.shape[2]
     log_gates, _ = gating_forward(gating, estimates, inputs, delay)
@@ -190,14 +198,12 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
                 else np.full(R, np.nan))
     kl_train = _train_block_kl(estimates, closed["gates"], cfg)
     # ---- random initial states: Lyapunov exponents and long symbol sequences
-    recorded, kept = [], []
+    recorded, kept = [], collections.deque(maxlen=cfg.plot_steps)
 
     def on_step(aux):
         y, g, u_g = aux
         recorded.append(_symbols(y, g, dataset).to(torch.int16))
         kept.append((y[:, 0], g[:, 0], u_g[:, 0]))
-        if len(kept) > cfg.plot_steps:
-            kept.pop(0)
 
     state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
     with torch.no_grad():

@@ -19,6 +19,7 @@ from moex.errors import check
 from moex.evaluate import (
     EvalConfig,
     evaluate,
+    gate_estimates,
     generate,
     random_state,
     track_metrics,
@@ -159,10 +160,8 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
                      resume=resume, **extra)
 
     # ---- phase 1 (skipped for symbolic tasks, or when a checkpoint holds its result)
-    if D == 0:  # symbolic task: the gates are the one-hot symbols themselves (paper Sec. 3.1)
-        one_hot = torch.as_tensor(dataset.gate_targets, dtype=dtype)
-        gate_targets, gating_inputs = one_hot.expand(cfg.num_runs, -1, -1, -1), series
-    else:
+    beta = None
+    if D > 0:  # symbolic tasks have no experts: their gates are the one-hot symbols
         cached = _phase1_cache(cfg)
         if saved is not None and saved["phase"] == "gating":
             experts, beta = saved["experts"], saved["beta"]
@@ -180,9 +179,9 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
                     {"experts": _cpu(experts), "beta": _cpu(beta),
                      "rows": payload["experts_rows"]}, tmp))
         payload.update(experts=_cpu(experts), beta=_cpu(beta))
-        gate_targets, gating_inputs = torch.softmax(beta, dim=-1), series[:, :-delay]
-    # ---- phase 2
-    gate_targets = gate_targets.to(device)
+    # ---- phase 2: x_n aligned with ĝ_n (the whole series when D = 0)
+    gating_inputs = series[:, :-delay] if D > 0 else series
+    gate_targets = gate_estimates(beta, dataset, cfg.num_runs, dtype).to(device)
     monitor = None
     if cfg.eval.every:
         def monitor(gating_params):
@@ -308,9 +307,8 @@ def run_generate(tool: ToolConfig) -> dict:
     if tool.from_series < 0:
         state = random_state(experts, gating, tool.num_samples, D, cfg.model.delay, generator)
     else:  # the trained initial state of one series, repeated for every (noisy) sample
-        estimates = (torch.softmax(payload["beta"], -1) if experts else
-                     torch.as_tensor(dataset.gate_targets, dtype=gating["w_out"].dtype).expand(
-                         cfg.num_runs, -1, -1, -1))
+        estimates = gate_estimates(payload["beta"], dataset, cfg.num_runs,
+                                   gating["w_out"].dtype)
         k = [tool.from_series] * tool.num_samples
         state = trained_state({n: v[:, k] if n == "u0" else v for n, v in experts.items()},
                               {n: v[:, k] if n == "u0" else v for n, v in gating.items()},
