@@ -8,14 +8,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from moex import objectives
 from moex.errors import check, check_positive
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse
-from moex.metrics.lyapunov import lyapunov_exponents
+from moex.metrics.lyapunov import initial_tangents
 from moex.metrics.symbols import block_kl, symbolize_nearest
-from moex.model import ClosedLoopState, closed_loop_step, expert_forward, gating_forward
+from moex.model import ClosedLoopState, closed_loop, expert_forward, gating_forward
 from moex.tasks import Dataset
 
 
@@ -78,6 +79,23 @@ def random_state(experts, gating, num_samples, num_features, delay,
                            gates.to(gating["w_out"].device))
 
 
+CHUNK = 500  # closed-loop steps per call of the time loop (bounds the memory of the records)
+
+
+def _chunks(total: int):
+    for start in range(0, total, CHUNK):
+        yield min(CHUNK, total - start)
+
+
+def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
+    """(R, N, steps, D) Gaussian noise on x_m, drawn step by step, or None."""
+    if noise_std <= 0:
+        return None
+    x = state.inputs[..., 0, :]
+    return torch.stack([noise_std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+                        for _ in range(steps)], 2).to(x.device)
+
+
 def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: float = 0.0,
              generator=None) -> dict[str, torch.Tensor]:
     """Run the closed loop for `steps` steps.
@@ -85,39 +103,36 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: flo
     Returns:
         outputs (R, N, T, D), gates (R, N, T, K) and gating potentials (R, N, T, H).
     """
-    outputs, gates, potentials = [], [], []
-    for _ in range(steps):
-        noise = _noise(state, noise_std, generator)
-        state, y, g, u_g, _ = closed_loop_step(experts, gating, state, noise)
-        outputs.append(y)
-        gates.append(g)
-        potentials.append(u_g)
-    return {"outputs": torch.stack(outputs, 2), "gates": torch.stack(gates, 2),
-            "gating_u": torch.stack(potentials, 2)}
-
-
-def _noise(state, noise_std, generator):
-    if noise_std <= 0:
-        return None
-    x = state.inputs[..., 0, :]
-    return noise_std * torch.randn(x.shape, generator=generator, dtype=x.dtype).to(x.device)
+    parts = []
+    for size in _chunks(steps):
+        state, aux, _, _ = closed_loop(experts, gating, state, size,
+                                       _noise(state, size, noise_std, generator))
+        parts.append(aux)
+    return {name: torch.cat([p[i] for p in parts], 2)
+            for i, name in enumerate(("outputs", "gates", "gating_u"))}
 
 
 def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, cfg: EvalConfig, generator,
-                         on_step=None) -> torch.Tensor:
-    """Lyapunov exponents (R, N, k) of the whole closed loop (spec §5.2, real gates)."""
+                         on_chunk=None) -> torch.Tensor:
+    """Lyapunov exponents (R, N, k) of the whole closed loop (spec §5.2, real gates).
+
+    `on_chunk` receives (y, g, u^g), each (R, N, steps, ...), of every step after the transient.
+    """
     noise_std = cfg.noise_var**0.5
-
-    def tangent_step(flat, tangents):
-        st = state.like(flat)
-        tg = state.like(tangents.movedim(-1, 0))
-        nxt, y, g, u_g, d_nxt = closed_loop_step(experts, gating, st,
-                                                 _noise(st, noise_std, generator), tg)
-        return nxt.flat(), d_nxt.flat(lead=3).movedim(0, -1), (y, g, u_g)
-
-    return lyapunov_exponents(tangent_step, state.flat(), cfg.lyapunov_steps, cfg.num_exponents,
-                              cfg.transient, generator=generator, on_step=on_step,
-                              progress="lyapunov")
+    tangents = initial_tangents(state.flat(), cfg.num_exponents, generator)
+    growth = 0
+    with tqdm(total=cfg.transient + cfg.lyapunov_steps, desc="lyapunov", disable=None,
+              mininterval=1.0, leave=False) as bar:
+        for counted, total in ((False, cfg.transient), (True, cfg.lyapunov_steps)):
+            for size in _chunks(total):
+                state, aux, tangents, log_growth = closed_loop(
+                    experts, gating, state, size, _noise(state, size, noise_std, generator),
+                    tangents, counted)
+                growth = growth + log_growth
+                if counted and on_chunk is not None:
+                    on_chunk(aux)
+                bar.update(size)
+    return growth / cfg.lyapunov_steps
 
 
 def gate_estimates(beta: torch.Tensor | None, dataset: Dataset, num_runs: int,
@@ -198,17 +213,17 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
                 else np.full(R, np.nan))
     kl_train = _train_block_kl(estimates, closed["gates"], cfg)
     # ---- random initial states: Lyapunov exponents and long symbol sequences
-    recorded, kept = [], collections.deque(maxlen=cfg.plot_steps)
+    recorded, kept = [], collections.deque(maxlen=-(-cfg.plot_steps // CHUNK) + 1)
 
-    def on_step(aux):
+    def on_chunk(aux):
         y, g, u_g = aux
         recorded.append(_symbols(y, g, dataset).to(torch.int16))
-        kept.append((y[:, 0], g[:, 0], u_g[:, 0]))
+        kept.append(tuple(a[:, 0].clone() for a in aux))  # the first sample, (R, steps, ...)
 
     state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
     with torch.no_grad():
-        exponents = closed_loop_lyapunov(experts, gating, state, cfg, generator, on_step)
-    sampled = torch.stack(recorded, -1).numpy()  # (R, N, steps)
+        exponents = closed_loop_lyapunov(experts, gating, state, cfg, generator, on_chunk)
+    sampled = torch.cat(recorded, -1).numpy()  # (R, N, steps)
     test = _test_symbols(dataset)
     rows, hist, transitions = [], [], []
     V = max(len(dataset.symbol_names), K)
@@ -238,7 +253,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
             "noise_var": cfg.noise_var, "num_samples": cfg.num_samples,
             "lyapunov_steps": cfg.lyapunov_steps,
         })
-    samples = {name: torch.stack([k[i] for k in kept], 1).numpy()
+    samples = {name: torch.cat([k[i] for k in kept], 1)[:, -cfg.plot_steps:].numpy()
                for i, name in enumerate(("outputs", "gates", "gating_u"))}
     samples.update(residence_hist=np.stack(hist), transition=np.stack(transitions),
                    closed_outputs=closed["outputs"][:, 0].numpy(),

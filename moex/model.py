@@ -17,7 +17,8 @@ Gating RNN (Eqs. 5-8): u^g_n = (1-ε^g) u^g_{n-1}
 
 The gating RNN is stepped in its own time m = n - τ: its step m reads (g_m, x_m) and emits g_{m+τ}.
 Parameters are plain dicts of tensors with a leading R axis, so they checkpoint as state dicts.
-The only time loop of the teacher-forced passes is `leaky_scan`, which a kernel may replace.
+The only time loop of the teacher-forced passes is `leaky_scan`, and the only one of the closed
+loop is `closed_loop_run`; compiled kernels may replace both (`set_backend`).
 """
 
 from dataclasses import dataclass, field
@@ -100,26 +101,27 @@ def leaky_scan(drive: torch.Tensor, w_rec: torch.Tensor, eps: torch.Tensor, bias
 
 
 BACKENDS = ("auto", "reference", "compiled")
-_scan = {"fn": leaky_scan}
+_backend = {}  # "scan" and "closed_loop": the time loops in use, set by `set_backend`
 
 
 def set_backend(backend: str, device: str = "cpu") -> str:
-    """Choose the time loop of the teacher-forced passes; returns the one chosen.
+    """Choose the time loops (teacher-forced scan and closed loop); returns the one chosen.
 
-    `reference` is `leaky_scan` (PyTorch autograd); `compiled` the numba kernel with its
-    hand-written BPTT (CPU only); `auto` picks `compiled` on the CPU when numba imports.
+    `reference` is `leaky_scan` (PyTorch autograd) and `closed_loop_run`; `compiled` the numba
+    kernels of `moex.kernels` (CPU only); `auto` picks `compiled` on the CPU when numba imports.
     """
     check(backend in BACKENDS, f"backend={backend!r}; choose one of {', '.join(BACKENDS)}")
-    compiled = None
+    kernels = None
     if backend != "reference" and device == "cpu":
         try:
-            from moex.kernels import leaky_scan_compiled as compiled
+            from moex import kernels
         except ImportError:
             check(backend == "auto", "backend=compiled needs numba (pip install numba)")
     check(backend != "compiled" or device == "cpu",
           "backend=compiled runs on the CPU only; use backend=reference with device=cuda")
-    _scan["fn"] = compiled or leaky_scan
-    return "compiled" if compiled else "reference"
+    _backend["scan"] = kernels.leaky_scan_compiled if kernels else leaky_scan
+    _backend["closed_loop"] = kernels.closed_loop_compiled if kernels else closed_loop_run
+    return "compiled" if kernels else "reference"
 
 
 def _uniform(generator, shape, bound, dtype):
@@ -205,7 +207,7 @@ def expert_forward(experts: dict[str, torch.Tensor],
     """
     drive = torch.einsum("rkmd,std->rktsm", experts["w_in"], inputs)
     bias = experts["b_c"][:, :, None]  # (R, K, 1, M)
-    u, c = _scan["fn"](drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
+    u, c = _backend["scan"](drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
                        experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
     outputs = torch.tanh(torch.einsum("rkdm,rktsm->rstkd", experts["w_out"], c)
                          + experts["b_o"][:, None, None])
@@ -231,7 +233,7 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
                       inputs[None, :, : T - delay].expand(R, -1, -1, -1)], dim=-1)
     drive = torch.einsum("rhi,rsti->rtsh", gating["w_in"], feed)
     bias = gating["b_c"][:, None]  # (R, 1, H)
-    u, c = _scan["fn"](drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
+    u, c = _backend["scan"](drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
                        gating["u0"])  # (R, T - τ, S, H)
     logits = torch.einsum("rkh,rtsh->rstk", gating["w_out"], c) + gating["b_o"][:, None, None]
     return torch.log_softmax(logits, dim=-1), u.transpose(1, 2)
@@ -339,3 +341,42 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
         d_nxt = shifted(ClosedLoopState(d_experts_u if experts else tangents.experts_u,
                                         d_gating_u, tangents.inputs, tangents.gates), dy, d_gates)
     return nxt, y, g, gating_u, d_nxt
+
+
+def closed_loop_run(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
+                    state: ClosedLoopState, steps: int, noise: torch.Tensor | None = None,
+                    tangents: torch.Tensor | None = None, count: bool = False):
+    """`steps` closed-loop steps with QR re-orthonormalised tangents (Benettin, spec §5.1).
+
+    Args:
+        experts, gating, state: as for `closed_loop_step`.
+        noise: (R, N, steps, D) noise added to x_m at each step, or None.
+        tangents: (R, N, dim, k) tangent vectors in the layout of `state.flat()`, or None.
+        count: sum ln |R_vv| of every QR step into the returned growth.
+
+    Returns:
+        the next state, (y (R, N, steps, D), g (R, N, steps, K), u^g (R, N, steps, H)), the
+        re-orthonormalised tangents (or None) and the summed log growth (R, N, k).
+    """
+    growth = state.gates.new_zeros(state.gates.shape[:2] + (
+        0 if tangents is None else tangents.shape[-1],))
+    record = []
+    for t in range(steps):
+        tg = None if tangents is None else state.like(tangents.movedim(-1, 0))
+        state, y, g, u_g, d_next = closed_loop_step(
+            experts, gating, state, None if noise is None else noise[:, :, t], tg)
+        record.append((y, g, u_g))
+        if tangents is not None:
+            tangents, r = torch.linalg.qr(d_next.flat(lead=3).movedim(0, -1))
+            if count:
+                growth += torch.log(torch.diagonal(r, dim1=-2, dim2=-1).abs())
+    aux = tuple(torch.stack(column, 2) for column in zip(*record, strict=True))
+    return state, aux, tangents, growth
+
+
+def closed_loop(*args, **kwargs):
+    """`closed_loop_run` on the backend chosen by `set_backend` (same arguments and results)."""
+    return _backend["closed_loop"](*args, **kwargs)
+
+
+set_backend("reference")

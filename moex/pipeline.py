@@ -281,6 +281,7 @@ def load_run(tool: ToolConfig) -> tuple[Config, dict, Dataset]:
     cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
     check(payload.get("phase") == "done", f"run_dir={tool.run_dir} holds an unfinished "
                                           f"training; finish it with moex train first")
+    set_backend(cfg.backend, cfg.device)
     if cfg.task.name == "csv":  # the user's files may have moved: use the data trained on
         dataset = Dataset(payload["series"].numpy(), payload["labels"].numpy(),
                           symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))

@@ -3,7 +3,15 @@
 import pytest
 import torch
 
-from moex.model import ModelConfig, init_experts, init_gating, leaky_scan, set_backend
+from moex.evaluate import EvalConfig, closed_loop_lyapunov, generate, random_state
+from moex.model import (
+    ModelConfig,
+    closed_loop_run,
+    init_experts,
+    init_gating,
+    leaky_scan,
+    set_backend,
+)
 from moex.tasks import TaskConfig, make_task
 from moex.train import (
     ExpertPhaseConfig,
@@ -93,6 +101,65 @@ def test_training_both_phases_matches_reference():
     for a, b in ((ref[0], fast[0]), (ref[2], fast[2])):
         for k in a:
             torch.testing.assert_close(b[k], a[k], rtol=0, atol=1e-10, msg=k)
+
+
+def _closed_loop_model(K, D, delay, dtype):
+    model = ModelConfig(num_experts=K, delay=delay)
+    model.experts.context_size, model.gating.context_size = 4, 5
+    experts = init_experts(model, 2, D, generators([1, 2]), dtype) if D else {}
+    gating = init_gating(model, 2, D, generators([3, 4]), dtype)
+    for params in (experts, gating):  # weights large enough for non-trivial dynamics
+        for name in ("w_rec", "w_in"):
+            if name in params:
+                params[name] = params[name] * 8
+    state = random_state(experts, gating, 3, D, delay, torch.Generator().manual_seed(5))
+    return experts, gating, state
+
+
+@pytest.mark.parametrize("K, D, delay, k", [(2, 2, 1, 1), (3, 2, 2, 3), (4, 0, 1, 2)])
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
+def test_closed_loop_kernel_matches_reference(K, D, delay, k, dtype, tol, steps=40):
+    """Outputs, gates, potentials, next state, tangents (up to the sign QR leaves free) and the
+    log growth of the compiled closed loop equal `closed_loop_run`, with noise and without
+    experts (symbolic tasks)."""
+    experts, gating, state = _closed_loop_model(K, D, delay, dtype)
+    tangents = torch.linalg.qr(torch.randn(state.flat().shape + (k,), dtype=dtype))[0]
+    noise = 0.1 * torch.randn(2, 3, steps, D, dtype=dtype)
+    ref = closed_loop_run(experts, gating, state, steps, noise, tangents, True)
+    fast = kernels.closed_loop_compiled(experts, gating, state, steps, noise, tangents, True)
+    for a, b in zip(vars(ref[0]).values(), vars(fast[0]).values(), strict=True):
+        torch.testing.assert_close(b, a, rtol=tol, atol=tol)
+    for a, b in zip(ref[1], fast[1], strict=True):
+        torch.testing.assert_close(b, a, rtol=tol, atol=tol)
+    torch.testing.assert_close(fast[3], ref[3], rtol=tol, atol=tol)
+    signs = torch.sign((ref[2] * fast[2]).sum(-2, keepdim=True))
+    torch.testing.assert_close(fast[2] * signs, ref[2], rtol=tol, atol=tol)
+    assert ref[3].abs().max() > 0.1  # the growth is not trivially zero
+
+
+def test_closed_loop_kernel_leaves_its_input_state_alone():
+    experts, gating, state = _closed_loop_model(2, 2, 1, torch.float64)
+    before = [x.clone() for x in vars(state).values()]
+    kernels.closed_loop_compiled(experts, gating, state, 5)
+    for a, b in zip(before, vars(state).values(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_generation_and_exponents_equal_across_backends():
+    """The whole evaluation path (chunked, noise from one generator) gives the same samples and
+    exponents on both backends."""
+    experts, gating, state = _closed_loop_model(2, 2, 1, torch.float64)
+    cfg = EvalConfig(lyapunov_steps=30, transient=7, num_exponents=2, noise_var=1e-4)
+    out = {}
+    for backend in ("reference", "compiled"):
+        set_backend(backend)
+        chunks = []
+        lam = closed_loop_lyapunov(experts, gating, state, cfg, torch.Generator().manual_seed(0),
+                                   chunks.append)
+        gen = generate(experts, gating, state, 20, 0.01, torch.Generator().manual_seed(1))
+        out[backend] = (lam, torch.cat([c[0] for c in chunks], 2), gen["outputs"])
+    for a, b in zip(out["reference"], out["compiled"], strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-10)
 
 
 def test_backend_choice():

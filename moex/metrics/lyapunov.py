@@ -2,33 +2,38 @@
 (Benettin et al.; spec §5.1), batched over leading axes (runs × samples)."""
 
 from collections.abc import Callable
-from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
-TangentStep = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, Any]]
+TangentStep = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 
-def jvp_step(step: Callable[[torch.Tensor], tuple[torch.Tensor, Any]]) -> TangentStep:
-    """Lift a map x_{n+1}, aux = f(x_n) on (B..., dim) to (x, V) -> (f(x), J_f(x) V, aux).
+def jvp_step(step: Callable[[torch.Tensor], torch.Tensor]) -> TangentStep:
+    """Lift a map x_{n+1} = f(x_n) on (B..., dim) to (x, V) -> (f(x), J_f(x) V).
 
     V is (B..., dim, k); the Jacobian-vector products are exact forward-mode derivatives
-    (torch.func.jvp), and `aux` (anything the map observed on the way) is passed through.
+    (torch.func.jvp). The closed loop of the mixture has its own hand-written tangent map
+    (`moex.model.closed_loop_run`).
     """
 
     def tangent_step(state, tangents):
-        columns = [torch.func.jvp(step, (state,), (v,), has_aux=True) for v in tangents.unbind(-1)]
-        return columns[0][0], torch.stack([c[1] for c in columns], dim=-1), columns[0][2]
+        columns = [torch.func.jvp(step, (state,), (v,)) for v in tangents.unbind(-1)]
+        return columns[0][0], torch.stack([c[1] for c in columns], dim=-1)
 
     return tangent_step
 
 
+def initial_tangents(state: torch.Tensor, num_exponents: int,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+    """k random orthonormal tangent vectors (B..., dim, k) per trajectory of `state` (B..., dim)."""
+    shape = state.shape[:-1] + (state.shape[-1], num_exponents)
+    tangents = torch.randn(shape, generator=generator, dtype=torch.float64).to(state)
+    return torch.linalg.qr(tangents)[0]
+
+
 def lyapunov_exponents(tangent_step: TangentStep, state: torch.Tensor, num_steps: int,
                        num_exponents: int = 1, transient: int = 0, reorth_every: int = 1,
-                       generator: torch.Generator | None = None,
-                       on_step: Callable[[Any], None] | None = None,
-                       progress: str | None = None) -> torch.Tensor:
+                       generator: torch.Generator | None = None) -> torch.Tensor:
     """The first k Lyapunov exponents of x_{n+1} = f(x_n), per trajectory.
 
     Args:
@@ -38,23 +43,16 @@ def lyapunov_exponents(tangent_step: TangentStep, state: torch.Tensor, num_steps
         num_exponents: k <= dim; k = 1 gives the maximum exponent.
         reorth_every: steps between QR re-orthonormalisations (1 = every step).
         generator: draws the random initial tangent vectors.
-        on_step: called with each step's `aux` after the transient (e.g. to record outputs).
 
     Returns:
         (B..., k) exponents per step (natural log), in descending order.
     """
-    dim = state.shape[-1]
-    shape = state.shape[:-1] + (dim, num_exponents)
-    tangents = torch.randn(shape, generator=generator, dtype=torch.float64).to(state)
-    tangents, _ = torch.linalg.qr(tangents)
+    tangents = initial_tangents(state, num_exponents, generator)
     log_growth = torch.zeros(state.shape[:-1] + (num_exponents,), dtype=state.dtype,
                              device=state.device)
     total = transient + num_steps
-    for n in tqdm(range(total), desc=progress, disable=None if progress else True,
-                  mininterval=1.0, leave=False):
-        state, tangents, aux = tangent_step(state, tangents)
-        if on_step is not None and n >= transient:
-            on_step(aux)
+    for n in range(total):
+        state, tangents = tangent_step(state, tangents)
         if (n + 1) % reorth_every == 0 or n + 1 == total:
             tangents, r = torch.linalg.qr(tangents)
             if n >= transient:
@@ -66,5 +64,5 @@ def lyapunov_exponents(tangent_step: TangentStep, state: torch.Tensor, num_steps
 def max_lyapunov_exponent(step: Callable[[torch.Tensor], torch.Tensor], state: torch.Tensor,
                           num_steps: int, transient: int = 0, **kwargs) -> torch.Tensor:
     """The largest exponent (B...) of a plain map x -> f(x), by forward-mode tangents."""
-    tangent_step = jvp_step(lambda x: (step(x), ()))
+    tangent_step = jvp_step(step)
     return lyapunov_exponents(tangent_step, state, num_steps, 1, transient, **kwargs)[..., 0]
