@@ -15,7 +15,7 @@ from moex.errors import check, check_positive
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse
 from moex.metrics.lyapunov import initial_tangents
-from moex.metrics.symbols import block_kl, symbolize_nearest
+from moex.metrics.symbols import block_kl, symbolize_argmax, symbolize_nearest
 from moex.model import ClosedLoopState, closed_loop, expert_forward, gating_forward
 from moex.tasks import Dataset
 
@@ -171,12 +171,10 @@ def track_metrics(experts, estimates, gating, series, delay, cfg: EvalConfig,
     return {"block_kl_train": torch.as_tensor(kl), "max_lyapunov": lam.mean(1).cpu()}
 
 
-def _symbols(outputs, gates, dataset: Dataset):
+def _symbols(outputs, gates, dataset: Dataset) -> np.ndarray:
     if dataset.prototypes is None:
-        return gates.argmax(-1)
-    protos = torch.as_tensor(dataset.prototypes, dtype=outputs.dtype, device=outputs.device)
-    nearest = ((outputs[..., None, :] - protos) ** 2).sum(-1).argmin(-1)
-    return torch.as_tensor(dataset.prototype_symbols, device=outputs.device)[nearest]
+        return symbolize_argmax(gates.numpy())
+    return symbolize_nearest(outputs.numpy(), dataset.prototypes, dataset.prototype_symbols)
 
 
 def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
@@ -217,13 +215,13 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
 
     def on_chunk(aux):
         y, g, u_g = aux
-        recorded.append(_symbols(y, g, dataset).to(torch.int16))
+        recorded.append(_symbols(y, g, dataset).astype(np.int16))
         kept.append(tuple(a[:, 0].clone() for a in aux))  # the first sample, (R, steps, ...)
 
     state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
     with torch.no_grad():
         exponents = closed_loop_lyapunov(experts, gating, state, cfg, generator, on_chunk)
-    sampled = torch.cat(recorded, -1).numpy()  # (R, N, steps)
+    sampled = np.concatenate(recorded, -1)  # (R, N, steps)
     test = _test_symbols(dataset)
     rows, hist, transitions = [], [], []
     V = max(len(dataset.symbol_names), K)

@@ -6,6 +6,7 @@ Sec. 2.1.4, which each run applies to itself: it accepts or retries its own step
 """
 
 import dataclasses
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -15,6 +16,8 @@ from tqdm.auto import tqdm
 from moex import objectives
 from moex.errors import check, check_positive, check_range
 from moex.model import ModelConfig, expert_forward, expert_variances, gating_forward
+
+log = logging.getLogger(__name__)
 
 MOMENTUM_FORMS = ("paper", "mregn")
 
@@ -220,6 +223,9 @@ def _ascend(params: dict[str, torch.Tensor], rates: dict[str, float], objective:
                              **{k: v[r].item() for k, v in stats.items()},
                              "lr_scale": lr_scale[r].item(), "retries": retries[r].item(),
                              "failed": bool(failed[r])})
+        if (step + 1) % max(steps // 10, 1) == 0:  # progress in the log (tqdm only on a tty)
+            log.info("%s: step %d/%d, %s mean %.4g over %d runs", phase, step + 1, steps,
+                     criterion, base[~failed].mean().item(), int((~failed).sum()))
         if hooks.save is not None and hooks.save_every and (step + 1) % hooks.save_every == 0:
             hooks.save({"step": step + 1, "params": params, "velocity": velocity,
                         "lr_scale": lr_scale, "failed": failed, "rows": rows})

@@ -1,6 +1,9 @@
 import math
+from collections import Counter
 
 import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
 
 from moex.metrics.symbols import block_distribution, block_kl, symbolize_argmax, symbolize_nearest
 
@@ -37,3 +40,22 @@ def test_symbolizers():
     protos, labels = np.array([[-0.4, 0.0], [0.4, 0.0]]), np.array([0, 1])
     assert symbolize_nearest(np.array([[-0.3, 0.2], [0.5, -0.1]]), protos, labels).tolist() == [
         0, 1]
+
+
+@given(st.lists(st.lists(st.integers(0, 6), max_size=30), min_size=1, max_size=4),
+       st.integers(1, 4))
+def test_block_distribution_equals_counting_tuples(sequences, m):
+    counts = Counter(tuple(s[i:i + m]) for s in sequences for i in range(len(s) - m + 1))
+    total = sum(counts.values())
+    dist = block_distribution([np.array(s, dtype=np.int64) for s in sequences], m)
+    assert dist.keys() == counts.keys()
+    for block, c in counts.items():
+        assert math.isclose(dist[block], c / total)
+
+
+def test_nearest_prototype_equals_brute_force():
+    rng = np.random.default_rng(2)
+    points, protos = rng.uniform(-1, 1, (3, 500, 2)), rng.uniform(-1, 1, (40, 2))
+    labels = rng.integers(0, 5, 40)
+    brute = labels[((points[..., None, :] - protos) ** 2).sum(-1).argmin(-1)]
+    assert np.array_equal(symbolize_nearest(points, protos, labels), brute)

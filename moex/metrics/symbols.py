@@ -1,7 +1,5 @@
 """Symbolic dynamics (paper Sec. 3): outputs to symbols, m-blocks and D_KL^(m)(ŝ ‖ s) (Eq. 21)."""
 
-from collections import Counter
-
 import numpy as np
 
 
@@ -15,24 +13,30 @@ def symbolize_nearest(points: np.ndarray, prototypes: np.ndarray,
     """Symbol of the nearest prototype point: (..., T, D) -> (..., T)."""
     points = np.asarray(points)
     flat = points.reshape(-1, points.shape[-1])
+    # |x - p|² = |x|² - 2 x·p + |p|²; |x|² is the same for every p, so one matmul decides
+    offset = (prototypes**2).sum(-1)
     nearest = np.empty(len(flat), dtype=np.int64)
     for start in range(0, len(flat), 65536):  # bounded memory for long samples
         chunk = flat[start:start + 65536]
-        dist = ((chunk[:, None, :] - prototypes[None]) ** 2).sum(-1)
-        nearest[start:start + 65536] = dist.argmin(1)
+        nearest[start:start + 65536] = (offset - 2 * chunk @ prototypes.T).argmin(1)
     return np.asarray(prototype_symbols)[nearest].reshape(points.shape[:-1])
 
 
 def block_distribution(sequences, m: int) -> dict[tuple, float]:
     """Probabilities of the overlapping length-m blocks of one or more symbol sequences."""
-    counts = Counter()
-    for seq in ([sequences] if np.ndim(sequences) == 1 else sequences):
-        seq = np.asarray(seq)
-        if len(seq) >= m:
-            windows = np.lib.stride_tricks.sliding_window_view(seq, m)
-            counts.update(map(tuple, windows.tolist()))
-    total = sum(counts.values())
-    return {block: c / total for block, c in counts.items()}
+    single = np.ndim(sequences[0]) == 0 if len(sequences) else True  # one flat sequence
+    sequences = [np.asarray(s, dtype=np.int64) for s in
+                 ([sequences] if single else sequences)]
+    base = 1 + max((int(s.max()) for s in sequences if len(s)), default=0)
+    weights = base ** np.arange(m - 1, -1, -1, dtype=np.int64)  # a block as one integer
+    codes = [np.lib.stride_tricks.sliding_window_view(s, m) @ weights
+             for s in sequences if len(s) >= m]
+    if not codes:
+        return {}
+    unique, counts = np.unique(np.concatenate(codes), return_counts=True)
+    blocks = (unique[:, None] // weights) % base
+    return {tuple(b): c / counts.sum() for b, c in zip(blocks.tolist(), counts.tolist(),
+                                                        strict=True)}
 
 
 def block_kl(data, model, m: int, floor: float = 1e-3) -> float:
