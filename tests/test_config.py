@@ -6,7 +6,7 @@ from omegaconf import OmegaConf
 
 from moex.cli import CONF_DIR, _override_variants
 from moex.config import Config, register_configs
-from moex.pipeline import load_task
+from moex.pipeline import _phase1_cache, load_task
 
 TASKS = sorted(p.stem for p in (Path(CONF_DIR) / "task").glob("*.yaml"))
 
@@ -63,3 +63,26 @@ def test_every_experiment_composes_with_each_sweep_value(experiment):
             cfg = OmegaConf.to_object(compose("config", overrides=overrides))
             assert isinstance(cfg, Config)
             load_task(cfg)
+
+
+CACHED = [e for e in EXPERIMENTS
+          if "cache_dir:" in (Path(CONF_DIR) / "experiment" / f"{e}.yaml").read_text()]
+
+
+@pytest.mark.parametrize("experiment", CACHED)
+def test_cached_sweeps_vary_phase1_settings_fastest(experiment):
+    """In a sweep that caches phase 1, every key listed before the last phase-1 key leaves the
+    cache file unchanged, so parallel neighbouring jobs never train the same phase 1 twice."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        base = compose("config", overrides=[f"experiment={experiment}"],
+                       return_hydra_config=True)
+        params = dict(base.hydra.sweeper.params or {})
+        changes = []
+        for key, values in params.items():
+            paths = {_phase1_cache(OmegaConf.to_object(compose(
+                "config", overrides=[f"experiment={experiment}", f"{key}={v}"])))
+                for v in str(values).split(",")}
+            changes.append(len(paths) > 1)
+    assert True in changes  # the grid does contain phase-1 settings
+    first_phase1 = changes.index(True)
+    assert all(changes[first_phase1:]), f"{experiment}: order {list(params)}"
