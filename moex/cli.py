@@ -33,10 +33,12 @@ log = logging.getLogger("moex")
 CONF_DIR = str(_PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf")
 
 def _job_dirname(overrides: str) -> str:
-    """Multirun subfolder: the job's overrides, shortened with a hash when too long for a path."""
-    if len(overrides) <= 120:
-        return overrides
-    return f"{overrides[:100]}...{hashlib.sha1(overrides.encode()).hexdigest()[:8]}"
+    """Multirun subfolder: the job's overrides as one folder name ('/' in a value becomes '_'),
+    shortened with a hash of the overrides when too long for a path."""
+    name = overrides.replace("/", "_")
+    if len(name) <= 120:
+        return name
+    return f"{name[:100]}...{hashlib.sha1(overrides.encode()).hexdigest()[:8]}"
 
 
 # registered at import so Hydra's launchers (joblib workers too) can resolve the sweep subdir
