@@ -88,7 +88,8 @@ def _chunks(total: int):
 
 
 def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
-    """(R, N, steps, D) Gaussian noise on x_m, drawn step by step, or None."""
+    """(R, N, steps, D) Gaussian noise on x_m, or None; drawn one step at a time so that the
+    random stream does not depend on how the steps are chunked."""
     if noise_std <= 0:
         return None
     x = state.inputs[..., 0, :]

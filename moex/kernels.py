@@ -291,7 +291,7 @@ def _closed_loop(eu, gu, xs, gs, tang, e_win, e_wrec, e_eps, e_bc, e_wout, e_bo,
         eu[b], gu[b], xs[b], gs[b], tang[b] = ue, ug, x_line, g_line, V
 
 
-_EXPERT_KEYS = ("w_in", "w_rec", "tau", "b_c", "w_out", "b_o")
+_RNN_KEYS = ("w_in", "w_rec", "tau", "b_c", "w_out", "b_o")  # the kernel's order; tau -> ε = 1/τ
 
 
 def closed_loop_compiled(experts, gating, state, steps: int, noise=None, tangents=None,
@@ -313,19 +313,21 @@ def closed_loop_compiled(experts, gating, state, steps: int, noise=None, tangent
     """
     R, N, K = state.gates.shape[0], state.gates.shape[1], state.gates.shape[-1]
     D, H = state.inputs.shape[-1], state.gating_u.shape[-1]
-    dtype, B = state.gates.dtype, R * N
-
-    as_np = np.dtype(str(dtype).removeprefix("torch."))
+    B = R * N
+    as_np = np.dtype(str(state.gates.dtype).removeprefix("torch."))
 
     def arr(x):  # a private C-contiguous copy: the kernel updates the state in place
         return np.array(x.detach().cpu().numpy(), order="C", copy=True)
 
+    def weights(params):
+        return [arr(1 / params[k] if k == "tau" else params[k]) for k in _RNN_KEYS]
+
     if experts:
-        ev = [arr(1 / experts[k] if k == "tau" else experts[k]) for k in _EXPERT_KEYS]
+        ev = weights(experts)
     else:  # symbolic tasks: no experts, y = x with D = 0
         ev = [np.zeros((R, 0, 0) + (0,) * (k in ("w_in", "w_rec", "w_out")), as_np)
-              for k in _EXPERT_KEYS]
-    gv = [arr(1 / gating[k] if k == "tau" else gating[k]) for k in _EXPERT_KEYS]
+              for k in _RNN_KEYS]
+    gv = weights(gating)
     eu = arr(state.experts_u.reshape(B, *state.experts_u.shape[2:]))
     gu, xs, gs = (arr(x.reshape(B, *x.shape[2:])) for x in (state.gating_u, state.inputs,
                                                             state.gates))

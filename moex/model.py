@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import torch
 
 from moex.errors import check, check_positive, check_range
+from moex.metrics.lyapunov import reorthonormalise
 
 INIT_SCHEMES = ("paper", "mregn")
 
@@ -208,7 +209,7 @@ def expert_forward(experts: dict[str, torch.Tensor],
     drive = torch.einsum("rkmd,std->rktsm", experts["w_in"], inputs)
     bias = experts["b_c"][:, :, None]  # (R, K, 1, M)
     u, c = _backend["scan"](drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
-                       experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
+                            experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
     outputs = torch.tanh(torch.einsum("rkdm,rktsm->rstkd", experts["w_out"], c)
                          + experts["b_o"][:, None, None])
     return outputs, u.permute(0, 3, 1, 2, 4)
@@ -234,7 +235,7 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     drive = torch.einsum("rhi,rsti->rtsh", gating["w_in"], feed)
     bias = gating["b_c"][:, None]  # (R, 1, H)
     u, c = _backend["scan"](drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
-                       gating["u0"])  # (R, T - τ, S, H)
+                            gating["u0"])  # (R, T - τ, S, H)
     logits = torch.einsum("rkh,rtsh->rstk", gating["w_out"], c) + gating["b_o"][:, None, None]
     return torch.log_softmax(logits, dim=-1), u.transpose(1, 2)
 
@@ -367,9 +368,9 @@ def closed_loop_run(experts: dict[str, torch.Tensor], gating: dict[str, torch.Te
             experts, gating, state, None if noise is None else noise[:, :, t], tg)
         record.append((y, g, u_g))
         if tangents is not None:
-            tangents, r = torch.linalg.qr(d_next.flat(lead=3).movedim(0, -1))
+            tangents, log_r = reorthonormalise(d_next.flat(lead=3).movedim(0, -1))
             if count:
-                growth += torch.log(torch.diagonal(r, dim1=-2, dim2=-1).abs())
+                growth += log_r
     aux = tuple(torch.stack(column, 2) for column in zip(*record, strict=True))
     return state, aux, tangents, growth
 

@@ -31,6 +31,13 @@ def initial_tangents(state: torch.Tensor, num_exponents: int,
     return torch.linalg.qr(tangents)[0]
 
 
+def reorthonormalise(tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """One Benettin step: QR of the tangents (B..., dim, k); returns Q and ln |R_vv| (B..., k),
+    the log growth of each direction since the last step."""
+    q, r = torch.linalg.qr(tangents)
+    return q, torch.log(torch.diagonal(r, dim1=-2, dim2=-1).abs())
+
+
 def lyapunov_exponents(tangent_step: TangentStep, state: torch.Tensor, num_steps: int,
                        num_exponents: int = 1, transient: int = 0, reorth_every: int = 1,
                        generator: torch.Generator | None = None) -> torch.Tensor:
@@ -54,9 +61,9 @@ def lyapunov_exponents(tangent_step: TangentStep, state: torch.Tensor, num_steps
     for n in range(total):
         state, tangents = tangent_step(state, tangents)
         if (n + 1) % reorth_every == 0 or n + 1 == total:
-            tangents, r = torch.linalg.qr(tangents)
+            tangents, log_r = reorthonormalise(tangents)
             if n >= transient:
-                log_growth += torch.log(torch.diagonal(r, dim1=-2, dim2=-1).abs())
+                log_growth += log_r
     # the steps before the first QR after the transient are counted approximately: negligible
     return log_growth / num_steps
 
