@@ -1,78 +1,125 @@
-"""Phase-1 and phase-2 epochs per second at the two-Lissajous sizes (10 series x 1000 steps,
-N = 2, M = 10, M_g = 15), reference (PyTorch autograd) vs compiled (numba) backend.
+"""CPU time per network-epoch of both training phases, through the whole training loop
+(`train_experts` / `train_gating`: kernel calls, momentum update, adaptive retries).
 
-    python benchmarks/bench_epochs.py --runs 1 30 --threads 1 2 --steps 5
+Two-Lissajous sizes: 10 series x 1000 steps, N = 2 experts, M = 10, M_g = 15, τ = 1; Reber sizes
+(--task reber): 4 series x 500 symbols, phase 2 only, NC from --context-sizes.
+
+    python benchmarks/bench_epochs.py --runs 1 30 --threads 1 2
+    python benchmarks/bench_epochs.py --task reber --context-sizes 20 50 --runs 50 --threads 1
+
+Each number is the marginal cost of an epoch (a run of 5 + --steps epochs minus a run of 5, so
+the set-up of a training call is left out), the best of --repeats such pairs after a warm-up
+(compilation), per network (divided by R). CPU time is process time (user + system, all
+threads), so with 2 threads it shows the cost and the wall time shows the speed-up.
 """
 
 import argparse
+import os
 import time
 
+import numba
 import torch
 
 from moex.config import Config
-from moex.model import init_experts, init_gating, set_backend
+from moex.kernels import get_backend
+from moex.model import init_experts, init_gating
 from moex.pipeline import load_task, run_seeds
+from moex.tasks import TaskConfig
 from moex.train import train_experts, train_gating
 
 
-def _time(fn, steps, repeats=3):
-    """Seconds per epoch: the best of `repeats` blocks of `steps` epochs (a shared machine's
-    noise only ever adds time)."""
-    fn(1)  # warm-up (numba compilation, allocator)
-    best = float("inf")
+def _clock(fn, steps: int) -> tuple[float, float]:
+    start, start_cpu = time.perf_counter(), time.process_time()
+    fn(steps)
+    return time.perf_counter() - start, time.process_time() - start_cpu
+
+
+def _time(fn, steps: int, repeats: int, base: int = 5) -> tuple[float, float]:
+    """(wall, cpu) seconds per epoch: (time of base + steps epochs - time of base epochs) / steps,
+    which leaves out the set-up of a training call; the best of `repeats` such pairs."""
+    fn(base)  # warm-up: numba compilation (or loading the cache), allocator
+    wall = cpu = float("inf")
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn(steps)
-        best = min(best, (time.perf_counter() - start) / steps)
-    return best
+        short, long = _clock(fn, base), _clock(fn, base + steps)
+        wall = min(wall, (long[0] - short[0]) / steps)
+        cpu = min(cpu, (long[1] - short[1]) / steps)
+    return wall, cpu
 
 
-def bench(runs: int, backend: str, threads: int, steps: int, torch_threads: int = 0) -> dict:
-    torch.set_num_threads(torch_threads or threads)
-    try:
-        import numba
-        numba.set_num_threads(threads)
-    except ImportError:
-        pass
-    set_backend(backend)
-    cfg = Config()
-    cfg.train.experts.adaptive_lr = True  # the issue's target: phase 1 with the adaptive rate
-    series = torch.as_tensor(load_task(cfg).series)
+def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
+          context_size: int, dtype: str) -> list[dict]:
+    torch.set_num_threads(threads)
+    numba.set_num_threads(threads)
+    cfg = Config(task=TaskConfig(name=task))
+    if task == "reber":
+        cfg.task.num_series, cfg.task.length = 4, 500
+        cfg.model.num_experts, cfg.model.gating.time_constant = 7, 0.1
+    cfg.model.gating.context_size = context_size
+    dtype = getattr(torch, dtype)
+    data = load_task(cfg)
+    series = torch.as_tensor(data.series, dtype=dtype)
+    S, _, D = series.shape
     gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, runs)]
-    experts = init_experts(cfg.model, 10, 2, gens)
-    gating = init_gating(cfg.model, 10, 2, gens)
-    ghat = torch.softmax(torch.randn(runs, 10, 999, 2, generator=torch.Generator().manual_seed(0)),
-                         -1)
+    chosen = get_backend(backend)
+    results = []
 
-    def phase1(n):
-        cfg.train.experts.steps = n
-        train_experts(experts, series, cfg.model, cfg.train.experts, cfg.train)
+    def record(name, fn):
+        wall, cpu = _time(fn, steps, repeats)
+        results.append({"task": task, "phase": name, "runs": runs, "backend": backend,
+                        "threads": threads, "context_size": context_size,
+                        "wall_ms": 1e3 * wall / runs, "cpu_ms": 1e3 * cpu / runs})
+        print(f"| {task} | {name} | {runs} | {backend} | {threads} | {context_size} | "
+              f"{1e3 * cpu / runs:.2f} | {1e3 * wall / runs:.2f} |", flush=True)
+
+    if D > 0:
+        experts = init_experts(cfg.model, S, D, gens, dtype)
+        for adaptive in (False, True):
+            def phase1(n, adaptive=adaptive):
+                cfg.train.experts.steps, cfg.train.experts.adaptive_lr = n, adaptive
+                train_experts(experts, series, cfg.model, cfg.train.experts, cfg.train,
+                              backend=chosen)
+
+            record(f"phase 1, {'adaptive' if adaptive else 'fixed'} rate", phase1)
+        targets = torch.softmax(torch.randn(runs, S, series.shape[1] - 1, 2,
+                                            generator=torch.Generator().manual_seed(0)), -1)
+        inputs = series[:, :-1]
+    else:
+        targets = torch.as_tensor(data.gate_targets, dtype=dtype).expand(runs, -1, -1, -1)
+        inputs = series
+    gating = init_gating(cfg.model, S, D, gens, dtype)
 
     def phase2(n):
         cfg.train.gating.steps = n
-        train_gating(gating, ghat, series[:, :-1], cfg.model, cfg.train.gating, cfg.train)
+        train_gating(gating, targets.to(dtype), inputs, cfg.model, cfg.train.gating, cfg.train,
+                     backend=chosen)
 
-    return {"runs": runs, "backend": backend, "threads": threads,
-            "phase1_ms": 1e3 * _time(phase1, steps), "phase2_ms": 1e3 * _time(phase2, steps)}
+    record("phase 2, adaptive rate", phase2)
+    return results
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="lissajous2", choices=["lissajous2", "reber"])
     parser.add_argument("--runs", type=int, nargs="+", default=[1, 30])
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--backends", nargs="+", default=["reference", "compiled"])
-    parser.add_argument("--steps", type=int, default=5)
-    parser.add_argument("--torch-threads", type=int, default=0,
-                        help="PyTorch's own threads (default: as many as --threads)")
+    parser.add_argument("--backends", nargs="+", default=["compiled"])
+    parser.add_argument("--context-sizes", type=int, nargs="+", default=[15])
+    parser.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    print("| runs | backend | threads | phase-1 epoch (ms) | phase-2 epoch (ms) |")
-    print("|---|---|---|---|---|")
+    print(f"# {os.uname().nodename}, numba threading layer: see `python -m numba -s`; "
+          f"{args.dtype}")
+    print("| task | phase | runs | backend | threads | NC | CPU ms per network-epoch | "
+          "wall ms per network-epoch |")
+    print("|---|---|---|---|---|---|---|---|")
     for runs in args.runs:
         for backend in args.backends:
             for threads in args.threads:
-                r = bench(runs, backend, threads, args.steps, args.torch_threads)
-                print(f"| {r['runs']} | {r['backend']} | {r['threads']} | "
-                      f"{r['phase1_ms']:.1f} | {r['phase2_ms']:.1f} |", flush=True)
+                for size in args.context_sizes:
+                    bench(args.task, runs, backend, threads, args.steps, args.repeats, size,
+                          args.dtype)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ from omegaconf import OmegaConf
 
 from moex.errors import check
 from moex.evaluate import EvalConfig
-from moex.model import BACKENDS, ModelConfig
+from moex.kernels import BACKENDS
+from moex.model import ModelConfig
 from moex.tasks import TaskConfig
 from moex.train import TrainConfig
 

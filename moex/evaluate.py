@@ -12,11 +12,12 @@ from tqdm.auto import tqdm
 
 from moex import objectives
 from moex.errors import check, check_positive
+from moex.kernels import Backend, get_backend
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse
 from moex.metrics.lyapunov import initial_tangents
 from moex.metrics.symbols import block_kl, symbolize_argmax, symbolize_nearest
-from moex.model import ClosedLoopState, closed_loop, expert_forward, gating_forward
+from moex.model import ClosedLoopState, expert_forward, gating_forward
 from moex.tasks import Dataset
 
 
@@ -30,6 +31,9 @@ class EvalConfig:
     lyapunov_steps: int = 100000
     transient: int = 1000
     num_exponents: int = 1  # 1 = the maximum exponent only
+    # gates in the Jacobian of the mixture: `real`, or `uniform` (1/K) as the authors'
+    # mregn-lyapunov computes them (a bug, spec §5.3), to compare with its exponents
+    jacobian_gates: str = "real"
     block_length: int = 5  # m of D_KL^(m) (3 for Reber)
     kl_floor: float = 1e-3  # model probability given to data blocks it never produced
     noise_var: float = 0.0  # ρ², Gaussian noise added to x_n each step (Sec. 4.3)
@@ -45,6 +49,8 @@ class EvalConfig:
                     "max_period", "plot_steps", "track_samples", "track_steps"):
             check(getattr(self, key) >= 1, f"eval.{key}={getattr(self, key)} must be >= 1")
         check(self.transient >= 0, f"eval.transient={self.transient} must be >= 0")
+        check(self.jacobian_gates in ("real", "uniform"),
+              f"eval.jacobian_gates={self.jacobian_gates!r}; choose real or uniform")
         check(self.noise_var >= 0, f"eval.noise_var={self.noise_var} must be >= 0")
         check_positive("eval.kl_floor", self.kl_floor)
 
@@ -98,40 +104,48 @@ def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
 
 
 def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: float = 0.0,
-             generator=None) -> dict[str, torch.Tensor]:
-    """Run the closed loop for `steps` steps.
+             generator=None, backend: Backend | None = None) -> dict[str, torch.Tensor]:
+    """Run the closed loop for `steps` steps on `backend` (default: auto).
 
     Returns:
         outputs (R, N, T, D), gates (R, N, T, K) and gating potentials (R, N, T, H).
     """
+    backend = backend or get_backend()
     parts = []
     for size in _chunks(steps):
-        state, aux, _, _ = closed_loop(experts, gating, state, size,
-                                       _noise(state, size, noise_std, generator))
+        state, aux, _, _ = backend.closed_loop(experts, gating, state, size,
+                                               _noise(state, size, noise_std, generator))
         parts.append(aux)
     return {name: torch.cat([p[i] for p in parts], 2)
             for i, name in enumerate(("outputs", "gates", "gating_u"))}
 
 
 def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, cfg: EvalConfig, generator,
-                         on_chunk=None) -> torch.Tensor:
+                         on_chunk=None, backend: Backend | None = None,
+                         keep_potentials: int = 0) -> torch.Tensor:
     """Lyapunov exponents (R, N, k) of the whole closed loop (spec §5.2, real gates).
 
-    `on_chunk` receives (y, g, u^g), each (R, N, steps, ...), of every step after the transient.
+    `on_chunk` receives (y, g, u^g), each (R, N, steps, ...), of every step after the transient;
+    u^g is recorded only in the chunks that reach into the last `keep_potentials` steps (None in
+    the others: at the paper's scale it would be gigabytes).
     """
+    backend = backend or get_backend()
     noise_std = cfg.noise_var**0.5
     tangents = initial_tangents(state.flat(), cfg.num_exponents, generator)
     growth = 0
     with tqdm(total=cfg.transient + cfg.lyapunov_steps, desc="lyapunov", disable=None,
               mininterval=1.0, leave=False) as bar:
         for counted, total in ((False, cfg.transient), (True, cfg.lyapunov_steps)):
+            done = 0
             for size in _chunks(total):
-                state, aux, tangents, log_growth = closed_loop(
+                keep = counted and done + size > total - keep_potentials
+                state, aux, tangents, log_growth = backend.closed_loop(
                     experts, gating, state, size, _noise(state, size, noise_std, generator),
-                    tangents, counted)
+                    tangents, counted, cfg.jacobian_gates == "uniform", keep)
                 growth = growth + log_growth
                 if counted and on_chunk is not None:
                     on_chunk(aux)
+                done += size
                 bar.update(size)
     return growth / cfg.lyapunov_steps
 
@@ -155,31 +169,34 @@ def _train_block_kl(estimates, closed_gates, cfg: EvalConfig) -> np.ndarray:
 
 
 def track_metrics(experts, estimates, gating, series, delay, cfg: EvalConfig,
-                  generator) -> dict[str, torch.Tensor]:
+                  generator, backend: Backend | None = None) -> dict[str, torch.Tensor]:
     """The cheap subset tracked during training (paper Figs. 3, 6, 11): the training-data block
     KL and the maximum Lyapunov exponent on `track_samples` × `track_steps`, per run (R,)."""
     with torch.no_grad():
         closed = generate(experts, gating,
                           trained_state(experts, gating, estimates, series, delay),
-                          estimates.shape[2])
+                          estimates.shape[2], backend=backend)
         small = dataclasses.replace(cfg, num_samples=cfg.track_samples,
                                     lyapunov_steps=cfg.track_steps, num_exponents=1,
                                     transient=min(cfg.transient, cfg.track_steps))
         state = random_state(experts, gating, small.num_samples, series.shape[-1], delay,
                              generator)
-        lam = closed_loop_lyapunov(experts, gating, state, small, generator)[..., 0]
+        lam = closed_loop_lyapunov(experts, gating, state, small, generator,
+                                   backend=backend)[..., 0]
     kl = _train_block_kl(estimates, closed["gates"], cfg)
     return {"block_kl_train": torch.as_tensor(kl), "max_lyapunov": lam.mean(1).cpu()}
 
 
-def _symbols(outputs, gates, dataset: Dataset) -> np.ndarray:
+def _symbols(outputs, gates, dataset: Dataset, backend: Backend) -> np.ndarray:
     if dataset.prototypes is None:
         return symbolize_argmax(gates.numpy())
-    return symbolize_nearest(outputs.numpy(), dataset.prototypes, dataset.prototype_symbols)
+    return backend.nearest_symbols(outputs.numpy(), dataset.prototypes,
+                                   dataset.prototype_symbols)
 
 
 def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
-             cfg: EvalConfig, generator: torch.Generator) -> tuple[list[dict], dict]:
+             cfg: EvalConfig, generator: torch.Generator,
+             backend: Backend | None = None) -> tuple[list[dict], dict]:
     """All metrics of R trained networks, one row per run, and arrays for the figures.
 
     Args:
@@ -192,6 +209,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
         rows (one dict per run) and samples (numpy arrays: the first random sample's last
         `plot_steps` outputs, gates and gating potentials, residence-time histograms).
     """
+    backend = backend or get_backend()
     series = torch.as_tensor(dataset.series, dtype=gating["w_out"].dtype)
     R, K = gating["w_out"].shape[:2]
     S, L, D = series.shape
@@ -207,7 +225,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
     log_gates, _ = gating_forward(gating, estimates, inputs, delay)
     kl = objectives.gating_kl(log_gates, estimates[:, :, delay:])
     # ---- closed loop from the trained initial states (Sec. 4.2)
-    closed = generate(experts, gating, trained_state(experts, gating, estimates, series, delay), T)
+    closed = generate(experts, gating, trained_state(experts, gating, estimates, series, delay), T,
+                      backend=backend)
     e_closed = (closed_loop_mse(closed["outputs"].numpy(), targets.numpy()) if experts
                 else np.full(R, np.nan))
     kl_train = _train_block_kl(estimates, closed["gates"], cfg)
@@ -216,12 +235,14 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, period: float,
 
     def on_chunk(aux):
         y, g, u_g = aux
-        recorded.append(_symbols(y, g, dataset).astype(np.int16))
-        kept.append(tuple(a[:, 0].clone() for a in aux))  # the first sample, (R, steps, ...)
+        recorded.append(_symbols(y, g, dataset, backend).astype(np.int16))
+        if u_g is not None:  # the first sample's last steps, (R, steps, ...), for the figures
+            kept.append(tuple(a[:, 0].clone() for a in aux))
 
     state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
     with torch.no_grad():
-        exponents = closed_loop_lyapunov(experts, gating, state, cfg, generator, on_chunk)
+        exponents = closed_loop_lyapunov(experts, gating, state, cfg, generator, on_chunk,
+                                         backend, keep_potentials=cfg.plot_steps)
     sampled = np.concatenate(recorded, -1)  # (R, N, steps)
     test = _test_symbols(dataset)
     rows, hist, transitions = [], [], []

@@ -17,8 +17,9 @@ Gating RNN (Eqs. 5-8): u^g_n = (1-ε^g) u^g_{n-1}
 
 The gating RNN is stepped in its own time m = n - τ: its step m reads (g_m, x_m) and emits g_{m+τ}.
 Parameters are plain dicts of tensors with a leading R axis, so they checkpoint as state dicts.
-The only time loop of the teacher-forced passes is `leaky_scan`, and the only one of the closed
-loop is `closed_loop_run`; compiled kernels may replace both (`set_backend`).
+This module is the reference implementation (PyTorch, autograd): the only time loop of the
+teacher-forced passes is `leaky_scan`, and the only one of the closed loop is `closed_loop_run`.
+The compiled backends of `moex.kernels` compute the same functions and are tested against these.
 """
 
 from dataclasses import dataclass, field
@@ -99,30 +100,6 @@ def leaky_scan(drive: torch.Tensor, w_rec: torch.Tensor, eps: torch.Tensor, bias
         us.append(u)
     u = torch.stack(us, dim=-3)
     return u, torch.tanh(u + bias.unsqueeze(-3))
-
-
-BACKENDS = ("auto", "reference", "compiled")
-_backend = {}  # "scan" and "closed_loop": the time loops in use, set by `set_backend`
-
-
-def set_backend(backend: str, device: str = "cpu") -> str:
-    """Choose the time loops (teacher-forced scan and closed loop); returns the one chosen.
-
-    `reference` is `leaky_scan` (PyTorch autograd) and `closed_loop_run`; `compiled` the numba
-    kernels of `moex.kernels` (CPU only); `auto` picks `compiled` on the CPU when numba imports.
-    """
-    check(backend in BACKENDS, f"backend={backend!r}; choose one of {', '.join(BACKENDS)}")
-    kernels = None
-    if backend != "reference" and device == "cpu":
-        try:
-            from moex import kernels
-        except ImportError:
-            check(backend == "auto", "backend=compiled needs numba (pip install numba)")
-    check(backend != "compiled" or device == "cpu",
-          "backend=compiled runs on the CPU only; use backend=reference with device=cuda")
-    _backend["scan"] = kernels.leaky_scan_compiled if kernels else leaky_scan
-    _backend["closed_loop"] = kernels.closed_loop_compiled if kernels else closed_loop_run
-    return "compiled" if kernels else "reference"
 
 
 def _uniform(generator, shape, bound, dtype):
@@ -208,8 +185,8 @@ def expert_forward(experts: dict[str, torch.Tensor],
     """
     drive = torch.einsum("rkmd,std->rktsm", experts["w_in"], inputs)
     bias = experts["b_c"][:, :, None]  # (R, K, 1, M)
-    u, c = _backend["scan"](drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
-                            experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
+    u, c = leaky_scan(drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
+                      experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside
     outputs = torch.tanh(torch.einsum("rkdm,rktsm->rstkd", experts["w_out"], c)
                          + experts["b_o"][:, None, None])
     return outputs, u.permute(0, 3, 1, 2, 4)
@@ -234,8 +211,8 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
                       inputs[None, :, : T - delay].expand(R, -1, -1, -1)], dim=-1)
     drive = torch.einsum("rhi,rsti->rtsh", gating["w_in"], feed)
     bias = gating["b_c"][:, None]  # (R, 1, H)
-    u, c = _backend["scan"](drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
-                            gating["u0"])  # (R, T - τ, S, H)
+    u, c = leaky_scan(drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
+                      gating["u0"])  # (R, T - τ, S, H)
     logits = torch.einsum("rkh,rtsh->rstk", gating["w_out"], c) + gating["b_o"][:, None, None]
     return torch.log_softmax(logits, dim=-1), u.transpose(1, 2)
 
@@ -284,7 +261,7 @@ def _leaky(u, drive, d_drive, du, w_rec, eps, bias):
 
 def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
                      state: ClosedLoopState, noise: torch.Tensor | None = None,
-                     tangents: ClosedLoopState | None = None):
+                     tangents: ClosedLoopState | None = None, uniform_gates: bool = False):
     """Advance the closed loop one step: x_m = y_{m-τ} (+ noise), experts, gating, mixture.
 
     With `tangents` it also propagates tangent vectors through the exact Jacobian of the whole
@@ -295,6 +272,8 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
         state: the current `ClosedLoopState` (R, N, ...).
         noise: (R, N, D) Gaussian noise added to x_m (Sec. 4.3), or None.
         tangents: a `ClosedLoopState` of tangent vectors (k, R, N, ...), or None.
+        uniform_gates: differentiate Σ_k g_k y^k with g_k = 1/K in place of the real gates, as
+            the authors' `mregn-lyapunov` does (a bug, spec §5.3); the dynamics are unchanged.
 
     Returns:
         the next state, the mixture output y_m (R, N, D), the gates g_m that mixed it (R, N, K),
@@ -319,7 +298,8 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
         y = (g[..., None] * outputs).sum(-2)
         if tangents is not None:
             d_out = (1 - outputs.square()) * _mv(w["w_out"], (1 - c.square()) * d_experts_u)
-            dy = (dg[..., None] * outputs + g[..., None] * d_out).sum(-2)
+            weight = torch.full_like(g, 1 / g.shape[-1]) if uniform_gates else g
+            dy = (dg[..., None] * outputs + weight[..., None] * d_out).sum(-2)
     # Eqs. 5-8: the gating RNN reads (g_m, x_m) and emits g_{m+τ}
     w = {k: v.view((R, 1) + v.shape[1:]) for k, v in gating.items() if k != "u0"}
     d_drive = None if tangents is None else _mv(w["w_in"], torch.cat([dg, dx], -1))
@@ -346,7 +326,8 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
 
 def closed_loop_run(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
                     state: ClosedLoopState, steps: int, noise: torch.Tensor | None = None,
-                    tangents: torch.Tensor | None = None, count: bool = False):
+                    tangents: torch.Tensor | None = None, count: bool = False,
+                    uniform_gates: bool = False, potentials: bool = True):
     """`steps` closed-loop steps with QR re-orthonormalised tangents (Benettin, spec §5.1).
 
     Args:
@@ -354,10 +335,12 @@ def closed_loop_run(experts: dict[str, torch.Tensor], gating: dict[str, torch.Te
         noise: (R, N, steps, D) noise added to x_m at each step, or None.
         tangents: (R, N, dim, k) tangent vectors in the layout of `state.flat()`, or None.
         count: sum ln |R_vv| of every QR step into the returned growth.
+        uniform_gates: see `closed_loop_step`.
+        potentials: record the gating potentials u^g (else None is returned in their place).
 
     Returns:
-        the next state, (y (R, N, steps, D), g (R, N, steps, K), u^g (R, N, steps, H)), the
-        re-orthonormalised tangents (or None) and the summed log growth (R, N, k).
+        the next state, (y (R, N, steps, D), g (R, N, steps, K), u^g (R, N, steps, H) or None),
+        the re-orthonormalised tangents (or None) and the summed log growth (R, N, k).
     """
     growth = state.gates.new_zeros(state.gates.shape[:2] + (
         0 if tangents is None else tangents.shape[-1],))
@@ -365,19 +348,11 @@ def closed_loop_run(experts: dict[str, torch.Tensor], gating: dict[str, torch.Te
     for t in range(steps):
         tg = None if tangents is None else state.like(tangents.movedim(-1, 0))
         state, y, g, u_g, d_next = closed_loop_step(
-            experts, gating, state, None if noise is None else noise[:, :, t], tg)
+            experts, gating, state, None if noise is None else noise[:, :, t], tg, uniform_gates)
         record.append((y, g, u_g))
         if tangents is not None:
             tangents, log_r = reorthonormalise(d_next.flat(lead=3).movedim(0, -1))
             if count:
                 growth += log_r
-    aux = tuple(torch.stack(column, 2) for column in zip(*record, strict=True))
-    return state, aux, tangents, growth
-
-
-def closed_loop(*args, **kwargs):
-    """`closed_loop_run` on the backend chosen by `set_backend` (same arguments and results)."""
-    return _backend["closed_loop"](*args, **kwargs)
-
-
-set_backend("reference")
+    y, g, u_g = (torch.stack(column, 2) for column in zip(*record, strict=True))
+    return state, (y, g, u_g if potentials else None), tangents, growth

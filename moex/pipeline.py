@@ -25,8 +25,9 @@ from moex.evaluate import (
     track_metrics,
     trained_state,
 )
+from moex.kernels import Backend, get_backend
 from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
-from moex.model import init_experts, init_gating, set_backend
+from moex.model import init_experts, init_gating
 from moex.tasks import Dataset, make_task, reber
 from moex.train import Hooks, train_experts, train_gating
 
@@ -126,8 +127,8 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
     if saved is not None:
         _check_same_training(saved["config"], cfg, path)
         log.info("resuming %s from its %s phase", path, saved["phase"])
-    dtype, device = getattr(torch, cfg.dtype), torch.device(cfg.device)
-    backend = set_backend(cfg.backend, cfg.device)
+    dtype = getattr(torch, cfg.dtype)
+    backend = get_backend(cfg.backend, cfg.device)
     dataset = load_task(cfg)
     series = torch.as_tensor(dataset.series, dtype=dtype)
     S, L, D = series.shape
@@ -135,10 +136,10 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
     if saved is not None and saved["phase"] == "done":
         if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
             evaluate_run(cfg, dataset, saved["experts"], saved["beta"], saved["gating"], out_dir,
-                         saved["failed"])
+                         saved["failed"], backend)
         return saved
     log.info("task %s: %d series x %d steps, %d features; %d runs on %s/%s, %s backend",
-             cfg.task.name, S, L, D, cfg.num_runs, cfg.device, cfg.dtype, backend)
+             cfg.task.name, S, L, D, cfg.num_runs, cfg.device, cfg.dtype, backend.name)
     # every draw happens on every start, so resumed and fresh runs see the same generators
     generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
     experts = init_experts(cfg.model, S, D, generators, dtype) if D > 0 else {}
@@ -172,8 +173,8 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
             experts, beta, payload["experts_rows"] = done["experts"], done["beta"], done["rows"]
         else:
             experts, beta, payload["experts_rows"] = train_experts(
-                {k: v.to(device) for k, v in experts.items()}, series.to(device), cfg.model,
-                cfg.train.experts, cfg.train, hooks("experts"))
+                experts, series, cfg.model, cfg.train.experts, cfg.train, hooks("experts"),
+                backend)
             if cached is not None:
                 io.atomic_write(cached, lambda tmp: torch.save(
                     {"experts": _cpu(experts), "beta": _cpu(beta),
@@ -181,17 +182,16 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
         payload.update(experts=_cpu(experts), beta=_cpu(beta))
     # ---- phase 2: x_n aligned with ĝ_n (the whole series when D = 0)
     gating_inputs = series[:, :-delay] if D > 0 else series
-    gate_targets = gate_estimates(beta, dataset, cfg.num_runs, dtype).to(device)
+    gate_targets = gate_estimates(beta, dataset, cfg.num_runs, dtype)
     monitor = None
     if cfg.eval.every:
         def monitor(gating_params):
-            return track_metrics({k: v.to(device) for k, v in experts.items()}, gate_targets,
-                                 gating_params, series.to(device), delay, cfg.eval, track_rng)
+            return track_metrics(experts, gate_targets, gating_params, series, delay, cfg.eval,
+                                 track_rng, backend)
 
     gating, gating_rows = train_gating(
-        {k: v.to(device) for k, v in gating.items()}, gate_targets, gating_inputs.to(device),
-        cfg.model, cfg.train.gating, cfg.train,
-        hooks("gating", monitor=monitor, monitor_every=cfg.eval.every))
+        gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
+        hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend)
     history = pd.DataFrame(payload["experts_rows"] + gating_rows)
     failed = history.groupby("run")["failed"].any().reindex(range(cfg.num_runs), fill_value=False)
     for run in np.flatnonzero(failed.to_numpy()):
@@ -206,7 +206,7 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
     _log_summary(history)
     if cfg.eval.enabled:
         evaluate_run(cfg, dataset, payload["experts"], payload["beta"], payload["gating"],
-                     out_dir, payload["failed"])
+                     out_dir, payload["failed"], backend)
     return payload
 
 
@@ -216,7 +216,7 @@ def _period(cfg: Config, dataset: Dataset) -> float:
 
 
 def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path,
-                 failed: list[bool]):
+                 failed: list[bool], backend: Backend):
     """Run every metric, then write metrics.csv, samples.npz and the figures.
 
     Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
@@ -224,7 +224,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     generator = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
     with np.errstate(invalid="ignore"):
         rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay,
-                                 _period(cfg, dataset), cfg.eval, generator)
+                                 _period(cfg, dataset), cfg.eval, generator, backend)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
     metrics.loc[failed, metrics.columns.difference(["run"])] = np.nan
     metrics["failed"] = failed
@@ -273,7 +273,17 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
         plotting.save_figure(axes.flat[0].figure, figures / "experts.png")
 
 
-def load_run(tool: ToolConfig) -> tuple[Config, dict, Dataset]:
+@dataclasses.dataclass
+class TrainedRun:
+    """A finished run folder: its config (with `eval` overrides), checkpoint, data and backend."""
+
+    cfg: Config
+    payload: dict
+    dataset: Dataset
+    backend: Backend
+
+
+def load_run(tool: ToolConfig) -> TrainedRun:
     """The config (with `eval` overrides), checkpoint and data of a finished run folder."""
     payload = io.load_checkpoint(Path(tool.run_dir))
     cfg = config_from_dict(payload["config"])
@@ -281,26 +291,28 @@ def load_run(tool: ToolConfig) -> tuple[Config, dict, Dataset]:
     cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
     check(payload.get("phase") == "done", f"run_dir={tool.run_dir} holds an unfinished "
                                           f"training; finish it with moex train first")
-    set_backend(cfg.backend, cfg.device)
+    backend = get_backend(cfg.backend, cfg.device)
     if cfg.task.name == "csv":  # the user's files may have moved: use the data trained on
         dataset = Dataset(payload["series"].numpy(), payload["labels"].numpy(),
                           symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
     else:  # generated tasks are regenerated from the seed, held-out series included
         dataset = load_task(cfg)
-    return cfg, payload, dataset
+    return TrainedRun(cfg, payload, dataset, backend)
 
 
 def run_evaluate(tool: ToolConfig) -> pd.DataFrame:
     """Re-run the evaluation of a trained run folder from its checkpoint (no retraining)."""
-    cfg, payload, dataset = load_run(tool)
-    return evaluate_run(cfg, dataset, payload["experts"], payload["beta"], payload["gating"],
-                        Path(tool.run_dir), payload["failed"])
+    run = load_run(tool)
+    payload = run.payload
+    return evaluate_run(run.cfg, run.dataset, payload["experts"], payload["beta"],
+                        payload["gating"], Path(tool.run_dir), payload["failed"], run.backend)
 
 
 def run_generate(tool: ToolConfig) -> dict:
     """Closed-loop samples of every run from random initial states (or the trained state of
     series `from_series`): samples.npz and figures."""
-    cfg, payload, dataset = load_run(tool)
+    run = load_run(tool)
+    cfg, payload, dataset = run.cfg, run.payload, run.dataset
     experts, gating = payload["experts"], payload["gating"]
     generator = torch.Generator().manual_seed(tool.seed)
     S, _, D = dataset.series.shape
@@ -315,7 +327,8 @@ def run_generate(tool: ToolConfig) -> dict:
                               {n: v[:, k] if n == "u0" else v for n, v in gating.items()},
                               estimates[:, k], payload["series"][k], cfg.model.delay)
     with torch.no_grad():
-        out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator)
+        out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator,
+                       run.backend)
     samples = {k: v.numpy() for k, v in out.items()}
     samples["symbols"] = symbolize_argmax(samples["gates"]) if dataset.prototypes is None else \
         symbolize_nearest(samples["outputs"], dataset.prototypes, dataset.prototype_symbols)

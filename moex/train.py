@@ -2,20 +2,21 @@
 
 Both phases are gradient ascent with momentum (Eqs. 17-18) on R independent runs at once, with
 the C code's per-group learning-rate scaling (spec §2.2, §3.3) and the adaptive learning rate of
-Sec. 2.1.4, which each run applies to itself: it accepts or retries its own step.
+Sec. 2.1.4, which each run applies to itself: it accepts or retries its own step. The objective
+and its gradients come from a backend (`moex.kernels`); the loop here is the same for all.
 """
 
-import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from moex import objectives
 from moex.errors import check, check_positive, check_range
-from moex.model import ModelConfig, expert_forward, expert_variances, gating_forward
+from moex.kernels import Backend, get_backend
+from moex.model import ModelConfig
 
 log = logging.getLogger(__name__)
 
@@ -88,23 +89,7 @@ class TrainConfig:
               f"train.momentum_form={self.momentum_form!r}; choose paper or mregn")
 
 
-Objective = Callable[[dict[str, torch.Tensor]], tuple[torch.Tensor, dict[str, torch.Tensor]]]
 Monitor = Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]]
-
-
-def _per_run(scale: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    return scale.view((-1,) + (1,) * (like.dim() - 1))
-
-
-def _stepper(grads, velocity, rates, momentum, paper_form):
-    """The step Δθ as a function of the per-run rate scale and of the share `shrink` of the step
-    kept after retries (Eq. 17, or the C code's form that scales its whole buffer)."""
-    if paper_form:
-        return lambda scale, shrink: {
-            k: rates[k] * _per_run(scale, g) * g + momentum * _per_run(shrink, g) * velocity[k]
-            for k, g in grads.items()}
-    return lambda scale, shrink: {k: rates[k] * _per_run(scale, v) * v
-                                  for k, v in velocity.items()}
 
 
 @dataclass
@@ -123,24 +108,53 @@ class TrainingInterrupted(Exception):
     """Training stopped on request after saving its state; re-run to resume."""
 
 
-def _finite_per_run(*tensors: torch.Tensor) -> torch.Tensor:
-    return torch.stack([t.isfinite().reshape(t.shape[0], -1).all(1) for t in tensors]).all(0)
+class _Flat:
+    """Named parameter groups of R runs side by side in one (R, P) array, so that a momentum
+    step is a few in-place passes over preallocated memory."""
+
+    def __init__(self, params: dict[str, np.ndarray]):
+        self.shapes = {k: v.shape[1:] for k, v in params.items()}
+        sizes = [int(np.prod(s)) for s in self.shapes.values()]
+        self.bounds = dict(zip(self.shapes, zip(np.cumsum([0] + sizes[:-1]), np.cumsum(sizes),
+                                                strict=True), strict=True))
+        first = next(iter(params.values()))
+        self.num_runs, self.size, self.dtype = first.shape[0], sum(sizes), first.dtype
+
+    def zeros(self) -> np.ndarray:
+        return np.zeros((self.num_runs, self.size), self.dtype)
+
+    def views(self, flat: np.ndarray) -> dict[str, np.ndarray]:
+        return {k: flat[:, a:b].reshape((-1,) + self.shapes[k]) for k, (a, b) in
+                self.bounds.items()}
+
+    def per_entry(self, values: dict[str, float]) -> np.ndarray:
+        """(P,): each group's value repeated over its entries."""
+        out = np.empty(self.size, self.dtype)
+        for k, (a, b) in self.bounds.items():
+            out[a:b] = values[k]
+        return out
 
 
-def _ascend(params: dict[str, torch.Tensor], rates: dict[str, float], objective: Objective,
-            criterion: str, steps: int, momentum: float, adaptive: bool,
+def _tensors(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    return {k: torch.from_numpy(np.array(v)) for k, v in arrays.items()}
+
+
+def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: dict[str, float],
+            problem, criterion: str, steps: int, momentum: float, adaptive: bool,
             rule: TrainConfig, phase: str, log_every: int,
-            hooks: Hooks | None = None) -> tuple[dict, list[dict]]:
-    """Momentum gradient ascent on `objective` (Eqs. 17-18), optionally with the adaptive rate.
+            hooks: Hooks | None = None) -> tuple[dict[str, np.ndarray], list[dict]]:
+    """Momentum gradient ascent (Eqs. 17-18), optionally with the adaptive rate of Sec. 2.1.4.
 
-    A run whose objective or gradient becomes non-finite is marked failed and frozen; the other
-    runs go on untouched (their tensors never mix). Without the adaptive rate, a step that makes
-    a run's parameters non-finite is rolled back and the run marked failed.
+    Parameters, gradients, momentum and the trial point of the adaptive retry live in
+    preallocated (R, P) arrays; a step is one `problem.value_and_grad` call, in-place updates,
+    and one `problem.value` call per adaptive trial. A run whose objective or gradient becomes
+    non-finite is marked failed and frozen; the other runs go on untouched. Without the adaptive
+    rate, a step that makes a run's parameters non-finite is rolled back and the run marked failed.
 
     Args:
-        params: leaf tensors with a leading run axis R; the dict is updated in place.
-        rates: the scaled learning rate of each parameter (spec §2.2).
-        objective: params -> (ln L per run (R,), named statistics per run (R,)).
+        params: learned parameters (R, ...) per group; fixed: the others (e.g. τ).
+        rates: the scaled learning rate of each group (spec §2.2).
+        problem: a backend's `ExpertProblem` or `GatingProblem`.
         criterion: statistic whose ratio r drives the adaptive rate (E or the KL).
         rule: supplies the adaptive thresholds and the momentum form.
         hooks: tracking, checkpointing and resuming (see `Hooks`).
@@ -149,143 +163,105 @@ def _ascend(params: dict[str, torch.Tensor], rates: dict[str, float], objective:
         the trained parameters and history rows (one per run every `log_every` steps).
     """
     hooks = hooks or Hooks()
-    first = next(iter(params.values()))
-    R, device = first.shape[0], first.device
-    state = hooks.resume or {
-        "step": 0, "rows": [], "lr_scale": torch.ones(R, dtype=first.dtype, device=device),
-        "failed": torch.zeros(R, dtype=torch.bool, device=device),
-        "velocity": {k: torch.zeros_like(p) for k, p in params.items()}}
+    layout = _Flat(params)
+    R = layout.num_runs
+    theta, grad, velocity = layout.zeros(), layout.zeros(), layout.zeros()
+    delta, trial = layout.zeros(), layout.zeros()
+    views, grads, moments = layout.views(theta), layout.views(grad), layout.views(velocity)
+    net, trial_net = {**views, **fixed}, {**layout.views(trial), **fixed}
+    for k, v in params.items():
+        views[k][...] = v
+    lr_scale, failed, rows, start = np.ones(R), np.zeros(R, bool), [], 0
     if hooks.resume:
-        params.update({k: v.to(device) for k, v in hooks.resume["params"].items()})
-    lr_scale, failed = state["lr_scale"].to(device), state["failed"].to(device)
-    velocity, rows = {k: v.to(device) for k, v in state["velocity"].items()}, state["rows"]
+        state = hooks.resume
+        for k in params:
+            views[k][...] = state["params"][k].numpy()
+            moments[k][...] = state["velocity"][k].numpy()
+        lr_scale, failed = state["lr_scale"].numpy().copy(), state["failed"].numpy().copy()
+        rows, start = state["rows"], state["step"]
+    rate = layout.per_entry(rates)
     paper_form = rule.momentum_form == "paper"
-    for step in tqdm(range(state["step"], steps), desc=phase, disable=None, mininterval=1.0,
-                     leave=False, initial=state["step"], total=steps):
+
+    def save(step):
+        hooks.save({"step": step, "params": _tensors(views), "velocity": _tensors(moments),
+                    "lr_scale": torch.from_numpy(lr_scale.copy()),
+                    "failed": torch.from_numpy(failed.copy()), "rows": rows})
+
+    for step in tqdm(range(start, steps), desc=phase, disable=None, mininterval=1.0,
+                     leave=False, initial=start, total=steps):
         if hooks.should_stop() and hooks.save is not None:
-            hooks.save({"step": step, "params": params, "velocity": velocity,
-                        "lr_scale": lr_scale, "failed": failed, "rows": rows})
+            save(step)
             raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
         # ---- gradient of ln L at the current parameters
-        leaves = {k: p.detach().requires_grad_(True) for k, p in params.items()}
-        log_l, stats = objective(leaves)
-        grads = dict(zip(leaves, torch.autograd.grad(log_l.sum(), list(leaves.values())),
-                         strict=True))
-        with torch.no_grad():
-            failed = failed | ~_finite_per_run(log_l, *grads.values())
-            grads = {k: torch.where(_per_run(failed, g), 0.0, g) for k, g in grads.items()}
-            if not paper_form:  # mregn: the buffer sums raw gradients
-                velocity = {k: grads[k] + momentum * velocity[k] for k in params}
-            propose = _stepper(grads, velocity, rates, momentum, paper_form)
-            shrink = torch.ones_like(lr_scale)
-            delta = propose(lr_scale, shrink)
-            retries = torch.zeros(R, dtype=torch.long, device=device)
-            # ---- adaptive rate: each run shrinks its own rate until r <= r_th (Sec. 2.1.4)
-            pending = ~failed if adaptive else torch.zeros_like(failed)
-            base = stats[criterion]
-            for _ in range(rule.adaptive.max_retries if pending.any() else 0):
-                _, trial = objective({k: params[k] + delta[k] for k in params})
-                ratio = trial[criterion] / base
-                rejected = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
-                lr_scale = torch.where(pending & (ratio < 1), lr_scale * rule.adaptive.increase,
-                                       lr_scale)
-                pending = rejected
-                if not pending.any():
-                    break
-                # a retry shrinks the whole step, momentum included: with the momentum term left
-                # whole (a strict reading of Sec. 2.1.4) r can stay above r_th for every α, and
-                # the rate collapsed to 0.7^1000 in a measured two-Lissajous run
-                lr_scale = torch.where(rejected, lr_scale * rule.adaptive.decrease, lr_scale)
-                shrink = torch.where(rejected, shrink * rule.adaptive.decrease, shrink)
-                retries += rejected
-                retry = propose(lr_scale, shrink)
-                delta = {k: torch.where(_per_run(rejected, d), retry[k], d)
-                         for k, d in delta.items()}
-            # ---- update; give up the step of runs still rejected, roll back non-finite runs
-            updated = {k: params[k] + delta[k] for k in params}
-            if not adaptive:
-                failed = failed | ~_finite_per_run(*updated.values())
-            frozen = pending | failed
-            params.update({k: torch.where(_per_run(frozen, p), params[k], p)
-                           for k, p in updated.items()})
-            delta = {k: torch.where(_per_run(frozen, d), 0.0, d) for k, d in delta.items()}
-            velocity = delta if paper_form else {
-                k: torch.where(_per_run(frozen, v), 0.0, v) for k, v in velocity.items()}
-            if "tau" in params:
-                params["tau"] = params["tau"].clamp_min(1.0)  # ε <= 1 (spec §1.3)
+        stats = problem.value_and_grad(net, grads, ~failed)
+        failed |= ~(np.isfinite(stats["objective"]) & np.isfinite(grad.sum(1)))
+        grad[failed] = 0.0
+        # ---- the step Δθ: Eq. 17 keeps Δθ in the buffer, the C code the sum of raw gradients
+        if paper_form:
+            np.multiply(velocity, momentum, out=trial)
+            np.multiply(grad, rate, out=delta)
+            delta *= lr_scale[:, None]
+            delta += trial
+        else:
+            velocity *= momentum
+            velocity += grad
+            np.multiply(velocity, rate, out=delta)
+            delta *= lr_scale[:, None]
+        retries = np.zeros(R, dtype=np.int64)
+        # ---- adaptive rate: each run shrinks its own step until r <= r_th (Sec. 2.1.4)
+        pending = ~failed if adaptive else np.zeros(R, bool)
+        base = stats[criterion]
+        for _ in range(rule.adaptive.max_retries if pending.any() else 0):
+            np.add(theta, delta, out=trial)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = problem.value(trial_net, pending)[criterion] / base
+            rejected = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
+            lr_scale[pending & (ratio < 1)] *= rule.adaptive.increase
+            pending = rejected
+            if not pending.any():
+                break
+            # a retry shrinks the whole step, momentum included: with the momentum term left
+            # whole (a strict reading of Sec. 2.1.4) r can stay above r_th for every α, and the
+            # rate collapsed to 0.7^1000 in a measured two-Lissajous run
+            lr_scale[rejected] *= rule.adaptive.decrease
+            delta[rejected] *= rule.adaptive.decrease
+            retries += rejected
+        # ---- update; give up the step of runs still rejected, roll back non-finite runs
+        if not adaptive:
+            np.add(theta, delta, out=trial)
+            failed |= ~np.isfinite(trial.sum(1))
+        frozen = pending | failed
+        delta[frozen] = 0.0
+        theta += delta
+        if paper_form:
+            velocity[...] = delta
+        else:
+            velocity[frozen] = 0.0
+        if "tau" in views:
+            np.maximum(views["tau"], 1.0, out=views["tau"])  # ε <= 1 (spec §1.3)
         tracked = hooks.monitor_every > 0 and (step % hooks.monitor_every == 0
                                                or step == steps - 1)
         if tracked:
-            stats = {**stats, **hooks.monitor(params)}
+            stats = {**stats, **{k: np.asarray(v) for k, v in
+                                 hooks.monitor({k: torch.from_numpy(v) for k, v in
+                                                net.items()}).items()}}
         if tracked or step % log_every == 0 or step == steps - 1:
             for r in range(R):
-                rows.append({"run": r, "phase": phase, "step": step, "objective": log_l[r].item(),
-                             **{k: v[r].item() for k, v in stats.items()},
-                             "lr_scale": lr_scale[r].item(), "retries": retries[r].item(),
+                rows.append({"run": r, "phase": phase, "step": step,
+                             **{k: float(v[r]) for k, v in stats.items()},
+                             "lr_scale": float(lr_scale[r]), "retries": int(retries[r]),
                              "failed": bool(failed[r])})
         if (step + 1) % max(steps // 10, 1) == 0:  # progress in the log (tqdm only on a tty)
             log.info("%s: step %d/%d, %s mean %.4g over %d runs", phase, step + 1, steps,
-                     criterion, base[~failed].mean().item(), int((~failed).sum()))
+                     criterion, base[~failed].mean(), int((~failed).sum()))
         if hooks.save is not None and hooks.save_every and (step + 1) % hooks.save_every == 0:
-            hooks.save({"step": step + 1, "params": params, "velocity": velocity,
-                        "lr_scale": lr_scale, "failed": failed, "rows": rows})
-    return {k: p.detach() for k, p in params.items()}, rows
-
-
-def expert_objective(inputs: torch.Tensor, targets: torch.Tensor, fixed: dict[str, torch.Tensor],
-                     model: ModelConfig, cfg: ExpertPhaseConfig) -> Objective:
-    """ln L(D, θ) of phase 1 (Eqs. 11-13) as a function of the learned parameters (and β).
-
-    Args:
-        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
-        fixed: parameters held constant (τ unless time constants are learned).
-    """
-
-    def objective(p):
-        net = {**p, **fixed}
-        outputs, potentials = expert_forward(net, inputs)
-        log_ghat = torch.log_softmax(p["beta"], dim=-1)
-        log_lik = objectives.mixture_log_likelihood(
-            outputs, targets, log_ghat, expert_variances(net, model.sigma_min))
-        log_prior = objectives.gate_prior_log_density(p["beta"], cfg.gate_prior_std)
-        total = log_lik + log_prior
-        if cfg.attraction:
-            total = total + objectives.initial_state_attraction(p["u0"], potentials,
-                                                                model.sigma_min**2)
-        error = objectives.mixture_mse(outputs, targets, log_ghat.exp())
-        return total, {"log_likelihood": log_lik, "log_prior": log_prior, "E": error}
-
-    return objective
-
-
-def gating_objective(gate_targets: torch.Tensor, inputs: torch.Tensor,
-                     fixed: dict[str, torch.Tensor], model: ModelConfig,
-                     cfg: GatingPhaseConfig) -> Objective:
-    """ln L(D^g, θ^g) of phase 2 (Eqs. 14-15) up to ln Z, as a function of the gating parameters.
-
-    Args:
-        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n.
-        fixed: parameters held constant (τ unless time constants are learned).
-    """
-    R, S, T, K = gate_targets.shape
-    targets = gate_targets[:, :, model.delay:]
-
-    def objective(p):
-        log_gates, potentials = gating_forward({**p, **fixed}, gate_targets, inputs, model.delay)
-        log_lik = objectives.gating_log_likelihood(log_gates, targets)
-        kl = objectives.gating_kl(log_gates, targets)
-        total = log_lik
-        if cfg.attraction:
-            total = total + objectives.initial_state_attraction(p["u0"], potentials,
-                                                                model.sigma_min**2)
-        return total, {"log_likelihood": log_lik, "kl": kl,
-                       "E_g": kl / (S * (T - model.delay) * K)}
-
-    return objective
+            save(step + 1)
+    return {k: v.copy() for k, v in views.items()}, rows
 
 
 def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model: ModelConfig,
-                  cfg: ExpertPhaseConfig, rule: TrainConfig, hooks: Hooks | None = None
+                  cfg: ExpertPhaseConfig, rule: TrainConfig, hooks: Hooks | None = None,
+                  backend: Backend | None = None
                   ) -> tuple[dict[str, torch.Tensor], torch.Tensor, list[dict]]:
     """Phase 1 (Sec. 2.1.2-2.1.3): maximum likelihood of the experts and the gate logits β.
 
@@ -295,32 +271,34 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
         model: the model config (delay, σ̄, whether τ = 1/ε is learned).
         cfg: this phase's settings; rule: adaptive thresholds and momentum form.
         hooks: checkpointing, interruption and resuming (see `Hooks`).
+        backend: where the time loops run (`moex.kernels.get_backend`; default: auto).
 
     Returns:
         trained experts, gate logits β (R, S, T, K) with T = L - τ (ĝ = softmax β, Eq. 9), and
         history rows with the columns objective, log_likelihood, log_prior, E.
     """
-    inputs, targets = series[:, : -model.delay], series[:, model.delay:]
+    backend = backend or get_backend()
+    data = series.detach().cpu().numpy()
+    inputs, targets = data[:, : -model.delay], data[:, model.delay:]
     S, T, D = targets.shape
     R, K = experts["log_sigma"].shape
-    fixed = {} if model.learn_time_constants else {"tau": experts["tau"]}
-    params = {k: v for k, v in experts.items() if k not in fixed}
-    params["beta"] = torch.zeros((R, S, T, K), dtype=series.dtype, device=series.device)
+    params = {k: v.detach().cpu().numpy() for k, v in experts.items()}
+    fixed = {} if model.learn_time_constants else {"tau": params.pop("tau")}
+    params["beta"] = np.zeros((R, S, T, K), dtype=data.dtype)
     # spec §2.2: weights, biases, τ and σ at α̃/(T d), initial states at α̃/d, β at α̃
     alpha = cfg.learning_rate
     rates = {k: alpha / (S * T * D) for k in params}
     rates.update(u0=alpha / D, beta=alpha)
-
-    objective = expert_objective(inputs, targets, fixed, model, cfg)
-    trained, rows = _ascend(params, rates, objective, "E", cfg.steps, cfg.momentum,
+    problem = backend.expert_problem(inputs, targets, model, cfg, R)
+    trained, rows = _ascend(params, fixed, rates, problem, "E", cfg.steps, cfg.momentum,
                             cfg.adaptive_lr, rule, "experts", cfg.log_every, hooks)
-    beta = trained.pop("beta")
-    return {**trained, **fixed}, beta, rows
+    beta = torch.from_numpy(trained.pop("beta"))
+    return _tensors({**trained, **fixed}), beta, rows
 
 
 def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
                  inputs: torch.Tensor, model: ModelConfig, cfg: GatingPhaseConfig,
-                 rule: TrainConfig, hooks: Hooks | None = None
+                 rule: TrainConfig, hooks: Hooks | None = None, backend: Backend | None = None
                  ) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Phase 2 (Sec. 2.1.2-2.1.4): fit the gating RNN to the estimates ĝ by teacher forcing.
 
@@ -330,22 +308,21 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
         inputs: (S, T, D) inputs x_n aligned with ĝ_n (D = 0 for symbolic tasks).
         model: the model config; cfg: this phase's settings; rule: adaptive thresholds.
         hooks: tracking (its monitor sees the full gating parameters), checkpointing, resuming.
+        backend: where the time loops run (`moex.kernels.get_backend`; default: auto).
 
     Returns:
         trained gating parameters and history rows with objective, log_likelihood, kl, E_g.
     """
+    backend = backend or get_backend()
     R, S, T, K = gate_targets.shape
     T_g = T - model.delay
-    fixed = {} if model.learn_time_constants else {"tau": gating["tau"]}
-    params = {k: v for k, v in gating.items() if k not in fixed}
+    params = {k: v.detach().cpu().numpy() for k, v in gating.items()}
+    fixed = {} if model.learn_time_constants else {"tau": params.pop("tau")}
     # spec §3.3: weights at α̃/(T_g N), initial states at α̃/N
     rates = {k: cfg.learning_rate / (S * T_g * K) for k in params}
     rates["u0"] = cfg.learning_rate / K
-
-    objective = gating_objective(gate_targets, inputs, fixed, model, cfg)
-    if hooks is not None and hooks.monitor is not None:
-        monitor = hooks.monitor
-        hooks = dataclasses.replace(hooks, monitor=lambda p: monitor({**p, **fixed}))
-    trained, rows = _ascend(params, rates, objective, "kl", cfg.steps, cfg.momentum,
+    problem = backend.gating_problem(np.ascontiguousarray(gate_targets.detach().cpu().numpy()),
+                                     inputs.detach().cpu().numpy(), model, cfg)
+    trained, rows = _ascend(params, fixed, rates, problem, "kl", cfg.steps, cfg.momentum,
                             cfg.adaptive_lr, rule, "gating", cfg.log_every, hooks)
-    return {**trained, **fixed}, rows
+    return _tensors({**trained, **fixed}), rows

@@ -24,13 +24,3 @@ def tiny_cfg() -> Config:
 
 def generators(seeds):
     return [torch.Generator().manual_seed(s) for s in seeds]
-
-
-@pytest.fixture(autouse=True)
-def _reference_backend():
-    """Tests run on the reference time loop unless they choose another (the choice is global)."""
-    from moex.model import set_backend
-
-    set_backend("reference")
-    yield
-    set_backend("reference")

@@ -33,7 +33,13 @@ def block_distribution(sequences, m: int) -> dict[tuple, float]:
              for s in sequences if len(s) >= m]
     if not codes:
         return {}
-    unique, counts = np.unique(np.concatenate(codes), return_counts=True)
+    codes = np.concatenate(codes)
+    if base**m <= 1 << 24:  # few possible blocks: count them directly (linear, no sort)
+        counts = np.bincount(codes, minlength=base**m)
+        unique = np.flatnonzero(counts)
+        counts = counts[unique]
+    else:
+        unique, counts = np.unique(codes, return_counts=True)
     blocks = (unique[:, None] // weights) % base
     return {tuple(b): c / counts.sum() for b, c in zip(blocks.tolist(), counts.tolist(),
                                                         strict=True)}
