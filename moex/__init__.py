@@ -1,10 +1,19 @@
-"""moex: a mixture of RNN experts that learns stochastic switching by chaos (Namikawa & Tani)."""
+"""moex: a mixture of RNN experts that learns stochastic switching by chaos (Namikawa & Tani).
 
+The Python API is `fit` (train on your own arrays) and the `Fitted` it returns (`evaluate`,
+`generate`); the building blocks below are what it is made of.
+"""
+
+from moex.api import Fitted, fit
+from moex.closed_loop import closed_loop_lyapunov, generate, random_state, trained_state
 from moex.config import Config
 from moex.errors import ConfigError
+from moex.evaluate import EvalConfig, evaluate
+from moex.kernels import get_backend
 from moex.model import (
     ModelConfig,
     expert_forward,
+    gate_estimates,
     gating_forward,
     init_experts,
     init_gating,
@@ -15,7 +24,8 @@ from moex.tasks import Dataset, TaskConfig, make_task
 from moex.train import TrainConfig, train_experts, train_gating
 
 __all__ = [
-    "Config", "ConfigError", "Dataset", "ModelConfig", "TaskConfig", "TrainConfig",
-    "expert_forward", "gating_forward", "init_experts", "init_gating", "leaky_scan",
-    "make_task", "run_train", "train_experts", "train_gating",
+    "Config", "ConfigError", "Dataset", "EvalConfig", "Fitted", "ModelConfig", "TaskConfig",
+    "TrainConfig", "closed_loop_lyapunov", "evaluate", "expert_forward", "fit", "gate_estimates",
+    "gating_forward", "generate", "get_backend", "init_experts", "init_gating", "leaky_scan",
+    "make_task", "random_state", "run_train", "train_experts", "train_gating", "trained_state",
 ]

@@ -4,9 +4,10 @@ Overrides are composed and validated with Hydra's compose API before the run sta
 value or unknown key ends with one line on stderr and exit code 2, and nothing is written.
 """
 
-import hashlib
+import difflib
 import json
 import logging
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -16,7 +17,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
-from hydra.errors import HydraException
+from hydra.errors import HydraException, OverrideParseException
 from hydra.types import RunMode
 from omegaconf import OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
@@ -25,24 +26,26 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from moex import pipeline, report
 from moex.config import register_configs
 from moex.errors import ConfigError
-from moex.io import atomic_write
+from moex.io import atomic_write, write_csv
 from moex.train import TrainingInterrupted
 
 _PACKAGE_CONF = Path(__file__).resolve().parent / "conf"
 log = logging.getLogger("moex")
 CONF_DIR = str(_PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf")
 
-def _job_dirname(overrides: str) -> str:
-    """Multirun subfolder: the job's overrides as one folder name ('/' in a value becomes '_'),
-    shortened with a hash of the overrides when too long for a path."""
-    name = overrides.replace("/", "_")
-    if len(name) <= 120:
-        return name
-    return f"{name[:100]}...{hashlib.sha1(overrides.encode()).hexdigest()[:8]}"
+JOBS_INDEX = "jobs.csv"
 
 
-# registered at import so Hydra's launchers (joblib workers too) can resolve the sweep subdir
-OmegaConf.register_new_resolver("moex_dirname", _job_dirname, replace=True)
+def _write_job_index(sweep_dir: Path) -> None:
+    """`jobs.csv` at the sweep root: every job folder so far and its overrides. Each job
+    rewrites it when it starts (atomically), so the last one to start lists them all."""
+    rows = []
+    for path in sorted(sweep_dir.glob("*/.hydra/overrides.yaml"),
+                       key=lambda p: (len(p.parent.parent.name), p.parent.parent.name)):
+        overrides = OmegaConf.to_container(OmegaConf.load(path))
+        rows.append({"folder": path.parent.parent.name, "overrides": " ".join(overrides)})
+    write_csv(sweep_dir / JOBS_INDEX, rows)
+
 
 USAGE = """usage: moex <verb> [-m] [key=value ...]
 
@@ -63,13 +66,28 @@ examples:
 """
 
 
-def _one_line(exc: BaseException) -> str:
+def _allowed_keys(config_name: str, key: str) -> str:
+    """The keys allowed beside an unknown `key`, closest spelling first."""
+    parent, _, leaf = key.rpartition(".")
+    try:
+        node = compose(config_name)
+        node = OmegaConf.select(node, parent) if parent else node
+        keys = [str(k) for k in node.keys()]
+    except Exception:  # the parent itself is unknown or not a node: nothing to list
+        return ""
+    ranked = difflib.get_close_matches(leaf, keys, n=len(keys), cutoff=0)
+    names = [f"{parent}.{k}" if parent else k for k in ranked + sorted(set(keys) - set(ranked))]
+    return f"; allowed keys: {', '.join(names)}"
+
+
+def _one_line(exc: BaseException, config_name: str) -> str:
     """A readable single line from a Hydra / OmegaConf / moex exception."""
     text = str(exc).strip()
     first = text.splitlines()[0] if text else type(exc).__name__
     cause = exc.__cause__
     if "Could not override" in first and cause is not None:
-        return f"unknown key {first.split(chr(39))[1]} ({str(cause).splitlines()[0]})"
+        key = first.split(chr(39))[1]
+        return f"unknown key {key}{_allowed_keys(config_name, key)}"
     if "Error merging override" in first and cause is not None:
         key = first.split()[-1].split("=")[0]
         return f"{key}: {str(cause).splitlines()[0]}"
@@ -84,10 +102,23 @@ def _one_line(exc: BaseException) -> str:
     return first
 
 
+def _parse(args: list[str]) -> list:
+    """Parse overrides one at a time, so that a malformed one is named with its key."""
+    parser, parsed = OverridesParser.create(), []
+    for arg in args:
+        try:
+            parsed += parser.parse_overrides([arg])
+        except OverrideParseException:
+            key = arg.split("=", 1)[0]
+            raise ConfigError(f"{key}: cannot parse the override {arg!r}; write key=value, "
+                              f"lists as key=[a,b], sweeps as key=a,b, and quote values with "
+                              f"spaces") from None
+    return parsed
+
+
 def _override_variants(args: list[str]) -> list[list[str]]:
     """Override lists to validate: the first value of every sweep, then each other value alone."""
-    parsed = OverridesParser.create().parse_overrides(
-        [a for a in args if not a.startswith("hydra.")])
+    parsed = _parse([a for a in args if not a.startswith("hydra.")])
     choices = [[o.input_line] if not o.is_sweep_override()
                else [f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
                for o in parsed]
@@ -98,32 +129,53 @@ def _override_variants(args: list[str]) -> list[list[str]]:
     return variants
 
 
-def validate(config_name: str, args: list[str]):
+def _search_path(args: list[str], flags: list[str]) -> list[str]:
+    """The user's config folders, from --config-dir/-cd DIR or hydra.searchpath=[...], as an
+    override for the compose API (which composes the built-in configs only otherwise)."""
+    paths = [a.split("=", 1)[1] for a in args if a.startswith("hydra.searchpath=")]
+    for i, flag in enumerate(flags):
+        if flag in ("--config-dir", "-cd") and i + 1 < len(flags):
+            paths.append(f"[file://{Path(flags[i + 1]).resolve()}]")
+        elif flag.startswith("--config-dir="):
+            paths.append(f"[file://{Path(flag.split('=', 1)[1]).resolve()}]")
+    entries = [e.strip() for p in paths for e in p.strip("[]").split(",") if e.strip()]
+    return [f"hydra.searchpath=[{','.join(entries)}]"] if entries else []
+
+
+def validate(config_name: str, args: list[str], flags: list[str] = ()):
     """Compose every override variant, build its config and load its data (or run folder);
     raise `ConfigError` on the first problem. Returns the first variant's config."""
     register_configs()
     GlobalHydra.instance().clear()
+    search = _search_path(args, list(flags))
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-            configs = []
-            for overrides in _override_variants(args):
-                composed = compose(config_name, overrides=overrides, return_hydra_config=True)
-                with open_dict(composed):
-                    del composed["hydra"]
-                configs.append(OmegaConf.to_object(composed))
-            for cfg in configs:
-                VERBS_CHECK[config_name](cfg)
-            return configs[0]
-    except (HydraException, OmegaConfBaseException, ConfigError) as exc:
-        message = _one_line(exc)
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        for plugin, extra in (("submitit", "slurm"), ("joblib", "parallel")):
-            if plugin in first:
-                message = (f"hydra/launcher: the {plugin} launcher plugin is not installed; "
-                           f"pip install -e '.[{extra}]'")
-        raise ConfigError(message) from None
+            try:
+                configs = []
+                for overrides in _override_variants(args):
+                    composed = compose(config_name, overrides=search + overrides,
+                                       return_hydra_config=True)
+                    with open_dict(composed):
+                        del composed["hydra"]
+                    configs.append(OmegaConf.to_object(composed))
+                for cfg in configs:
+                    VERBS_CHECK[config_name](cfg)
+                return configs[0]
+            except (HydraException, OmegaConfBaseException, ConfigError) as exc:
+                if isinstance(exc, ConfigError):
+                    raise
+                raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
     finally:
         GlobalHydra.instance().clear()
+
+
+def _launcher_hint(exc: BaseException) -> str:
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    for plugin, extra in (("submitit", "slurm"), ("joblib", "parallel")):
+        if plugin in first:
+            return (f"hydra/launcher: the {plugin} launcher plugin is not installed; "
+                    f"pip install -e '.[{extra}]'")
+    return ""
 
 
 STATUS = "status.json"
@@ -132,6 +184,20 @@ STATUS = "status.json"
 def _write_status(out_dir: Path, **status) -> None:
     text = json.dumps(status, indent=1)
     atomic_write(out_dir / STATUS, lambda tmp: Path(tmp).write_text(text))
+
+
+def _discard_if_empty(out_dir: Path, verb: str) -> bool:
+    """After a failed `evaluate` or `generate`: remove its new folder when it holds nothing but
+    Hydra's log (the run folder itself is never touched). True when removed."""
+    if verb == "train" or not out_dir.is_dir():
+        return False
+    logging.shutdown()  # release the log file before removing it
+    if {p.name for p in out_dir.iterdir()} - {f"{verb}.log"}:
+        return False
+    shutil.rmtree(out_dir)
+    if out_dir.parent.name == verb and not any(out_dir.parent.iterdir()):
+        out_dir.parent.rmdir()
+    return True
 
 
 def _job(run, verb: str):
@@ -149,12 +215,15 @@ def _job(run, verb: str):
         status = (lambda **kw: _write_status(out_dir, verb=verb, **kw)) if verb == "train" \
             else (lambda **kw: None)
         started = time.time()
+        if hydra_cfg.mode == RunMode.MULTIRUN:
+            _write_job_index(Path(hydra_cfg.sweep.dir))
         try:
             with logging_redirect_tqdm(), pipeline.StopRequest() as stop:
                 run(cfg, out_dir, stop)
         except ConfigError as exc:
             log.error("%s", exc)
             status(status="failed", error=str(exc))
+            _discard_if_empty(out_dir, verb)
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
         except TrainingInterrupted as exc:
@@ -168,8 +237,8 @@ def _job(run, verb: str):
             status(status="failed", error=f"{type(exc).__name__}: {exc}")
             if hydra_cfg.mode == RunMode.MULTIRUN:
                 return  # the sweep goes on; moex report lists failed jobs
-            print(f"moex: error: {type(exc).__name__}: {exc} (traceback in {out_dir})",
-                  file=sys.stderr)
+            where = "" if _discard_if_empty(out_dir, verb) else f" (traceback in {out_dir})"
+            print(f"moex: error: {type(exc).__name__}: {exc}{where}", file=sys.stderr)
             sys.exit(1)
         status(status="done", seconds=round(time.time() - started, 1))
         print(f"moex: run folder {out_dir}")
@@ -179,8 +248,10 @@ def _job(run, verb: str):
 
 VERBS = {
     "train": ("config", _job(pipeline.run_train, "train")),
-    "evaluate": ("evaluate", _job(lambda tool, _, __: pipeline.run_evaluate(tool), "evaluate")),
-    "generate": ("generate", _job(lambda tool, _, __: pipeline.run_generate(tool), "generate")),
+    "evaluate": ("evaluate", _job(lambda tool, out, _: pipeline.run_evaluate(tool, out),
+                                  "evaluate")),
+    "generate": ("generate", _job(lambda tool, out, _: pipeline.run_generate(tool, out),
+                                  "generate")),
 }
 VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
                "generate": pipeline.load_run}
@@ -193,6 +264,25 @@ def _latest_run(task: str) -> Path:
         raise ConfigError(f"resume=true but outputs/{task}/ holds no run with a checkpoint; "
                           f"name the folder with hydra.run.dir=")
     return runs[-1].parent
+
+
+_VALUED_FLAGS = {"--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn",
+                 "--cfg", "-c", "--package", "-p", "--experimental-rerun"}
+
+
+def _split_flags(args: list[str]) -> tuple[list[str], list[str]]:
+    """Hydra's flags (with the value of those that take one) and the overrides."""
+    flags, overrides, i = [], [], 0
+    while i < len(args):
+        if args[i].startswith("-"):
+            flags.append(args[i])
+            if args[i] in _VALUED_FLAGS and i + 1 < len(args):
+                flags.append(args[i + 1])
+                i += 1
+        else:
+            overrides.append(args[i])
+        i += 1
+    return flags, overrides
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -209,14 +299,15 @@ def main(argv: list[str] | None = None) -> None:
               file=sys.stderr)
         sys.exit(2)
     config_name, task_function = VERBS[verb]
-    hydra_flags = [a for a in args if a.startswith("-")]
-    overrides = [a for a in args if not a.startswith("-")]
+    hydra_flags, overrides = _split_flags(args)
     if not {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"} & set(hydra_flags):
         try:
-            cfg = validate(config_name, overrides)
+            cfg = validate(config_name, overrides, hydra_flags)
             if verb == "train" and cfg.resume and not {"-m", "--multirun"} & set(hydra_flags) \
                     and not any(a.startswith("hydra.run.dir=") for a in args):
                 args = args + [f"hydra.run.dir={_latest_run(cfg.task.name)}"]
+            if verb != "train" and cfg.out_dir:
+                args = args + [f"hydra.run.dir={cfg.out_dir}"]
         except ConfigError as exc:
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)

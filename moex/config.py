@@ -2,8 +2,10 @@
 as Hydra's schema (`base_config`), so that every YAML value is type-checked when composed."""
 
 from dataclasses import dataclass, field, fields, make_dataclass
+from pathlib import Path
 from typing import Optional
 
+import torch
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
@@ -11,10 +13,11 @@ from moex.errors import check
 from moex.evaluate import EvalConfig
 from moex.kernels import BACKENDS
 from moex.model import ModelConfig
+from moex.plotting import PlotConfig
 from moex.tasks import TaskConfig
 from moex.train import TrainConfig
 
-DTYPES = ("float64", "float32")
+PRECISIONS = ("float64", "float32")
 DEVICES = ("cpu", "cuda")
 
 
@@ -26,17 +29,22 @@ class Config:
     eval: EvalConfig = field(default_factory=EvalConfig)
     seed: int = 0
     num_runs: int = 1  # R networks trained side by side, run r seeded by (seed, r)
-    dtype: str = "float64"
+    precision: str = "float64"  # of training and evaluation; tests and defaults use float64
     device: str = "cpu"
     backend: str = "auto"  # auto | reference | compiled (numba, CPU)
     resume: bool = False  # continue the latest run folder of this task (or hydra.run.dir)
     cache_dir: str = ""  # phase-1 results shared by jobs that differ only in the gating net
+    plot: PlotConfig = field(default_factory=PlotConfig)
 
     def __post_init__(self):
         check(self.num_runs >= 1, f"num_runs={self.num_runs} must be >= 1")
         check(self.seed >= 0, f"seed={self.seed} must be >= 0")
-        check(self.dtype in DTYPES, f"dtype={self.dtype!r}; choose float64 or float32")
+        check(self.precision in PRECISIONS,
+              f"precision={self.precision!r}; choose float64 or float32")
         check(self.device in DEVICES, f"device={self.device!r}; choose cpu or cuda")
+        check(self.device != "cuda" or torch.cuda.is_available(),
+              f"device=cuda but this machine has no CUDA device PyTorch can use (torch "
+              f"{torch.__version__}); use device=cpu")
         check(self.backend in BACKENDS,
               f"backend={self.backend!r}; choose one of {', '.join(BACKENDS)}")
 
@@ -47,19 +55,38 @@ EvalOverrides = make_dataclass(
 
 
 @dataclass
-class ToolConfig:
-    """`moex evaluate` and `moex generate`: a trained run folder and what to do with it."""
+class RunFolder:
+    """A finished training run and where a tool writes (default: `<run_dir>/<verb>/<date>/`)."""
 
     run_dir: str = ""
-    eval: EvalOverrides = field(default_factory=EvalOverrides)  # None: the run's own value
-    steps: int = 10000  # generate: closed-loop steps per sample
-    num_samples: int = 4  # generate: random initial states per network
-    noise_var: float = 0.0  # generate: ρ²
-    from_series: int = -1  # generate: -1 random initial states, k the trained state of series k
-    seed: int = 0
+    out_dir: str = ""  # instead of <run_dir>/<verb>/<date>/
 
     def __post_init__(self):
         check(bool(self.run_dir), "run_dir is required: run_dir=outputs/<task>/<date>")
+        check(not self.out_dir or Path(self.out_dir).resolve() != Path(self.run_dir).resolve(),
+              f"out_dir={self.out_dir} is the run folder itself; its files are never "
+              f"overwritten: choose another folder or leave out_dir out")
+
+
+@dataclass
+class EvaluateConfig(RunFolder):
+    """`moex evaluate`: recompute every metric of a finished run."""
+
+    eval: EvalOverrides = field(default_factory=EvalOverrides)  # None: the run's own value
+
+
+@dataclass
+class GenerateConfig(RunFolder):
+    """`moex generate`: closed-loop samples of a finished run."""
+
+    steps: int = 10000  # closed-loop steps per sample
+    num_samples: int = 4  # random initial states per network
+    noise_var: float = 0.0  # ρ², Gaussian noise on x_n at every step (Sec. 4.3)
+    from_series: int = -1  # -1: random initial states; k: the trained initial state of series k
+    seed: int = 0
+
+    def __post_init__(self):
+        super().__post_init__()
         check(self.steps >= 1, f"steps={self.steps} must be >= 1")
         check(self.num_samples >= 1, f"num_samples={self.num_samples} must be >= 1")
         check(self.noise_var >= 0, f"noise_var={self.noise_var} must be >= 0")
@@ -67,9 +94,12 @@ class ToolConfig:
 
 def register_configs() -> None:
     ConfigStore.instance().store(name="base_config", node=Config)
-    ConfigStore.instance().store(name="base_tool", node=ToolConfig)
+    ConfigStore.instance().store(name="base_evaluate", node=EvaluateConfig)
+    ConfigStore.instance().store(name="base_generate", node=GenerateConfig)
 
 
 def config_from_dict(data: dict) -> Config:
     """Rebuild (and re-validate) a `Config` from the plain dict stored in a checkpoint."""
+    if "dtype" in data:  # checkpoints written before `dtype` was renamed `precision`
+        data = {**{k: v for k, v in data.items() if k != "dtype"}, "precision": data["dtype"]}
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), data))

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
+import yaml
 
 from moex.errors import ConfigError
 
@@ -18,6 +19,7 @@ METRICS = "metrics.csv"
 SAMPLES = "samples.npz"
 FIGURES = "figures"
 LOG = "train.log"
+EVAL_SETTINGS = "eval_config.yaml"  # the evaluation settings `moex evaluate` used
 FORMAT_VERSION = 1
 
 
@@ -66,6 +68,11 @@ def write_csv(path: Path, rows: list[dict] | pd.DataFrame) -> Path:
 
 def read_csv(path: Path) -> pd.DataFrame:
     return pd.read_csv(path)
+
+
+def write_yaml(path: Path, data: dict) -> Path:
+    text = yaml.safe_dump(data, sort_keys=False)
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def save_arrays(path: Path, arrays: dict) -> Path:

@@ -18,16 +18,17 @@ Gating RNN (Eqs. 5-8): u^g_n = (1-ε^g) u^g_{n-1}
 The gating RNN is stepped in its own time m = n - τ: its step m reads (g_m, x_m) and emits g_{m+τ}.
 Parameters are plain dicts of tensors with a leading R axis, so they checkpoint as state dicts.
 This module is the reference implementation (PyTorch, autograd): the only time loop of the
-teacher-forced passes is `leaky_scan`, and the only one of the closed loop is `closed_loop_run`.
-The compiled backends of `moex.kernels` compute the same functions and are tested against these.
+teacher-forced passes is `leaky_scan`, and the closed loop advances by `closed_loop_step` (the
+reference backend, `moex.kernels.reference`, loops over it). The compiled backends compute the
+same functions and are tested against these.
 """
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 
 from moex.errors import check, check_positive, check_range
-from moex.metrics.lyapunov import reorthonormalise
 
 INIT_SCHEMES = ("paper", "mregn")
 
@@ -171,6 +172,15 @@ def expert_variances(experts: dict[str, torch.Tensor], sigma_min: float) -> torc
     return torch.exp(2 * experts["log_sigma"]) + sigma_min**2
 
 
+def gate_estimates(beta: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
+    """ĝ_n = softmax(β_n) (Eq. 9), (R, S, T, K). `temperature` gives softmax(β_n / temperature)
+    instead, sharper below 1 and the one-hot argmax at 0 (phase-2 targets that are not the
+    paper's: `train.gating.target_temperature`)."""
+    if temperature == 0:
+        return torch.nn.functional.one_hot(beta.argmax(-1), beta.shape[-1]).to(beta.dtype)
+    return torch.softmax(beta / temperature, dim=-1)
+
+
 def expert_forward(experts: dict[str, torch.Tensor],
                    inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Teacher-forced outputs of every expert on every series (Eqs. 1-3).
@@ -199,7 +209,8 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     Args:
         gating: parameters from `init_gating`.
         gate_targets: (R, S, T, K) the estimates ĝ_n.
-        inputs: (S, T, D) the inputs x_n aligned with ĝ_n (D may be 0).
+        inputs: (S, T, D) the inputs x_n aligned with ĝ_n (D may be 0), or (R, S, T, D) when
+            every run sees its own (e.g. noisy) inputs.
         delay: τ.
 
     Returns:
@@ -207,8 +218,8 @@ def gating_forward(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
         and the internal potentials (R, S, T - τ, H).
     """
     R, S, T, K = gate_targets.shape
-    feed = torch.cat([gate_targets[:, :, : T - delay],
-                      inputs[None, :, : T - delay].expand(R, -1, -1, -1)], dim=-1)
+    inputs = inputs.expand((R,) + inputs.shape[-3:])
+    feed = torch.cat([gate_targets[:, :, : T - delay], inputs[:, :, : T - delay]], dim=-1)
     drive = torch.einsum("rhi,rsti->rtsh", gating["w_in"], feed)
     bias = gating["b_c"][:, None]  # (R, 1, H)
     u, c = leaky_scan(drive, gating["w_rec"], 1 / gating["tau"][:, None], bias,
@@ -259,6 +270,30 @@ def _leaky(u, drive, d_drive, du, w_rec, eps, bias):
     return u_next, (1 - eps) * du + eps * (d_drive + _mv(w_rec, (1 - c.square()) * du))
 
 
+class Step(NamedTuple):
+    """One closed-loop step: the next state, the mixture output y_m (R, N, D), the gates g_m
+    that mixed it (R, N, K), the gating potentials (R, N, H) and the next tangents (or None)."""
+
+    state: ClosedLoopState
+    output: torch.Tensor
+    gates: torch.Tensor
+    gating_u: torch.Tensor
+    tangents: ClosedLoopState | None
+
+
+class ClosedLoopRun(NamedTuple):
+    """What a backend's `closed_loop` returns for `steps` steps: the next state, the records
+    y (R, N, steps, D), g (R, N, steps, K) and u^g (R, N, steps, H) (None when not kept), the
+    re-orthonormalised tangents (R, N, dim, k) or None, and the summed log growth (R, N, k)."""
+
+    state: ClosedLoopState
+    outputs: torch.Tensor
+    gates: torch.Tensor
+    gating_u: torch.Tensor | None
+    tangents: torch.Tensor | None
+    growth: torch.Tensor
+
+
 def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
                      state: ClosedLoopState, noise: torch.Tensor | None = None,
                      tangents: ClosedLoopState | None = None, uniform_gates: bool = False):
@@ -276,8 +311,7 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
             the authors' `mregn-lyapunov` does (a bug, spec §5.3); the dynamics are unchanged.
 
     Returns:
-        the next state, the mixture output y_m (R, N, D), the gates g_m that mixed it (R, N, K),
-        the gating potentials (R, N, H), and the next tangents (or None).
+        a `Step`.
     """
     R = state.gates.shape[0]
     x, g = state.inputs[..., 0, :], state.gates[..., 0, :]
@@ -321,38 +355,4 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
         d_gates = new_gates * (d_logits - (new_gates * d_logits).sum(-1, keepdim=True))
         d_nxt = shifted(ClosedLoopState(d_experts_u if experts else tangents.experts_u,
                                         d_gating_u, tangents.inputs, tangents.gates), dy, d_gates)
-    return nxt, y, g, gating_u, d_nxt
-
-
-def closed_loop_run(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
-                    state: ClosedLoopState, steps: int, noise: torch.Tensor | None = None,
-                    tangents: torch.Tensor | None = None, count: bool = False,
-                    uniform_gates: bool = False, potentials: bool = True):
-    """`steps` closed-loop steps with QR re-orthonormalised tangents (Benettin, spec §5.1).
-
-    Args:
-        experts, gating, state: as for `closed_loop_step`.
-        noise: (R, N, steps, D) noise added to x_m at each step, or None.
-        tangents: (R, N, dim, k) tangent vectors in the layout of `state.flat()`, or None.
-        count: sum ln |R_vv| of every QR step into the returned growth.
-        uniform_gates: see `closed_loop_step`.
-        potentials: record the gating potentials u^g (else None is returned in their place).
-
-    Returns:
-        the next state, (y (R, N, steps, D), g (R, N, steps, K), u^g (R, N, steps, H) or None),
-        the re-orthonormalised tangents (or None) and the summed log growth (R, N, k).
-    """
-    growth = state.gates.new_zeros(state.gates.shape[:2] + (
-        0 if tangents is None else tangents.shape[-1],))
-    record = []
-    for t in range(steps):
-        tg = None if tangents is None else state.like(tangents.movedim(-1, 0))
-        state, y, g, u_g, d_next = closed_loop_step(
-            experts, gating, state, None if noise is None else noise[:, :, t], tg, uniform_gates)
-        record.append((y, g, u_g))
-        if tangents is not None:
-            tangents, log_r = reorthonormalise(d_next.flat(lead=3).movedim(0, -1))
-            if count:
-                growth += log_r
-    y, g, u_g = (torch.stack(column, 2) for column in zip(*record, strict=True))
-    return state, (y, g, u_g if potentials else None), tangents, growth
+    return Step(nxt, y, g, gating_u, d_nxt)

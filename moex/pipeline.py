@@ -14,21 +14,13 @@ import pandas as pd
 import torch
 
 from moex import io, plotting
-from moex.config import Config, ToolConfig, config_from_dict
+from moex.closed_loop import generate, random_state, trained_state
+from moex.config import Config, EvaluateConfig, GenerateConfig, RunFolder, config_from_dict
 from moex.errors import check
-from moex.evaluate import (
-    EvalConfig,
-    evaluate,
-    gate_estimates,
-    generate,
-    random_state,
-    track_metrics,
-    trained_state,
-)
+from moex.evaluate import EvalConfig, evaluate, phase2_targets, track_metrics
 from moex.kernels import Backend, get_backend
-from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
 from moex.model import init_experts, init_gating
-from moex.tasks import Dataset, make_task, reber
+from moex.tasks import Dataset, make_task, task_of_run
 from moex.train import Hooks, train_experts, train_gating
 
 log = logging.getLogger(__name__)
@@ -39,13 +31,32 @@ def run_seeds(seed: int, num_runs: int) -> list[int]:
     return [int(np.random.SeedSequence([seed, r]).generate_state(1)[0]) for r in range(num_runs)]
 
 
+def initial_parameters(cfg: Config, num_series: int, num_features: int,
+                       dtype: torch.dtype) -> tuple[dict, dict]:
+    """The experts (none when D = 0) and the gating RNN of every run before training, run r
+    drawn from a generator seeded by (seed, r) alone."""
+    generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
+    experts = (init_experts(cfg.model, num_series, num_features, generators, dtype)
+               if num_features > 0 else {})
+    return experts, init_gating(cfg.model, num_series, num_features, generators, dtype)
+
+
+def evaluation_generator(cfg: Config) -> torch.Generator:
+    """The generator of an evaluation's random initial states and noise, fixed by the seed."""
+    return torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
+
+
 def load_task(cfg: Config) -> Dataset:
     """The task's data, checked against the model config (a `ConfigError` if they disagree)."""
     dataset = make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
-    if dataset.gate_targets is not None:
-        V = dataset.gate_targets.shape[-1]
-        check(cfg.model.num_experts == V, f"model.num_experts={cfg.model.num_experts} must equal "
-                                          f"the {V} symbols of task {cfg.task.name}")
+    K, names = cfg.model.num_experts, dataset.symbol_names
+    if dataset.gate_targets is not None:  # symbolic: one gate per symbol
+        check(K == len(names), f"model.num_experts={K} must equal the {len(names)} symbols of "
+                               f"task {cfg.task.name} ({', '.join(names)})")
+    elif dataset.prototypes is not None:  # primitives: at least one expert each
+        check(K >= len(names), f"model.num_experts={K} is fewer than the {len(names)} "
+                               f"primitives of task {cfg.task.name} ({', '.join(names)}); use "
+                               f"model.num_experts={len(names)} or more")
     return dataset
 
 
@@ -76,9 +87,10 @@ class StopRequest:
 def _check_same_training(saved: dict, cfg: Config, path: Path) -> None:
     """A checkpoint may only be resumed by the config that wrote it (eval settings aside)."""
     now = dataclasses.asdict(cfg)
-    for key in ("task", "model", "train", "seed", "num_runs", "dtype"):
-        check(saved.get(key) == now[key], f"{path} was trained with a different {key} config; "
-                                          f"use another output folder or the same overrides")
+    saved = dataclasses.asdict(config_from_dict(saved))
+    for key in ("task", "model", "train", "seed", "num_runs", "precision"):
+        check(saved[key] == now[key], f"{path} was trained with a different {key} config; "
+                                      f"use another output folder or the same overrides")
 
 
 def _cpu(tree):
@@ -100,7 +112,7 @@ def _phase1_cache(cfg: Config) -> Path | None:
            "experts": dataclasses.asdict(cfg.train.experts),
            "adaptive": dataclasses.asdict(cfg.train.adaptive),
            "momentum_form": cfg.train.momentum_form, "seed": cfg.seed,
-           "num_runs": cfg.num_runs, "dtype": cfg.dtype, "device": cfg.device}
+           "num_runs": cfg.num_runs, "precision": cfg.precision, "device": cfg.device}
     digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
     return Path(cfg.cache_dir) / f"phase1-{digest}.pt"
 
@@ -127,7 +139,7 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
     if saved is not None:
         _check_same_training(saved["config"], cfg, path)
         log.info("resuming %s from its %s phase", path, saved["phase"])
-    dtype = getattr(torch, cfg.dtype)
+    dtype = getattr(torch, cfg.precision)
     backend = get_backend(cfg.backend, cfg.device)
     dataset = load_task(cfg)
     series = torch.as_tensor(dataset.series, dtype=dtype)
@@ -139,11 +151,9 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
                          saved["failed"], backend)
         return saved
     log.info("task %s: %d series x %d steps, %d features; %d runs on %s/%s, %s backend",
-             cfg.task.name, S, L, D, cfg.num_runs, cfg.device, cfg.dtype, backend.name)
+             cfg.task.name, S, L, D, cfg.num_runs, cfg.device, cfg.precision, backend.name)
     # every draw happens on every start, so resumed and fresh runs see the same generators
-    generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
-    experts = init_experts(cfg.model, S, D, generators, dtype) if D > 0 else {}
-    gating = init_gating(cfg.model, S, D, generators, dtype)
+    experts, gating = initial_parameters(cfg, S, D, dtype)
     track_rng = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0x7AC)
     payload = {"config": dataclasses.asdict(cfg), "series": series,
                "labels": torch.as_tensor(dataset.labels), "experts": {}, "beta": None,
@@ -182,7 +192,8 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
         payload.update(experts=_cpu(experts), beta=_cpu(beta))
     # ---- phase 2: x_n aligned with ĝ_n (the whole series when D = 0)
     gating_inputs = series[:, :-delay] if D > 0 else series
-    gate_targets = gate_estimates(beta, dataset, cfg.num_runs, dtype)
+    gate_targets = phase2_targets(beta, dataset, cfg.num_runs, dtype,
+                                  cfg.train.gating.target_temperature)
     monitor = None
     if cfg.eval.every:
         def monitor(gating_params):
@@ -191,7 +202,8 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
 
     gating, gating_rows = train_gating(
         gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
-        hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend)
+        hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend,
+        seeds=run_seeds(cfg.seed, cfg.num_runs))
     history = pd.DataFrame(payload["experts_rows"] + gating_rows)
     failed = history.groupby("run")["failed"].any().reindex(range(cfg.num_runs), fill_value=False)
     for run in np.flatnonzero(failed.to_numpy()):
@@ -210,66 +222,89 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
     return payload
 
 
-def _period(cfg: Config, dataset: Dataset) -> float:
-    """Steps per primitive, to count repetitions: the task's period, or 1 for symbol tasks."""
-    return cfg.task.period if dataset.prototypes is not None else 1.0
-
-
 def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path,
                  failed: list[bool], backend: Backend):
     """Run every metric, then write metrics.csv, samples.npz and the figures.
 
     Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
     """
-    generator = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
+    generator = evaluation_generator(cfg)
     with np.errstate(invalid="ignore"):
-        rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay,
-                                 _period(cfg, dataset), cfg.eval, generator, backend)
+        rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg.eval,
+                                 generator, backend, cfg.train.gating.target_temperature)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
     metrics.loc[failed, metrics.columns.difference(["run"])] = np.nan
     metrics["failed"] = failed
     io.write_csv(out_dir / io.METRICS, metrics)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     ok = metrics[~metrics["failed"]]
-    best = ok["block_kl_train"].idxmin() if ok["block_kl_train"].notna().any() else 0
-    _plot_samples(samples, dataset, cfg, out_dir, run=int(best))
-    log.info("max Lyapunov exponent positive in %d of %d runs (mean %.4g)",
-             int((ok["max_lyapunov"] > 0).sum()), len(ok), ok["max_lyapunov"].mean())
+    _plot_samples(samples, dataset, cfg, out_dir, metrics)
+    log.info("λ_max positive in %d of %d runs (mean %.4g)", int((ok["max_lyapunov"] > 0).sum()),
+             len(ok), ok["max_lyapunov"].mean())
     for _, row in ok.iterrows():
-        log.info("run %d: E_closed %.3g, block KL train %.3g / test %.3g, max Lyapunov %.4g, "
-                 "switch prob %.3f (data %.3f), nonperiodic %.2f", row["run"], row["E_closed"],
-                 row["block_kl_train"], row["block_kl_test"], row["max_lyapunov"],
-                 row["switch_prob"], row["data_switch_prob"], row["nonperiodic_fraction"])
+        log.info("run %d: %s", row["run"], ", ".join(
+            f"{name} {row[column]:.4g}" for column, name in LOGGED_METRICS if column in row))
     return metrics
 
 
+LOGGED_METRICS = [("E", "E"), ("E_g", "E^g"), ("E_closed", "E^closed"),
+                  ("block_kl_train", "block KL train"), ("block_kl_test", "test"),
+                  ("max_lyapunov", "λ_max"), ("switch_prob", "switching prob."),
+                  ("data_switch_prob", "data"), ("nonperiodic_fraction", "nonperiodic")]
+
+
+def _chosen_run(cfg: Config, metrics: pd.DataFrame | None) -> tuple[int, str]:
+    """The run the single-run figures show, and why."""
+    if cfg.plot.run >= 0:
+        check(cfg.plot.run < cfg.num_runs,
+              f"plot.run={cfg.plot.run} is outside [0, {cfg.num_runs - 1}]")
+        return cfg.plot.run, f"plot.run={cfg.plot.run}"
+    ok = None if metrics is None else metrics[~metrics["failed"].astype(bool)]
+    if ok is None or ok["max_lyapunov"].isna().all():
+        return 0, "run 0"
+    return int(ok.loc[ok["max_lyapunov"].idxmax(), "run"]), "highest λ_max"
+
+
 def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
-                  run: int = 0) -> None:
-    """Figures of one run's closed-loop sample (and residence times over all runs)."""
+                  metrics: pd.DataFrame | None = None) -> None:
+    """Figures of one run's closed-loop sample, and of every run (small multiples, residence
+    times) when the metric table is there to title them."""
     figures = out_dir / io.FIGURES
+    run, why = _chosen_run(cfg, metrics)
+    label = f"run {run} ({why})" if why.startswith("highest") else f"run {run}"
     outputs, gates = samples["outputs"][run], samples["gates"][run]
     gating_u, symbols = samples["gating_u"][run], samples["symbols"][run]
-    names = dataset.symbol_names
     if outputs.shape[-1] >= 2:
-        fig, axes = plt.subplots(1, 2, figsize=(8, 4), constrained_layout=True)
-        plotting.plot_trajectory(dataset.series[0], axes[0], "teaching data (series 0)")
-        plotting.plot_trajectory(outputs, axes[1], f"closed loop, run {run}",
-                                 color=gates.argmax(-1))
+        fig, axes = plt.subplots(1, 2, figsize=(9, 4.4), constrained_layout=True)
+        plotting.plot_teaching_data(dataset.series[:3], axes[0],
+                                    f"teaching data ({min(3, len(dataset.series))} series)")
+        plotting.plot_trajectory(outputs, gates, axes[1],
+                                 f"closed loop, {label}\nlast {len(outputs)} steps")
         plotting.save_figure(fig, figures / "trajectory.png")
     shown = slice(-min(len(symbols), 100), None)
-    bad = reber.violations(symbols[shown]) if cfg.task.name == "reber" else None
-    axes = plotting.plot_gate_series(outputs[shown], gates[shown], symbols[shown], names, bad=bad)
-    axes[0].set_title(f"closed loop, run {run}")
+    bad = dataset.violations(symbols[shown]) if dataset.violations else None
+    axes = plotting.plot_gate_series(outputs[shown], gates[shown], symbols[shown],
+                                     dataset.symbol_names, bad=bad)
+    axes[0].set_title(f"closed loop, {label}: outputs, gate openings and symbols")
     plotting.save_figure(axes[0].figure, figures / "gates.png")
     if gating_u.shape[-1] >= 2:
-        plotting.save_figure(plotting.plot_phase_portrait(gating_u).figure,
-                             figures / "phase_portrait.png")
-    if "residence_hist" in samples:
-        switch = cfg.task.switch_prob if cfg.task.name == "lissajous2" else None
-        ax = plotting.plot_residence(samples["residence_hist"], switch_prob=switch)
+        ax = plotting.plot_phase_portrait(gating_u, title=f"gating potentials, {label}")
+        plotting.save_figure(ax.figure, figures / "phase_portrait.png")
+    if metrics is not None and dataset.prototypes is not None:
+        ax = plotting.plot_residence(samples["residence_hist"], switch_prob=dataset.switch_prob,
+                                     title=f"repetitions of a curve, {cfg.num_runs} runs pooled")
         plotting.save_figure(ax.figure, figures / "residence_times.png")
+    if metrics is not None and outputs.shape[-1] >= 2:
+        titles = [f"run {r}: failed" if row["failed"] else
+                  f"run {r}: P {row.get('switch_prob', np.nan):.2f}, "
+                  f"λ {row['max_lyapunov']:.1e}" for r, row in metrics.iterrows()]
+        fig = plotting.plot_run_trajectories(samples["outputs"], samples["gates"], titles)
+        fig.suptitle("the closed loop of every run (P: switching probability, λ: λ_max)",
+                     fontsize=9)
+        plotting.save_figure(fig, figures / "runs.png")
     if gates.shape[-1] > 2 and outputs.shape[-1] >= 2:
         axes = plotting.plot_expert_panels(outputs, gates)
+        axes.flat[0].figure.suptitle(f"where each expert wins, {label}")
         plotting.save_figure(axes.flat[0].figure, figures / "experts.png")
 
 
@@ -283,34 +318,35 @@ class TrainedRun:
     backend: Backend
 
 
-def load_run(tool: ToolConfig) -> TrainedRun:
+def load_run(tool: RunFolder) -> TrainedRun:
     """The config (with `eval` overrides), checkpoint and data of a finished run folder."""
     payload = io.load_checkpoint(Path(tool.run_dir))
-    cfg = config_from_dict(payload["config"])
-    overrides = {k: v for k, v in dataclasses.asdict(tool.eval).items() if v is not None}
-    cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
     check(payload.get("phase") == "done", f"run_dir={tool.run_dir} holds an unfinished "
                                           f"training; finish it with moex train first")
+    cfg = config_from_dict(payload["config"])
+    if isinstance(tool, EvaluateConfig):
+        overrides = {k: v for k, v in dataclasses.asdict(tool.eval).items() if v is not None}
+        cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
     backend = get_backend(cfg.backend, cfg.device)
-    if cfg.task.name == "csv":  # the user's files may have moved: use the data trained on
-        dataset = Dataset(payload["series"].numpy(), payload["labels"].numpy(),
-                          symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
-    else:  # generated tasks are regenerated from the seed, held-out series included
-        dataset = load_task(cfg)
+    dataset = task_of_run(cfg.task, cfg.seed, payload["series"].numpy(),
+                          payload["labels"].numpy(), min_length=cfg.model.delay + 2)
     return TrainedRun(cfg, payload, dataset, backend)
 
 
-def run_evaluate(tool: ToolConfig) -> pd.DataFrame:
-    """Re-run the evaluation of a trained run folder from its checkpoint (no retraining)."""
+def run_evaluate(tool: EvaluateConfig, out_dir: Path) -> pd.DataFrame:
+    """Re-run the evaluation of a finished run from its checkpoint (no retraining) into
+    `out_dir`: metrics.csv, samples.npz, figures/ and the evaluation settings used."""
     run = load_run(tool)
     payload = run.payload
-    return evaluate_run(run.cfg, run.dataset, payload["experts"], payload["beta"],
-                        payload["gating"], Path(tool.run_dir), payload["failed"], run.backend)
+    metrics = evaluate_run(run.cfg, run.dataset, payload["experts"], payload["beta"],
+                           payload["gating"], Path(out_dir), payload["failed"], run.backend)
+    io.write_yaml(Path(out_dir) / io.EVAL_SETTINGS, dataclasses.asdict(run.cfg.eval))
+    return metrics
 
 
-def run_generate(tool: ToolConfig) -> dict:
+def run_generate(tool: GenerateConfig, out_dir: Path) -> dict:
     """Closed-loop samples of every run from random initial states (or the trained state of
-    series `from_series`): samples.npz and figures."""
+    series `from_series`) into `out_dir`: samples.npz and figures."""
     run = load_run(tool)
     cfg, payload, dataset = run.cfg, run.payload, run.dataset
     experts, gating = payload["experts"], payload["gating"]
@@ -320,8 +356,8 @@ def run_generate(tool: ToolConfig) -> dict:
     if tool.from_series < 0:
         state = random_state(experts, gating, tool.num_samples, D, cfg.model.delay, generator)
     else:  # the trained initial state of one series, repeated for every (noisy) sample
-        estimates = gate_estimates(payload["beta"], dataset, cfg.num_runs,
-                                   gating["w_out"].dtype)
+        estimates = phase2_targets(payload["beta"], dataset, cfg.num_runs,
+                                   gating["w_out"].dtype, cfg.train.gating.target_temperature)
         k = [tool.from_series] * tool.num_samples
         state = trained_state({n: v[:, k] if n == "u0" else v for n, v in experts.items()},
                               {n: v[:, k] if n == "u0" else v for n, v in gating.items()},
@@ -330,9 +366,9 @@ def run_generate(tool: ToolConfig) -> dict:
         out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator,
                        run.backend)
     samples = {k: v.numpy() for k, v in out.items()}
-    samples["symbols"] = symbolize_argmax(samples["gates"]) if dataset.prototypes is None else \
-        symbolize_nearest(samples["outputs"], dataset.prototypes, dataset.prototype_symbols)
-    out_dir = Path(tool.run_dir)
+    samples["symbols"] = dataset.symbolize(samples["outputs"], samples["gates"],
+                                           run.backend.nearest_symbols)
+    out_dir = Path(out_dir)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     first = {k: v[:, 0] for k, v in samples.items()}
     _plot_samples(first, dataset, cfg, out_dir)

@@ -1,5 +1,7 @@
 """Figures from DataFrames and arrays only: each `plot_*` draws on an Axes and returns it."""
 
+from dataclasses import dataclass
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -10,31 +12,65 @@ import pandas as pd  # noqa: E402
 from moex.io import atomic_write  # noqa: E402
 
 
+@dataclass
+class PlotConfig:
+    """Which run the single-run figures show: -1 picks the run with the highest λ_max (the most
+    chaotic; failed runs never), k picks run k."""
+
+    run: int = -1
+
+    def __post_init__(self):
+        if self.run < -1:
+            from moex.errors import ConfigError
+
+            raise ConfigError(f"plot.run={self.run} must be -1 (the run with the highest "
+                              f"λ_max) or a run index >= 0")
+
+
+LEARNING_PANELS = [  # (phase, column, log scale, title)
+    ("experts", "E", True, "phase 1: mixture error E"),
+    ("experts", "log_likelihood", False, "phase 1: ln p(Y | X, θ)"),
+    ("gating", "E_g", True, "phase 2: gating error E^g"),
+    ("gating", "lr_scale", True, "phase 2: adaptive rate α / α̃"),
+    ("gating", "block_kl_train", False, "phase 2: block KL, training data"),
+    ("gating", "max_lyapunov", False, "phase 2: λ_max"),
+]
+
+
 def plot_history(history: pd.DataFrame, column: str, ax=None, log_y: bool = False):
-    """One line per run of `column` against the learning step."""
+    """`column` against the learning step: one labelled line per run for up to 6 runs; beyond,
+    every run thin and grey with the median over runs on top."""
     ax = ax or plt.figure().gca()
-    for run, group in history.dropna(subset=[column]).groupby("run"):
-        ax.plot(group["step"], group[column], lw=1, alpha=0.8, label=f"run {run}")
+    data = history.dropna(subset=[column])
+    runs = sorted(data["run"].unique())
+    for run, group in data.groupby("run"):
+        if len(runs) <= 6:
+            ax.plot(group["step"], group[column], lw=1, label=f"run {run}")
+        else:
+            ax.plot(group["step"], group[column], lw=0.5, color="0.6",
+                    label=f"each of {len(runs)} runs" if run == runs[0] else None)
+    if len(runs) > 6:
+        median = data.groupby("step")[column].median()
+        ax.plot(median.index, median.to_numpy(), lw=2, color="tab:blue", label="median")
     ax.set_xlabel("learning step")
     ax.set_ylabel(column)
     if log_y:
         ax.set_yscale("log")
+    if runs:
+        ax.legend(fontsize=7)
     return ax
 
 
 def plot_learning_curves(history: pd.DataFrame):
     """E and the log-likelihood of phase 1; E^g, the adaptive rate and, when tracked, the block KL
-    and λ_max of phase 2 (paper Figs. 3, 6, 11), one line per run."""
-    panels = [("experts", "E", True), ("experts", "log_likelihood", False),
-              ("gating", "E_g", True), ("gating", "lr_scale", True),
-              ("gating", "block_kl_train", False), ("gating", "max_lyapunov", False)]
-    panels = [p for p in panels if p[1] in history
+    and λ_max of phase 2 (paper Figs. 3, 6, 11)."""
+    panels = [p for p in LEARNING_PANELS if p[1] in history
               and history.loc[history["phase"] == p[0], p[1]].notna().any()]
-    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(4 * max(len(panels), 1), 3.2),
+    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(4 * max(len(panels), 1), 3.4),
                              constrained_layout=True, squeeze=False)
-    for ax, (phase, column, log_y) in zip(axes[0], panels, strict=False):
+    for ax, (phase, column, log_y, title) in zip(axes[0], panels, strict=False):
         plot_history(history[history["phase"] == phase], column, ax=ax, log_y=log_y)
-        ax.set_title(f"{phase}: {column}")
+        ax.set_title(title)
     return fig
 
 
@@ -44,50 +80,79 @@ def save_figure(fig, path) -> None:
     plt.close(fig)
 
 
-def plot_trajectory(points: np.ndarray, ax=None, title: str = "", color=None):
-    """A 2-D orbit (T, D >= 2), equal aspect, coloured by time or by `color` (T,)."""
-    ax = ax or plt.figure().gca()
-    ax.scatter(points[:, 0], points[:, 1], s=2, c=np.arange(len(points)) if color is None
-               else color, cmap="viridis" if color is None else "tab10", rasterized=True)
+def _output_axes(ax, D: int) -> None:
     ax.set_aspect("equal")
+    ax.set_xlabel("y_1")
+    ax.set_ylabel("y_2" if D > 1 else "")
+
+
+def plot_teaching_data(series: np.ndarray, ax=None, title: str = "teaching data"):
+    """Training series (S, T, D >= 2) as dark lines in the (y_1, y_2) plane."""
+    ax = ax or plt.figure().gca()
+    for s in series:
+        ax.plot(s[:, 0], s[:, 1], color="black", lw=0.6, alpha=0.7)
+    _output_axes(ax, series.shape[-1])
     ax.set_title(title)
+    return ax
+
+
+def plot_trajectory(points: np.ndarray, gates: np.ndarray, ax=None, title: str = ""):
+    """A closed-loop orbit (T, D >= 2), each step coloured by its winning expert (gates (T, K)),
+    with a legend of the experts that win somewhere."""
+    ax = ax or plt.figure().gca()
+    winners = gates.argmax(-1)
+    colors = plt.get_cmap("tab10")
+    for k in np.unique(winners):
+        mask = winners == k
+        ax.scatter(points[mask, 0], points[mask, 1], s=2, color=colors(k % 10), rasterized=True,
+                   label=f"expert {k} wins ({mask.mean():.0%})")
+    _output_axes(ax, points.shape[-1])
+    ax.set_title(title)
+    ax.legend(fontsize=7, markerscale=4, loc="upper right")
     return ax
 
 
 def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray,
                      names: list[str], axes=None, bad: np.ndarray | None = None):
-    """Outputs (T, D) over gate openings (T, K), each step labelled with its winning symbol;
-    steps flagged in `bad` (T,) are labelled in red (paper Fig. 4). D = 0 plots the gates alone."""
+    """Outputs (T, D) over the gate openings (T, K), each step labelled with its symbol; steps
+    flagged in `bad` (T,) are labelled in red (paper Figs. 4 and 8). D = 0: the gates alone."""
     if axes is None:
         rows = 2 if outputs.shape[1] else 1
-        _, axes = plt.subplots(rows, 1, figsize=(10, 2 * rows + 0.5), sharex=True,
-                               constrained_layout=True, squeeze=False)
+        fig, axes = plt.subplots(rows, 1, figsize=(10, 2.2 * rows + 0.6), sharex=True,
+                                 constrained_layout=True, squeeze=False)
         axes = list(axes[:, 0]) if rows == 2 else [axes[0, 0], axes[0, 0]]
     for d in range(outputs.shape[1]):
-        axes[0].plot(outputs[:, d], lw=1, label=f"y[{d}]")
+        axes[0].plot(outputs[:, d], lw=1, label=f"y_{d + 1}")
     if outputs.shape[1]:
         axes[0].set_ylabel("output")
-    axes[1].imshow(gates.T, aspect="auto", origin="lower", cmap="Greys", vmin=0, vmax=1,
-                   interpolation="nearest")
-    axes[1].set_ylabel("gate")
+        axes[0].legend(fontsize=7, loc="upper right")
+    K = gates.shape[1]
+    image = axes[1].imshow(gates.T, aspect="auto", origin="lower", cmap="Greys", vmin=0, vmax=1,
+                           interpolation="nearest", extent=(-0.5, len(gates) - 0.5, -0.5, K - 0.5))
+    axes[1].set_yticks(range(K))
+    axes[1].set_ylabel("expert")
     axes[1].set_xlabel("step")
+    axes[1].figure.colorbar(image, ax=list(dict.fromkeys(axes)), label="gate opening g",
+                            pad=0.01, fraction=0.03)
     if names and len(symbols) <= 120:
         for n, s in enumerate(symbols):
-            axes[1].text(n, gates.shape[1] - 0.4, names[s], ha="center", fontsize=6,
+            axes[1].text(n, K - 0.45, names[s], ha="center", va="bottom", fontsize=6,
                          color="red" if bad is not None and bad[n] else "black")
     return axes
 
 
-def plot_phase_portrait(gating_u: np.ndarray, ax=None):
+def plot_phase_portrait(gating_u: np.ndarray, ax=None, title: str = ""):
     """Two gating potentials u^g_1 against u^g_2 (paper Figs. 4 and 15)."""
     ax = ax or plt.figure().gca()
     ax.plot(gating_u[:, 0], gating_u[:, 1], lw=0.3, rasterized=True)
     ax.set_xlabel("u^g_1")
     ax.set_ylabel("u^g_2")
+    ax.set_title(title)
     return ax
 
 
-def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = None):
+def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = None,
+                   title: str = "repetitions of a curve before a switch"):
     """Distribution of repetitions of a curve: model (pooled over runs) as bars, the geometric
     law (1 - P)^(k-1) P of the task as a line when P is known (paper Fig. 9)."""
     ax = ax or plt.figure().gca()
@@ -96,14 +161,38 @@ def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = 
     top = max(int(np.flatnonzero(model).max()) + 2 if model.any() else 10, 10)
     ax.bar(k[1:top], model[1:top], color="tab:blue", alpha=0.6, label="trained networks")
     if switch_prob is not None:
-        ax.plot(k[1:top], (1 - switch_prob) ** (k[1:top] - 1) * switch_prob, "k.-",
-                label=f"geometric, P={switch_prob:g}")
+        law = (1 - switch_prob) ** (k[1:top] - 1) * switch_prob
+        ax.plot(k[1:top], law, "k.-", label=f"data: geometric, P = {switch_prob:g}")
     ax.set_xlabel("repetitions of a curve")
     ax.set_ylabel("probability")
     if model[1:top].any():
-        ax.set_yscale("log")
-    ax.legend()
+        ax.set_yscale("log")  # down to a tenth of the rarest observed count (or 1e-3)
+        ax.set_ylim(min(model[model > 0].min() / 10, 1e-3), 1.5)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
     return ax
+
+
+def plot_run_trajectories(outputs: np.ndarray, gates: np.ndarray, titles: list[str]):
+    """Small multiples: the closed-loop orbit of every run (R, T, D), coloured by the winning
+    expert, each titled (e.g. by its switching probability and λ_max)."""
+    R = len(outputs)
+    cols = min(R, 6)
+    rows = -(-R // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(max(2.2 * cols, 5.0), 2.3 * rows + 0.4),
+                             constrained_layout=True, squeeze=False)
+    colors = plt.get_cmap("tab10")
+    for ax, points, gate, title in zip(axes.flat, outputs, gates, titles, strict=False):
+        winners = gate.argmax(-1)
+        ax.scatter(points[:, 0], points[:, 1], s=0.5, c=[colors(w % 10) for w in winners],
+                   rasterized=True)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(title, fontsize=7)
+    for ax in list(axes.flat)[R:]:
+        ax.axis("off")
+    return fig
 
 
 def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None):

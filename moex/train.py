@@ -54,7 +54,14 @@ class ExpertPhaseConfig(PhaseConfig):
 
 @dataclass
 class GatingPhaseConfig(PhaseConfig):
-    pass
+    """Phase 2. Two departures from the paper, off by default, for the study of what makes the
+    switching chaotic: `target_temperature` fits the gating RNN to softmax(β / temperature)
+    instead of ĝ = softmax(β) (1 = the paper; below 1 sharper; 0 = one-hot argmax), and
+    `input_noise_var` adds Gaussian noise of that variance to the inputs x_n it reads, drawn
+    afresh at every training step (Sec. 4.3 adds such noise to the trained closed loop)."""
+
+    target_temperature: float = 1.0
+    input_noise_var: float = 0.0
 
 
 @dataclass
@@ -78,6 +85,11 @@ class TrainConfig:
             check_range(f"{key}.momentum", phase.momentum, 0.0, 1.0)
             check(phase.log_every >= 1, f"{key}.log_every={phase.log_every} must be >= 1")
         check_positive("train.experts.gate_prior_std", self.experts.gate_prior_std)
+        check(self.gating.target_temperature >= 0,
+              f"train.gating.target_temperature={self.gating.target_temperature} must be >= 0 "
+              f"(1 = the paper's ĝ, 0 = one-hot)")
+        check(self.gating.input_noise_var >= 0,
+              f"train.gating.input_noise_var={self.gating.input_noise_var} must be >= 0")
         check(self.adaptive.max_ratio >= 1,
               f"train.adaptive.max_ratio={self.adaptive.max_ratio} must be >= 1")
         check_range("train.adaptive.decrease", self.adaptive.decrease, 0.0, 1.0, low_open=True)
@@ -141,8 +153,8 @@ def _tensors(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
 
 def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: dict[str, float],
             problem, criterion: str, steps: int, momentum: float, adaptive: bool,
-            rule: TrainConfig, phase: str, log_every: int,
-            hooks: Hooks | None = None) -> tuple[dict[str, np.ndarray], list[dict]]:
+            rule: TrainConfig, phase: str, log_every: int, hooks: Hooks | None = None,
+            error: str | None = None) -> tuple[dict[str, np.ndarray], list[dict]]:
     """Momentum gradient ascent (Eqs. 17-18), optionally with the adaptive rate of Sec. 2.1.4.
 
     Parameters, gradients, momentum and the trial point of the adaptive retry live in
@@ -158,9 +170,11 @@ def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: 
         criterion: statistic whose ratio r drives the adaptive rate (E or the KL).
         rule: supplies the adaptive thresholds and the momentum form.
         hooks: tracking, checkpointing and resuming (see `Hooks`).
+        error: the statistic the progress lines of the log report (default: the criterion).
 
     Returns:
-        the trained parameters and history rows (one per run every `log_every` steps).
+        the trained parameters and history rows (one per run every `log_every` steps, and a
+        last one at step `steps` with the statistics of the trained parameters).
     """
     hooks = hooks or Hooks()
     layout = _Flat(params)
@@ -192,7 +206,8 @@ def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: 
         if hooks.should_stop() and hooks.save is not None:
             save(step)
             raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
-        # ---- gradient of ln L at the current parameters
+        # ---- gradient of ln L at the current parameters (a noisy objective draws its noise)
+        problem.resample(step)
         stats = problem.value_and_grad(net, grads, ~failed)
         failed |= ~(np.isfinite(stats["objective"]) & np.isfinite(grad.sum(1)))
         grad[failed] = 0.0
@@ -253,9 +268,17 @@ def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: 
                              "failed": bool(failed[r])})
         if (step + 1) % max(steps // 10, 1) == 0:  # progress in the log (tqdm only on a tty)
             log.info("%s: step %d/%d, %s mean %.4g over %d runs", phase, step + 1, steps,
-                     criterion, base[~failed].mean(), int((~failed).sum()))
+                     error or criterion, stats[error or criterion][~failed].mean(),
+                     int((~failed).sum()))
         if hooks.save is not None and hooks.save_every and (step + 1) % hooks.save_every == 0:
             save(step + 1)
+    final = problem.value(net, ~failed)  # the trained parameters, as evaluation sees them
+    for values in final.values():
+        values[failed] = np.nan  # not computed for frozen runs
+    rows += [{"run": r, "phase": phase, "step": steps, **{k: float(v[r]) for k, v in
+                                                          final.items()},
+              "lr_scale": float(lr_scale[r]), "retries": 0, "failed": bool(failed[r])}
+             for r in range(R)]
     return {k: v.copy() for k, v in views.items()}, rows
 
 
@@ -291,15 +314,15 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
     rates.update(u0=alpha / D, beta=alpha)
     problem = backend.expert_problem(inputs, targets, model, cfg, R)
     trained, rows = _ascend(params, fixed, rates, problem, "E", cfg.steps, cfg.momentum,
-                            cfg.adaptive_lr, rule, "experts", cfg.log_every, hooks)
+                            cfg.adaptive_lr, rule, "experts", cfg.log_every, hooks, "E")
     beta = torch.from_numpy(trained.pop("beta"))
     return _tensors({**trained, **fixed}), beta, rows
 
 
 def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
                  inputs: torch.Tensor, model: ModelConfig, cfg: GatingPhaseConfig,
-                 rule: TrainConfig, hooks: Hooks | None = None, backend: Backend | None = None
-                 ) -> tuple[dict[str, torch.Tensor], list[dict]]:
+                 rule: TrainConfig, hooks: Hooks | None = None, backend: Backend | None = None,
+                 seeds: list[int] | None = None) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Phase 2 (Sec. 2.1.2-2.1.4): fit the gating RNN to the estimates ĝ by teacher forcing.
 
     Args:
@@ -309,6 +332,7 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
         model: the model config; cfg: this phase's settings; rule: adaptive thresholds.
         hooks: tracking (its monitor sees the full gating parameters), checkpointing, resuming.
         backend: where the time loops run (`moex.kernels.get_backend`; default: auto).
+        seeds: one per run, for the input noise of `cfg.input_noise_var` (default 0, 1, ...).
 
     Returns:
         trained gating parameters and history rows with objective, log_likelihood, kl, E_g.
@@ -322,7 +346,8 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     rates = {k: cfg.learning_rate / (S * T_g * K) for k in params}
     rates["u0"] = cfg.learning_rate / K
     problem = backend.gating_problem(np.ascontiguousarray(gate_targets.detach().cpu().numpy()),
-                                     inputs.detach().cpu().numpy(), model, cfg)
+                                     inputs.detach().cpu().numpy(), model, cfg,
+                                     list(range(R)) if seeds is None else seeds)
     trained, rows = _ascend(params, fixed, rates, problem, "kl", cfg.steps, cfg.momentum,
-                            cfg.adaptive_lr, rule, "gating", cfg.log_every, hooks)
+                            cfg.adaptive_lr, rule, "gating", cfg.log_every, hooks, "E_g")
     return _tensors({**trained, **fixed}), rows

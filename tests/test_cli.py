@@ -30,7 +30,8 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
     assert result.returncode == 0, result.stderr
     for name in ("checkpoint.pt", "history.csv", "train.log", ".hydra/config.yaml",
                  "metrics.csv", "samples.npz", "figures/learning_curves.png",
-                 "figures/trajectory.png", "figures/gates.png", "figures/residence_times.png"):
+                 "figures/trajectory.png", "figures/gates.png", "figures/residence_times.png",
+                 "figures/runs.png", "figures/phase_portrait.png"):
         assert (run_dir / name).is_file(), name
     assert list(work.iterdir()) == []  # nothing written to the working directory
     checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
@@ -45,27 +46,59 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
                    "switch_prob", "nonperiodic_fraction"):
         assert metrics[column].notna().all(), column
 
-    # evaluate again with other settings, then generate noisy samples, from the checkpoint
+    # the final E and E^g of the history are the ones the metric table measures
+    last = history.sort_values(["step", "run"]).groupby(["phase", "run"]).tail(1)
+    last = last.sort_values("run")
+    np.testing.assert_allclose(last.loc[last["phase"] == "gating", "E_g"], metrics["E_g"],
+                               rtol=1e-9)
+    np.testing.assert_allclose(last.loc[last["phase"] == "experts", "E"], metrics["E"],
+                               rtol=1e-9)
+    trained = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+
+    # evaluate again with other settings, then generate noisy samples, from the checkpoint: each
+    # into a folder of its own, the run's own files untouched
     result = _moex(["evaluate", f"run_dir={run_dir}", "eval.num_samples=3",
                     "eval.lyapunov_steps=100", "eval.noise_var=0.001"], cwd=work)
     assert result.returncode == 0, result.stderr
-    again = pd.read_csv(run_dir / "metrics.csv")
+    (evaluated,) = (run_dir / "evaluate").iterdir()
+    again = pd.read_csv(evaluated / "metrics.csv")
     assert (again["num_samples"] == 3).all() and (again["noise_var"] == 0.001).all()
+    assert {"samples.npz", "eval_config.yaml", "evaluate.log", "figures"} <= {
+        p.name for p in evaluated.iterdir()}
     result = _moex(["generate", f"run_dir={run_dir}", "steps=50", "num_samples=2",
-                    "noise_var=0.001"], cwd=work)
+                    "noise_var=0.001", f"out_dir={tmp_path}/generated"], cwd=work)
     assert result.returncode == 0, result.stderr
-    samples = np.load(run_dir / "samples.npz")
+    samples = np.load(tmp_path / "generated" / "samples.npz")
     assert samples["outputs"].shape == (2, 2, 50, 2) and samples["gates"].shape == (2, 2, 50, 2)
     assert samples["symbols"].shape == (2, 2, 50)
     # from the trained state of series 1, without noise every sample is the same
     result = _moex(["generate", f"run_dir={run_dir}", "steps=30", "num_samples=2",
-                    "from_series=1"], cwd=work)
+                    "from_series=1", f"out_dir={tmp_path}/from1"], cwd=work)
     assert result.returncode == 0, result.stderr
-    outputs = np.load(run_dir / "samples.npz")["outputs"]
+    outputs = np.load(tmp_path / "from1" / "samples.npz")["outputs"]
     assert np.array_equal(outputs[:, 0], outputs[:, 1])
     result = _moex(["generate", f"run_dir={run_dir}", "from_series=5"], cwd=work)
     assert result.returncode == 2 and "from_series=5 is outside [-1, 1]" in result.stderr
+    result = _moex(["generate", f"run_dir={run_dir}", f"out_dir={run_dir}"], cwd=work)
+    assert result.returncode == 2 and "is the run folder itself" in result.stderr
+    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()
+            and "evaluate" not in p.parts} == trained
     assert list(work.iterdir()) == []
+
+
+def test_a_failed_evaluation_leaves_nothing_behind(tmp_path):
+    run_dir = tmp_path / "run"
+    result = _moex(["train", "task=lissajous2", *TINY, "eval.enabled=false",
+                    f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    del checkpoint["gating"]["w_rec"]  # a broken network
+    torch.save(checkpoint, run_dir / "checkpoint.pt")
+    before = sorted(p.name for p in run_dir.iterdir())
+    for verb in ("evaluate", "generate"):
+        result = _moex([verb, f"run_dir={run_dir}"], cwd=tmp_path)
+        assert result.returncode == 1 and "moex: error:" in result.stderr, result.stderr
+        assert sorted(p.name for p in run_dir.iterdir()) == before
 
 
 def test_resume_true_continues_the_latest_run_of_the_task(tmp_path):
@@ -92,13 +125,16 @@ def test_reber_trains_the_gating_network_only(tmp_path):
     history = pd.read_csv(run_dir / "history.csv")
     assert set(history["phase"]) == {"gating"}
     metrics = pd.read_csv(run_dir / "metrics.csv")
-    assert metrics["block_length"].tolist() == [3] and metrics["E"].isna().all()
-    assert metrics["block_kl_test"].notna().all()
+    assert metrics["block_length"].tolist() == [3] and metrics["block_kl_test"].notna().all()
+    assert not {"E", "E_closed"} & set(metrics)  # no experts, no signal: left out, not NaN
+    assert not (run_dir / "figures" / "residence_times.png").exists()
 
 
 @pytest.mark.parametrize("override, message", [
     ("task=nope", "task=nope is unknown; choose one of"),
-    ("model.nope=1", "unknown key model.nope"),
+    ("model.nope=1", "unknown key model.nope; allowed keys: model.num_experts"),
+    ("model.gating.contxt_size=3", "allowed keys: model.gating.context_size, "),
+    ("task.length=[1,2", "task.length: cannot parse the override"),
     ("model.num_experts=0", "model.num_experts=0 must be >= 1"),
     ("model.experts.time_constant=1.5", "model.experts.time_constant=1.5 is outside (0.0, 1.0]"),
     ("model.gating.time_constant=0", "model.gating.time_constant=0.0 is outside (0.0, 1.0]"),
@@ -110,7 +146,10 @@ def test_reber_trains_the_gating_network_only(tmp_path):
     ("model.num_experts=abc", "model.num_experts"),
     ("num_runs=0", "num_runs=0 must be >= 1"),
     ("hydra/launcher=nope", "hydra/launcher=nope is unknown; choose one of basic, joblib"),
-])
+    ("plot.run=-2", "plot.run"),
+] + ([] if torch.cuda.is_available() else [
+    ("device=cuda", "device=cuda but this machine has no CUDA device"),
+]))
 def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_path):
     multirun = ["-m"] if "," in override else []
     result = _moex(["train", *multirun, override, f"hydra.run.dir={tmp_path}/run",
@@ -127,8 +166,13 @@ def test_bad_transition_matrix_and_csv(tmp_path):
     (tmp_path / "bad.csv").write_text("0.1,0.2\n0.3,nan\n" * 5)
     (tmp_path / "ragged.csv").write_text("0.1,0.2\n0.3\n" * 5)
     (tmp_path / "short.csv").write_text("0.1,0.2\n0.3,0.1\n")
+    (tmp_path / "binary.csv").write_bytes(bytes(range(256)) * 4)
+    (tmp_path / "header.csv").write_text("t,x,y\n" + "0,0.1,0.2\n" * 10)
     for args, message in [
-        (["task=csv", f"task.path={tmp_path}/ragged.csv"], "ragged rows"),
+        (["task=csv", f"task.path={tmp_path}/ragged.csv"], "rows of different lengths"),
+        (["task=csv", f"task.path={tmp_path}/binary.csv"], "is not a text file"),
+        (["task=csv", f"task.path={tmp_path}/header.csv", "task.columns=[x,z]"],
+         "task.columns: ['z'] not in"),
         (["task=csv", f"task.path={tmp_path}/short.csv"],
          "series have 2 steps, need at least 3 (model.delay + 2)"),
         (["task=csv", f"task.path={tmp_path}/short.csv", "model.delay=3"],
@@ -189,6 +233,53 @@ def test_csv_run_evaluates_from_another_directory(tmp_path):
             "eval.num_samples=2", "eval.lyapunov_steps=20", "eval.transient=2"]
     result = _moex(["train", *args, f"hydra.run.dir={run_dir}"], cwd=tmp_path / "a")
     assert result.returncode == 0, result.stderr
-    result = _moex(["evaluate", f"run_dir={run_dir}"], cwd=tmp_path / "b")
+    result = _moex(["evaluate", f"run_dir={run_dir}", f"out_dir={tmp_path}/ev"],
+                   cwd=tmp_path / "b")
     assert result.returncode == 0, result.stderr
-    assert pd.read_csv(run_dir / "metrics.csv")["E"].notna().all()
+    metrics = pd.read_csv(tmp_path / "ev" / "metrics.csv")
+    assert metrics["E"].notna().all()
+    assert "block_kl_test" not in metrics  # no held-out series: left out, not NaN
+
+
+def test_csv_with_a_header_and_columns_by_name(tmp_path):
+    rng = np.random.default_rng(1)
+    frame = pd.DataFrame(rng.uniform(-0.5, 0.5, (40, 3)), columns=["time", "x", "y"])
+    frame.to_csv(tmp_path / "mine.csv", index=False)
+    run_dir = tmp_path / "run"
+    result = _moex(["train", "task=csv", f"task.path={tmp_path}/mine.csv", "task.columns=[y,x]",
+                    "train.experts.steps=3", "train.gating.steps=2", "eval=quick",
+                    f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    series = torch.load(run_dir / "checkpoint.pt", weights_only=True)["series"]
+    np.testing.assert_array_equal(series[0].numpy(), frame[["y", "x"]].to_numpy())
+
+
+def test_a_task_of_your_own_from_a_config_dir(tmp_path):
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    (tmp_path / "conf" / "task" / "three.yaml").write_text("""# @package _global_
+task:
+  name: markov_primitives
+  num_series: 2
+  length: 60
+  period: 20
+  primitives:
+    - {name: a, amplitude: [0.3, 0.3], phase: [0.0, 1.5708], offset: [-0.5, 0.0]}
+    - {name: b, amplitude: [0.3, 0.3], phase: [0.0, 1.5708], offset: [0.0, 0.0]}
+    - {name: c, amplitude: [0.3, 0.3], phase: [0.0, 1.5708], offset: [0.5, 0.0]}
+  transition: [[0.5, 0.25, 0.25], [0.25, 0.5, 0.25], [0.25, 0.25, 0.5]]
+model: {num_experts: 3}
+""")
+    tiny = [a for a in TINY if not a.startswith("task.")] + ["eval=quick"]
+    for flags in (["--config-dir", str(tmp_path / "conf")],
+                  [f"hydra.searchpath=[file://{tmp_path / 'conf'}]"]):
+        run_dir = tmp_path / f"run{len(flags)}"
+        result = _moex(["train", *flags, "task=three", *tiny, f"hydra.run.dir={run_dir}"],
+                       cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["gating"][
+            "w_out"].shape[1] == 3
+    result = _moex(["train", "--config-dir", str(tmp_path / "conf"), "task=three",
+                    "model.num_experts=2", f"hydra.run.dir={tmp_path}/no"], cwd=tmp_path)
+    assert result.returncode == 2
+    assert "model.num_experts=2 is fewer than the 3 primitives" in result.stderr
+    assert not (tmp_path / "no").exists()

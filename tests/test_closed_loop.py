@@ -1,6 +1,6 @@
 import torch
 
-from moex.evaluate import generate, random_state, trained_state
+from moex.closed_loop import generate, random_state, trained_state
 from moex.model import (
     ClosedLoopState,
     ModelConfig,
@@ -29,10 +29,10 @@ def test_tangent_map_equals_autograd_jacobian():
     flat = state.flat()
     k = 4
     tangents = torch.randn((k,) + flat.shape, generator=torch.Generator().manual_seed(1))
-    _, _, _, _, d_next = closed_loop_step(experts, gating, state, None, state.like(tangents))
+    d_next = closed_loop_step(experts, gating, state, None, state.like(tangents)).tangents
 
     def step(x):
-        return closed_loop_step(experts, gating, state.like(x))[0].flat()
+        return closed_loop_step(experts, gating, state.like(x)).state.flat()
 
     for i in range(k):
         _, expected = torch.func.jvp(step, (flat,), (tangents[i],))
@@ -44,10 +44,10 @@ def test_tangent_map_without_experts():
     gating = init_gating(cfg, 1, 0, generators([0]))
     state = random_state({}, gating, 2, 0, 1, torch.Generator().manual_seed(0))
     tangents = torch.randn((2,) + state.flat().shape)
-    _, _, _, _, d_next = closed_loop_step({}, gating, state, None, state.like(tangents))
+    d_next = closed_loop_step({}, gating, state, None, state.like(tangents)).tangents
     for i in range(2):
         _, expected = torch.func.jvp(
-            lambda x: closed_loop_step({}, gating, state.like(x))[0].flat(), (state.flat(),),
+            lambda x: closed_loop_step({}, gating, state.like(x)).state.flat(), (state.flat(),),
             (tangents[i],))
         torch.testing.assert_close(d_next.flat(lead=3)[i], expected)
 
@@ -79,3 +79,17 @@ def test_state_flattening_round_trip():
         assert torch.equal(a, b)
     assert isinstance(again, ClosedLoopState)
     assert torch.allclose(state.gates.sum(-1), torch.ones(2, 3, 2))
+
+
+def test_gate_estimates_temperature():
+    """Temperature 1 is ĝ = softmax(β) (Eq. 9), below 1 sharper, 0 the one-hot argmax."""
+    from moex.model import gate_estimates
+
+    beta = torch.randn(2, 3, 5, 4, generator=torch.Generator().manual_seed(0))
+    soft = gate_estimates(beta)
+    torch.testing.assert_close(soft, torch.softmax(beta, -1))
+    sharp = gate_estimates(beta, 0.5)
+    assert (sharp.max(-1).values >= soft.max(-1).values).all()
+    hard = gate_estimates(beta, 0.0)
+    assert torch.equal(hard.argmax(-1), beta.argmax(-1)) and torch.equal(hard.sum(-1),
+                                                                       torch.ones(2, 3, 5))

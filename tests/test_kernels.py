@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from moex.evaluate import EvalConfig, closed_loop_lyapunov, generate, random_state
-from moex.kernels import get_backend
-from moex.model import ModelConfig, closed_loop_run, init_experts, init_gating
+from moex.closed_loop import closed_loop_lyapunov, generate, random_state
+from moex.kernels import get_backend, reference
+from moex.model import ModelConfig, init_experts, init_gating
 from moex.tasks import TaskConfig, make_task
 from moex.train import (
     ExpertPhaseConfig,
@@ -42,7 +42,8 @@ def _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype, seed=0):
     x = series.numpy()
     out = []
     for backend in (REFERENCE, COMPILED):
-        problems = [(backend.gating_problem(ghat.numpy(), x[:, :T], model, phase2), gating)]
+        problems = [(backend.gating_problem(ghat.numpy(), x[:, :T], model, phase2,
+                                            list(range(R))), gating)]
         if D:
             problems.append((backend.expert_problem(x[:, :-delay], x[:, delay:], model, phase1,
                                                     R), experts))
@@ -131,6 +132,35 @@ def test_training_trajectories_of_both_phases_match(adaptive, form, dtype, steps
         assert any(r["lr_scale"] != 1.0 for r in fast[3])
 
 
+def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(steps=6):
+    """With input noise in phase 2, both backends draw the same noise; run r sees the noise of
+    its own seed whether trained in a batch or alone."""
+    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    series = torch.as_tensor(task.series)
+    model = ModelConfig()
+    model.gating.context_size = 5
+    phase2 = GatingPhaseConfig(steps=steps, input_noise_var=1e-2)
+    ghat = torch.softmax(torch.randn(3, 2, 29, 2, generator=torch.Generator().manual_seed(1)), -1)
+    out = {}
+    for backend in (REFERENCE, COMPILED):
+        out[backend.name] = train_gating(init_gating(model, 2, 2, generators([4, 5, 6])), ghat,
+                                         series[:, :-1], model, phase2, TrainConfig(),
+                                         backend=backend, seeds=[7, 8, 9])[0]
+        alone = train_gating(init_gating(model, 2, 2, generators([5])), ghat[1:2],
+                             series[:, :-1], model, phase2, TrainConfig(), backend=backend,
+                             seeds=[8])[0]
+        for k in alone:
+            torch.testing.assert_close(alone[k][0], out[backend.name][k][1], rtol=0,
+                                       atol=1e-12)
+    clean = train_gating(init_gating(model, 2, 2, generators([4, 5, 6])), ghat, series[:, :-1],
+                         model, dataclasses.replace(phase2, input_noise_var=0.0), TrainConfig(),
+                         backend=COMPILED, seeds=[7, 8, 9])[0]
+    for k in clean:
+        torch.testing.assert_close(out["compiled"][k], out["reference"][k], rtol=1e-10,
+                                   atol=1e-10)
+    assert (clean["w_out"] - out["compiled"]["w_out"]).abs().max() > 1e-6  # noise did act
+
+
 def _closed_loop_model(K, D, delay, dtype):
     model = ModelConfig(num_experts=K, delay=delay)
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -149,21 +179,20 @@ def _closed_loop_model(K, D, delay, dtype):
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
 def test_closed_loop_kernel_matches_reference(K, D, delay, k, uniform, dtype, tol, steps=40):
     """Outputs, gates, potentials, next state, tangents (up to the sign QR leaves free) and the
-    log growth of the compiled closed loop equal `closed_loop_run`, with noise, without experts
+    log growth of the compiled closed loop equal the reference, with noise, without experts
     (symbolic tasks) and with the C tool's uniform gates in the Jacobian."""
     experts, gating, state = _closed_loop_model(K, D, delay, dtype)
     tangents = torch.linalg.qr(torch.randn(state.flat().shape + (k,), dtype=dtype))[0]
     noise = 0.1 * torch.randn(2, 3, steps, D, dtype=dtype)
-    ref = closed_loop_run(experts, gating, state, steps, noise, tangents, True, uniform)
+    ref = reference.closed_loop(experts, gating, state, steps, noise, tangents, True, uniform)
     fast = kernels.closed_loop(experts, gating, state, steps, noise, tangents, True, uniform)
-    for a, b in zip(vars(ref[0]).values(), vars(fast[0]).values(), strict=True):
+    for a, b in zip(vars(ref.state).values(), vars(fast.state).values(), strict=True):
         torch.testing.assert_close(b, a, rtol=tol, atol=tol)
-    for a, b in zip(ref[1], fast[1], strict=True):
-        torch.testing.assert_close(b, a, rtol=tol, atol=tol)
-    torch.testing.assert_close(fast[3], ref[3], rtol=tol, atol=tol)
-    signs = torch.sign((ref[2] * fast[2]).sum(-2, keepdim=True))
-    torch.testing.assert_close(fast[2] * signs, ref[2], rtol=tol, atol=tol)
-    assert ref[3].abs().max() > 0.1  # the growth is not trivially zero
+    for name in ("outputs", "gates", "gating_u", "growth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=tol, atol=tol)
+    signs = torch.sign((ref.tangents * fast.tangents).sum(-2, keepdim=True))
+    torch.testing.assert_close(fast.tangents * signs, ref.tangents, rtol=tol, atol=tol)
+    assert ref.growth.abs().max() > 0.1  # the growth is not trivially zero
 
 
 def test_closed_loop_kernel_leaves_its_input_state_alone():
@@ -178,15 +207,15 @@ def test_generation_and_exponents_equal_across_backends():
     """The whole evaluation path (chunked, noise from one generator) gives the same samples and
     exponents on both backends."""
     experts, gating, state = _closed_loop_model(2, 2, 1, torch.float64)
-    cfg = EvalConfig(lyapunov_steps=30, transient=7, num_exponents=2, noise_var=1e-4)
     out = {}
     for backend in (REFERENCE, COMPILED):
         chunks = []
-        lam = closed_loop_lyapunov(experts, gating, state, cfg, torch.Generator().manual_seed(0),
-                                   chunks.append, backend)
+        lam = closed_loop_lyapunov(experts, gating, state, 30, 7, torch.Generator().manual_seed(0),
+                                   num_exponents=2, noise_std=1e-2, on_chunk=chunks.append,
+                                   backend=backend)
         gen = generate(experts, gating, state, 20, 0.01, torch.Generator().manual_seed(1),
                        backend)
-        out[backend.name] = (lam, torch.cat([c[0] for c in chunks], 2), gen["outputs"])
+        out[backend.name] = (lam, torch.cat([c.outputs for c in chunks], 2), gen["outputs"])
     for a, b in zip(out["reference"], out["compiled"], strict=True):
         torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-10)
 

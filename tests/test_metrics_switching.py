@@ -60,3 +60,16 @@ def test_transition_rows_are_distributions(seq):
 @given(symbol_lists, st.integers(1, 4))
 def test_block_kl_of_a_sequence_with_itself_is_zero(seq, m):
     assert abs(block_kl(np.array(seq), np.array(seq), m)) < 1e-12
+
+
+def test_switch_probability_and_rate_agree_on_whole_laps_and_differ_on_partial_ones():
+    from moex.metrics.switching import segment_symbols, switch_probability, switch_rate
+
+    laps = np.repeat([0, 1, 1, 0, 1, 0, 0, 0], 25)  # 8 whole laps of 25 steps, 4 switches
+    assert switch_probability([segment_symbols(laps, 25)]) == pytest.approx(4 / 7)
+    assert switch_rate([laps], 25) == pytest.approx(4 / 8)
+    jitter = laps.copy()
+    jitter[100:103] = 1  # a 3-step flicker is not a switch
+    assert switch_rate([jitter], 25) == pytest.approx(4 / 8)
+    half = np.repeat([0, 1, 0, 1], [25, 13, 25, 13])  # half laps: 3 switches in 3.04 periods
+    assert switch_rate([half], 25) == pytest.approx(3 * 25 / 76)

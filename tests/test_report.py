@@ -23,7 +23,10 @@ def test_tiny_paper_table2_sweep_and_report(launcher, tmp_path):
     jobs = sorted((p for p in sweep.iterdir() if p.is_dir()),
                   key=lambda p: -float(p.joinpath(".hydra/config.yaml").read_text()
                                        .split("switch_prob: ")[1].split()[0]))
-    assert len(jobs) == 3 and all(len(p.name) < 130 for p in jobs)
+    assert sorted(p.name for p in jobs) == ["0", "1", "2"]
+    index = pd.read_csv(sweep / "jobs.csv")  # which folder holds which overrides
+    assert index["folder"].tolist() == [0, 1, 2]
+    assert all("task.switch_prob=" in o for o in index["overrides"])
     jobs = [p.name for p in jobs]  # P = 0.5, 0.25, 0.125
     for job in jobs:
         assert json.loads((sweep / job / "status.json").read_text())["status"] == "done"

@@ -8,6 +8,7 @@ import sys
 import time
 
 import pandas as pd
+import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
@@ -125,13 +126,54 @@ def test_a_failing_multirun_job_writes_its_status_and_the_sweep_goes_on(tmp_path
     assert status == {"verb": "train", "status": "failed", "error": "RuntimeError: boom"}
 
 
-def test_gating_phase_also_isolates_failures():
-    model = ModelConfig()
-    gating = init_gating(model, 2, 2, generators([0, 1]))
-    gating["b_o"][0, 0] = float("inf")
-    ghat = torch.softmax(torch.randn(2, 2, 20, 2), -1)
+@pytest.mark.parametrize("backend", ["reference", "compiled"])
+def test_a_nan_gating_run_leaves_the_others_identical(backend):
+    """Phase 2 as phase 1 above: run 0 gets an infinite bias and fails; runs 1 and 2 end exactly
+    as they do in a batch without it."""
+    from moex.kernels import get_backend
     from moex.train import train_gating
-    trained, rows = train_gating(gating, ghat, torch.zeros(2, 20, 2), model,
-                                 GatingPhaseConfig(steps=5, log_every=1), TrainConfig())
+
+    model = ModelConfig()
+    ghat = torch.softmax(torch.randn(3, 2, 20, 2, generator=torch.Generator().manual_seed(0)), -1)
+    inputs = torch.randn(2, 20, 2, generator=torch.Generator().manual_seed(1)).tanh()
+    phase = GatingPhaseConfig(steps=8, log_every=1)
+    clean = init_gating(model, 2, 2, generators([0, 1, 2]))
+    broken = {k: v.clone() for k, v in clean.items()}
+    broken["b_o"][0, 0] = float("inf")
+    trained_clean, _ = train_gating(clean, ghat, inputs, model, phase, TrainConfig(),
+                                    backend=get_backend(backend))
+    trained, rows = train_gating(broken, ghat, inputs, model, phase, TrainConfig(),
+                                 backend=get_backend(backend))
     assert all(row["failed"] == (row["run"] == 0) for row in rows)
-    assert torch.isfinite(trained["w_out"][1]).all()
+    for k in trained:
+        for r in (1, 2):
+            assert torch.equal(trained[k][r], trained_clean[k][r]), k
+
+
+def test_slurm_path_through_submitit_local_survives_a_killed_job(tmp_path):
+    """The SLURM launcher's code path without a cluster: a two-job sweep through submitit's local
+    executor; one job is killed (SIGKILL, as a node failure would); the same command resumes it
+    from its last checkpoint and skips the finished job."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    sweep = tmp_path / "sweep"
+    args = ["train", "-m", "hydra/launcher=submitit_local", *ARGS[2:], "train.experts.steps=4000",
+            "train.gating.steps=1000", "train.checkpoint_every=100",
+            "model.gating.context_size=4,5", f"hydra.sweep.dir={sweep}"]
+    sweep_proc = _run(args, tmp_path)
+    deadline = time.time() + 240
+    while not list(sweep.glob("*/checkpoint.pt")) and time.time() < deadline:
+        time.sleep(0.1)
+    jobs = subprocess.run(["pgrep", "-f", f"submitit.core._submit.*{sweep}"],
+                          capture_output=True, text=True).stdout.split()
+    assert jobs, "no submitit job process found"
+    os.kill(int(jobs[0]), signal.SIGKILL)
+    sweep_proc.communicate(timeout=300)
+    statuses = {p.parent.name: json.loads(p.read_text())["status"]
+                for p in sweep.glob("*/status.json")}
+    assert [d for d in ("0", "1") if statuses.get(d) != "done"], f"none was killed: {statuses}"
+    resumed = _run(args, tmp_path)
+    _, err = resumed.communicate(timeout=600)
+    assert resumed.returncode == 0, err
+    for job in ("0", "1"):
+        assert json.loads((sweep / job / "status.json").read_text())["status"] == "done"
+    assert pd.read_csv(sweep / "jobs.csv")["folder"].tolist() == [0, 1]

@@ -112,5 +112,5 @@ def test_csv_task(tmp_path):
     with pytest.raises(ConfigError, match="NaN or inf"):
         make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
     (tmp_path / "s1.csv").write_text("0.1,0.2\n0.3\n" * 30)
-    with pytest.raises(ConfigError, match="ragged rows"):
+    with pytest.raises(ConfigError, match="rows of different lengths"):
         make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)

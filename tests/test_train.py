@@ -195,6 +195,9 @@ def test_adaptive_retries_shrink_the_momentum_too():
             grads["x"][...] = -2 * p["x"]
             return self.value(p, active)
 
+        def resample(self, step):
+            pass
+
     trained, rows = _ascend({"x": np.ones((1, 1))}, {}, {"x": 0.9}, Parabola(), "kl", 30, 0.9,
                             True, TrainConfig(), "toy", 1)
     assert rows[-1]["lr_scale"] > 1e-6  # the strict reading ends near 1e-155

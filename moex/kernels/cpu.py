@@ -14,13 +14,18 @@ u_t = (1-ε) u_{t-1} + ε (W_in x_t + W_rec c_{t-1}), c_t = tanh(u_t + b_c), o_t
 with c_{-1} = tanh(u_0 + b_c).
 """
 
+import contextlib
+import logging
 import math
+import time
 
 import numpy as np
 import torch
 from numba import get_num_threads, njit, prange
 
+from moex.kernels import input_noise
 from moex.kernels.simd import JIT, LB, exp, lanes, log, padded, stack, tanh
+from moex.model import ClosedLoopRun
 
 # ---------------------------------------------------------------------------------------------
 # the leaky RNN over one block of lanes: forward and backward (BPTT)
@@ -416,11 +421,11 @@ def _expert_runs(first, last, S, work, net, lane_grads, X, targets, beta, var, w
 @njit(parallel=True, **JIT)
 def _expert_step(params, u0, log_sigma, beta, net, work, lane_grads, grads, g_u0, g_log_sigma,
                  g_beta, X, targets, sigma_min, prior_std, attraction, want_grad, active,
-                 block_runs, chunk, out):  # pragma: no cover
+                 block_runs, chunk, threads, out):  # pragma: no cover
     """Phase 1 of every active run in one call: forward, objective and every gradient.
     out (4, R): objective, ln p(Y | X, θ), ln φ(β), E.
 
-    With at least as many chunks of `chunk` runs (whole blocks of lanes) as threads, each thread
+    With at least as many chunks of `chunk` runs (whole blocks of lanes) as `threads`, each thread
     takes whole chunks through forward, mixture and backward while their histories are still in
     its cache; with fewer, each pass runs over all blocks, in parallel."""
     C0, C, Y, U, S1, S2, DY, partial, var = work
@@ -434,7 +439,7 @@ def _expert_step(params, u0, log_sigma, beta, net, work, lane_grads, grads, g_u0
     for lane in prange(NB * LB):
         _spread(lane, S, params, u0, net)
     chunks = -(-R // chunk)
-    if chunks >= get_num_threads():
+    if chunks >= threads:
         for c in prange(chunks):
             _expert_runs(c * chunk, min((c + 1) * chunk, R), S, work, net, lane_grads, X,
                          targets, beta, var, want_grad, g_beta, active, block_runs)
@@ -546,6 +551,25 @@ def _gating_step(params, u0, net, work, lane_grads, grads, g_u0, X, targets, ent
 # ---------------------------------------------------------------------------------------------
 # the backend interface (the same classes as moex.kernels.reference)
 
+logger = logging.getLogger(__name__)
+_ready: set = set()
+
+
+@contextlib.contextmanager
+def _first_use(kernel, what: str):
+    """Log lines around the first call of a kernel in this process: numba compiles it then
+    (tens of seconds) or loads it from its cache on disk (about a second)."""
+    if kernel in _ready:
+        yield
+        return
+    logger.info("preparing the compiled %s (compiled on first use, then cached on disk) ...",
+                what)
+    start = time.perf_counter()
+    yield
+    _ready.add(kernel)
+    logger.info("compiled %s ready in %.1f s", what, time.perf_counter() - start)
+
+
 _NET = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau")
 
 
@@ -610,7 +634,7 @@ class _Staging:
 
 class ExpertProblem:
     """Phase 1 of R runs (Sec. 2.1.2, Eqs. 9-13): `value_and_grad` and `value` of ln L(D, θ)
-    for all runs, one compiled call each.
+    for all runs, one compiled call each (`resample` has nothing to draw).
 
     Args:
         inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
@@ -638,14 +662,18 @@ class ExpertProblem:
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
+        with _first_use(_expert_step, "phase-1 kernel"):
+            self._step(p, g, lanes, active, want_grad)
+        self.staging.store(grads)
+        return lanes.stats(self.STATS)
+
+    def _step(self, p, g, lanes, active, want_grad):
         _expert_step(_per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
                      tuple(lanes.work), lanes.lane_grads, _per_network(g, True), g["u0"],
                      g["log_sigma"], g["beta"], self.inputs, self.targets,
                      float(self.model.sigma_min), float(self.phase.gate_prior_std),
                      bool(self.phase.attraction), want_grad, np.ascontiguousarray(active),
-                     lanes.block_runs, self.chunk, lanes.out)
-        self.staging.store(grads)
-        return lanes.stats(self.STATS)
+                     lanes.block_runs, self.chunk, get_num_threads(), lanes.out)
 
     def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
         """Objective statistics per run (R,); every gradient is written into `grads`."""
@@ -655,6 +683,9 @@ class ExpertProblem:
         """The same statistics without gradients (the adaptive-rate retry)."""
         return self._call(params, None, active, False)
 
+    def resample(self, step: int) -> None:
+        pass
+
 
 class GatingProblem:
     """Phase 2 of R runs (Sec. 2.1.2, Eqs. 14-16): ln L(D^g, θ^g) up to ln Z for all runs, one
@@ -663,11 +694,13 @@ class GatingProblem:
     Args:
         gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n (D may be 0).
         model: the `ModelConfig`; phase: the `GatingPhaseConfig`.
+        seeds: one per run, for the input noise that `resample(step)` draws when
+            `phase.input_noise_var` > 0 (`moex.kernels.input_noise`).
     """
 
     STATS = ("objective", "log_likelihood", "kl", "E_g")
 
-    def __init__(self, gate_targets, inputs, model, phase, device="cpu"):
+    def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
@@ -680,6 +713,7 @@ class GatingProblem:
         # lane r·S + s reads [ĝ_n, x_n] of run r, series s and is fitted to ĝ_{n+τ} (Eq. 5)
         feed = np.concatenate([ghat[:, :, :T_g], x[:, :, :T_g]], -1)  # (R, S, T_g, K + D)
         self.inputs = _in_lanes(feed.transpose(2, 3, 0, 1).reshape(T_g, K + D, R * S))
+        self.clean, self.seeds = self.inputs.copy(), seeds
         targets = ghat[:, :, delay:]
         self.targets = _in_lanes(targets.transpose(2, 3, 0, 1).reshape(T_g, K, R * S))
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -691,13 +725,17 @@ class GatingProblem:
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
+        with _first_use(_gating_step, "phase-2 kernel"):
+            self._step(p, g, lanes, active, want_grad)
+        self.staging.store(grads)
+        return lanes.stats(self.STATS)
+
+    def _step(self, p, g, lanes, active, want_grad):
         _gating_step(_per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
                      lanes.lane_grads, _per_network(g, False), g["u0"][:, :, None],
                      self.inputs, self.targets, self.entropy, float(self.model.sigma_min),
                      bool(self.phase.attraction), want_grad, np.ascontiguousarray(active),
                      lanes.block_runs, lanes.out)
-        self.staging.store(grads)
-        return lanes.stats(self.STATS)
 
     def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
         """Objective statistics per run (R,); every gradient is written into `grads`."""
@@ -707,6 +745,16 @@ class GatingProblem:
         """The same statistics without gradients (the adaptive-rate retry)."""
         return self._call(params, None, active, False)
 
+    def resample(self, step: int) -> None:
+        """Fresh input noise on x_n for this training step (nothing without noise)."""
+        if self.phase.input_noise_var <= 0:
+            return
+        R, S, T_g, K = self.shape
+        D = self.inputs.shape[2] - K
+        noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),  # all of x_n
+                            self.phase.input_noise_var, self.inputs.dtype)[:, :, :T_g]
+        self.inputs[:, :, K:] = self.clean[:, :, K:] + _in_lanes(
+            noise.transpose(2, 3, 0, 1).reshape(T_g, D, R * S))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1009,15 +1057,34 @@ def _closed_loop(N, experts, gating, E, G, state, V, noise, count, uniform_gates
                       out_y[b], out_g[b], out_u[b], growth[b])
 
 
+def _check_shapes(experts, gating, state) -> None:
+    """The kernel reads without bounds checks: refuse parameters that do not fit the state."""
+    R, N, TAU, K = state.gates.shape
+    D, H = state.inputs.shape[-1], state.gating_u.shape[-1]
+    expected = {f"gating[{n!r}]": (tuple(gating[n].shape), shape) for n, shape in (
+        ("w_in", (R, H, K + D)), ("w_rec", (R, H, H)), ("w_out", (R, K, H)), ("b_c", (R, H)),
+        ("b_o", (R, K)), ("tau", (R, H)))}
+    if experts:
+        KE, M = state.experts_u.shape[2:]
+        expected.update({f"experts[{n!r}]": (tuple(experts[n].shape), shape) for n, shape in (
+            ("w_in", (R, KE, M, D)), ("w_rec", (R, KE, M, M)), ("w_out", (R, KE, D, M)),
+            ("b_c", (R, KE, M)), ("b_o", (R, KE, D)), ("tau", (R, KE, M)))})
+    for name, (shape, want) in expected.items():
+        if shape != want:
+            raise ValueError(f"{name} has shape {shape}; the closed-loop state needs {want}")
+
+
 def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
-                count: bool = False, uniform_gates: bool = False, potentials: bool = True):
-    """`moex.model.closed_loop_run` in one compiled call: same arguments and results.
+                count: bool = False, uniform_gates: bool = False,
+                potentials: bool = True) -> ClosedLoopRun:
+    """`moex.kernels.reference.closed_loop` in one compiled call: same arguments and results.
 
     Trajectory (r, n) is lane r·N + n; every lane carries its run's weights, so a block of
     lanes advances LB trajectories with vector instructions, one thread per block.
     """
     R, N, K = state.gates.shape[0], state.gates.shape[1], state.gates.shape[-1]
     TAU, D, H = state.inputs.shape[2], state.inputs.shape[-1], state.gating_u.shape[-1]
+    _check_shapes(experts, gating, state)
     B = R * N
     dtype = np.dtype(str(state.gates.dtype).removeprefix("torch."))
 
@@ -1046,8 +1113,9 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
     out_y, out_g = np.zeros((NB, steps, D, LB), dtype), np.zeros((NB, steps, K, LB), dtype)
     out_u = np.zeros((NB, steps if potentials else 0, H, LB), dtype)
     growth = np.zeros((NB, k, LB), dtype)
-    _closed_loop(N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V, noise_l, count,
-                 uniform_gates, out_y, out_g, out_u, growth)
+    with _first_use(_closed_loop, "closed-loop kernel"):
+        _closed_loop(N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V, noise_l, count,
+                     uniform_gates, out_y, out_g, out_u, growth)
 
     def back(x, shape):  # (NB, ..., LB) -> (R, N, ...)
         flat = np.moveaxis(x, -1, 1).reshape((NB * LB,) + x.shape[1:-1])[:B]
@@ -1055,10 +1123,10 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
 
     nxt = type(state)(back(eu, state.experts_u.shape[2:]), back(gu, (H,)),
                       back(xl, (TAU, D)), back(gl, (TAU, K)))
-    records = (back(out_y, (steps, D)), back(out_g, (steps, K)),
-               back(out_u, (steps, H)) if potentials else None)
     new_tangents = None if tangents is None else back(V, (k, -1)).transpose(-1, -2).contiguous()
-    return nxt, records, new_tangents, back(growth, (k,))
+    return ClosedLoopRun(nxt, back(out_y, (steps, D)), back(out_g, (steps, K)),
+                         back(out_u, (steps, H)) if potentials else None, new_tangents,
+                         back(growth, (k,)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1098,6 +1166,7 @@ def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
     by_coordinate = np.zeros((D, padded(len(flat))))
     by_coordinate[:, :len(flat)] = flat.T
     out = np.empty(by_coordinate.shape[1], np.int64)
-    _nearest(by_coordinate, np.ascontiguousarray(prototypes, np.float64),
-             np.ascontiguousarray(prototype_symbols, np.int64), out)
+    with _first_use(_nearest, "symbol kernel"):
+        _nearest(by_coordinate, np.ascontiguousarray(prototypes, np.float64),
+                 np.ascontiguousarray(prototype_symbols, np.int64), out)
     return out[:len(flat)].reshape(points.shape[:-1])

@@ -7,8 +7,17 @@ import numpy as np
 import torch
 
 from moex import objectives
+from moex.kernels import input_noise
+from moex.metrics.lyapunov import reorthonormalise
 from moex.metrics.symbols import symbolize_nearest
-from moex.model import closed_loop_run, expert_forward, expert_variances, gating_forward
+from moex.model import (
+    ClosedLoopRun,
+    ClosedLoopState,
+    closed_loop_step,
+    expert_forward,
+    expert_variances,
+    gating_forward,
+)
 
 Objective = Callable[[dict[str, torch.Tensor]], tuple[torch.Tensor, dict[str, torch.Tensor]]]
 
@@ -74,6 +83,9 @@ class _Problem:
     def __init__(self, objective: Objective, device: str):
         self.objective, self.device = objective, torch.device(device)
 
+    def resample(self, step: int) -> None:
+        """Nothing to draw (see `GatingProblem`)."""
+
     def _tensors(self, params, grads):
         return {k: torch.from_numpy(np.ascontiguousarray(v)).to(self.device).requires_grad_(
             k in grads) for k, v in params.items()}
@@ -105,15 +117,55 @@ class ExpertProblem(_Problem):
 
 
 class GatingProblem(_Problem):
-    """Phase 2 of R runs; see `gating_objective`."""
+    """Phase 2 of R runs; see `gating_objective`. With `phase.input_noise_var`, every
+    `resample(step)` adds fresh noise to the inputs x_n (`moex.kernels.input_noise`)."""
 
-    def __init__(self, gate_targets, inputs, model, phase, device="cpu"):
+    def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
         def tensor(x):
             return torch.from_numpy(np.ascontiguousarray(x)).to(device)
 
-        super().__init__(gating_objective(tensor(gate_targets), tensor(inputs), model, phase),
-                         device)
+        self.targets, self.inputs, self.seeds = tensor(gate_targets), inputs, seeds
+        self.model, self.phase = model, phase
+        super().__init__(gating_objective(self.targets, tensor(inputs), model, phase), device)
+
+    def resample(self, step: int) -> None:
+        if self.phase.input_noise_var > 0:
+            noisy = self.inputs + input_noise(self.seeds, step, self.inputs.shape,
+                                              self.phase.input_noise_var, self.inputs.dtype)
+            self.objective = gating_objective(self.targets, torch.from_numpy(noisy).to(
+                self.device), self.model, self.phase)
 
 
-closed_loop = closed_loop_run
+def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
+                state: ClosedLoopState, steps: int, noise: torch.Tensor | None = None,
+                tangents: torch.Tensor | None = None, count: bool = False,
+                uniform_gates: bool = False, potentials: bool = True) -> ClosedLoopRun:
+    """`steps` closed-loop steps (`moex.model.closed_loop_step`) with tangent vectors
+    re-orthonormalised by QR after every step (Benettin, spec §5.1).
+
+    Args:
+        experts, gating, state: as for `closed_loop_step`.
+        noise: (R, N, steps, D) noise added to x_m at each step, or None.
+        tangents: (R, N, dim, k) tangent vectors in the layout of `state.flat()`, or None.
+        count: sum ln |R_vv| of every QR step into the returned growth.
+        uniform_gates: see `closed_loop_step`.
+        potentials: record the gating potentials u^g (else None is returned in their place).
+    """
+    growth = state.gates.new_zeros(state.gates.shape[:2] + (
+        0 if tangents is None else tangents.shape[-1],))
+    record = []
+    for t in range(steps):
+        tg = None if tangents is None else state.like(tangents.movedim(-1, 0))
+        step = closed_loop_step(experts, gating, state, None if noise is None else noise[:, :, t],
+                                tg, uniform_gates)
+        state = step.state
+        record.append((step.output, step.gates, step.gating_u))
+        if tangents is not None:
+            tangents, log_r = reorthonormalise(step.tangents.flat(lead=3).movedim(0, -1))
+            if count:
+                growth += log_r
+    y, g, u_g = (torch.stack(column, 2) for column in zip(*record, strict=True))
+    return ClosedLoopRun(state, y, g, u_g if potentials else None, tangents, growth)
+
+
 nearest_symbols = symbolize_nearest

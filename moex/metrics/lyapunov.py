@@ -13,7 +13,7 @@ def jvp_step(step: Callable[[torch.Tensor], torch.Tensor]) -> TangentStep:
 
     V is (B..., dim, k); the Jacobian-vector products are exact forward-mode derivatives
     (torch.func.jvp). The closed loop of the mixture has its own hand-written tangent map
-    (`moex.model.closed_loop_run`).
+    (`moex.model.closed_loop_step`).
     """
 
     def tangent_step(state, tangents):

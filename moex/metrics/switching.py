@@ -26,6 +26,28 @@ def segment_symbols(symbols, period: float) -> np.ndarray:
     return np.repeat(values, reps)
 
 
+def switch_probability(segments) -> float:
+    """Share of completed primitives followed by a different one (the paper's Table 2), pooled
+    over sequences of `segment_symbols`; NaN without a completed pair."""
+    changes = sum(int((s[1:] != s[:-1]).sum()) for s in segments)
+    total = sum(max(len(s) - 1, 0) for s in segments)
+    return changes / total if total else float("nan")
+
+
+def switch_rate(sequences, period: float) -> float:
+    """Changes of primitive per `period` steps of time, pooled over per-step symbol sequences,
+    after runs shorter than half a period (jitter where curves meet) are merged away: the
+    switching probability counted per switch instead of per completed lap. The two agree when
+    every primitive lasts whole periods."""
+    changes = steps = 0
+    for seq in sequences:
+        values, lengths = rle(seq)
+        values = rle(values[lengths >= period / 2])[0]
+        changes += max(len(values) - 1, 0)
+        steps += len(seq)
+    return changes * period / steps if steps else float("nan")
+
+
 def transition_matrix(seq, num_symbols: int) -> np.ndarray:
     """Row-normalised counts of consecutive pairs (NaN rows for symbols never left)."""
     seq = np.asarray(seq)

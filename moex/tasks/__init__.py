@@ -1,15 +1,18 @@
 """Training data: deterministic task generators behind a name registry (paper Sec. 3).
 
-Every task returns a `Dataset`: series (S, T, D), the true primitive label of every step, and the
-rule that turns outputs into symbols.
+Every task returns a `Dataset`: series (S, T, D), the true primitive label of every step, and
+everything that differs between tasks when a run is evaluated: the rule that turns generated
+steps into symbols, the length of a primitive, the switching law, a grammar to check.
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from moex.errors import check, check_positive, check_range
+from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
 from moex.tasks import files, lissajous, reber
 from moex.tasks.switching import (
     Primitive,
@@ -36,6 +39,7 @@ class TaskConfig:
     primitives: list[Any] = field(default_factory=list)  # markov_primitives
     transition: list[Any] = field(default_factory=list)  # markov_primitives
     path: str = ""  # csv: file, glob or folder
+    columns: list[str] = field(default_factory=list)  # csv: columns by header name (all if [])
 
     def __post_init__(self):
         check(self.name in TASKS, f"task.name={self.name!r} is unknown; choose one of "
@@ -66,6 +70,8 @@ class Dataset:
             symbol off a generated output (nearest point); None where outputs are symbols.
         gate_targets: (S, T, V) one-hot symbols for tasks without experts (D = 0), else None.
         test: held-out data from the same source, or None.
+        period: steps a primitive lasts (1 where every step is a symbol), to count repetitions.
+        violations: symbols (T,) -> (T,) bool, the steps a grammar forbids (Reber), or None.
     """
 
     series: np.ndarray
@@ -77,6 +83,26 @@ class Dataset:
     prototype_symbols: np.ndarray | None = None
     gate_targets: np.ndarray | None = None
     test: "Dataset | None" = None
+    period: float = 1.0
+    violations: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def symbolize(self, outputs: np.ndarray, gates: np.ndarray,
+                  nearest=symbolize_nearest) -> np.ndarray:
+        """Symbols (..., T) of generated steps: the symbol of the nearest prototype point of the
+        output where the task has primitives, else the winning gate (Eq. 22). `nearest` is the
+        implementation of the first rule (a backend's `nearest_symbols`)."""
+        if self.prototypes is None:
+            return symbolize_argmax(gates)
+        return nearest(outputs, self.prototypes, self.prototype_symbols)
+
+    @property
+    def switch_prob(self) -> float | None:
+        """The probability of moving on from a primitive, where the task has one for all (the
+        residence times are then geometric with that parameter), else None."""
+        if self.transition is None or len(self.symbol_names) != len(self.transition):
+            return None
+        stay = np.diag(self.transition)
+        return float(1 - stay[0]) if np.allclose(stay, stay[0]) else None
 
 
 def _switching(primitives: list[Primitive], transition: np.ndarray, cfg: TaskConfig,
@@ -89,7 +115,7 @@ def _switching(primitives: list[Primitive], transition: np.ndarray, cfg: TaskCon
     names, symbol_of = symbol_table(primitives)
     points, point_symbols = prototype_points(primitives)
     common = dict(symbol_names=names, symbol_of=symbol_of, transition=transition,
-                  prototypes=points, prototype_symbols=point_symbols)
+                  prototypes=points, prototype_symbols=point_symbols, period=cfg.period)
     test = Dataset(*sample(cfg.num_test_series), **common) if cfg.num_test_series else None
     return Dataset(*sample(cfg.num_series), **common, test=test)
 
@@ -141,7 +167,8 @@ def _reber(cfg, rng):
         series = np.zeros(labels.shape + (0,))
         return series, labels, np.eye(len(reber.SYMBOLS))[labels]
 
-    common = dict(symbol_names=list(reber.SYMBOLS), symbol_of=np.arange(len(reber.SYMBOLS)))
+    common = dict(symbol_names=list(reber.SYMBOLS), symbol_of=np.arange(len(reber.SYMBOLS)),
+                  violations=reber.violations)
     test = None
     if cfg.num_test_series:
         s, lab, g = sample(cfg.num_test_series)
@@ -151,7 +178,7 @@ def _reber(cfg, rng):
 
 
 def _csv(cfg, rng, min_length=3):
-    series = files.load_series(cfg.path, cfg.length, min_length)
+    series = files.load_series(cfg.path, cfg.length, min_length, cfg.columns)
     labels = -np.ones(series.shape[:2], dtype=np.int64)
     return Dataset(series, labels, symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
 
@@ -184,4 +211,14 @@ def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
     return TASKS[cfg.name](cfg, rng)
 
 
-__all__ = ["TaskConfig", "Dataset", "make_task", "TASKS"]
+def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, labels: np.ndarray,
+                min_length: int = 3) -> Dataset:
+    """The data a finished run was trained on: regenerated from its seed where the task is
+    generated (held-out series included), the series stored in its checkpoint where it came from
+    files (they may have moved since)."""
+    if cfg.name == "csv":
+        return Dataset(series, labels, symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
+    return make_task(cfg, seed, min_length)
+
+
+__all__ = ["TaskConfig", "Dataset", "make_task", "task_of_run", "TASKS"]

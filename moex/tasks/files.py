@@ -1,49 +1,92 @@
 """A user's own switching series from CSV or NPY files (task `csv`)."""
 
 import glob
+import io
 import os
+import re
 
 import numpy as np
+import pandas as pd
 
 from moex.errors import ConfigError, check
 
 
-def _read_one(path: str) -> list[np.ndarray]:
+SEPARATOR = r"\s*,\s*|\s+"  # commas or spaces
+
+
+def _read_text(path: str, columns: list[str]) -> np.ndarray:
+    """One (T, D) series from a CSV/TXT file: numbers separated by commas or spaces, `#`
+    comments, an optional header row of column names (required to pick `columns` by name)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except UnicodeDecodeError:
+        raise ConfigError(f"task.path: {path} is not a text file (it does not decode as UTF-8); "
+                          f"give a CSV/TXT file of numbers or an NPY array") from None
+    lines = [line.split("#", 1)[0].strip() for line in text.splitlines()]
+    lines = [line for line in lines if line]
+    check(len(lines) > 0, f"task.path: {path} holds no data rows")
+    fields = [len([v for v in re.split(SEPARATOR, line) if v]) for line in lines]
+    first = [v for v in re.split(SEPARATOR, lines[0]) if v]
+    header = not all(_is_number(v) for v in first)
+    ragged = [n for n, count in enumerate(fields) if count != fields[0]]
+    check(not ragged, f"task.path: {path} has rows of different lengths (data row "
+                      f"{ragged[0] + 1 - header if ragged else 0} has "
+                      f"{fields[ragged[0]] if ragged else 0} values, expected {fields[0]})")
+    frame = pd.read_csv(io.StringIO("\n".join(lines)), sep=SEPARATOR, engine="python",
+                        header=0 if header else None)
+    if columns:
+        check(header, f"task.columns={list(columns)} needs a header row naming the columns "
+                      f"in {path}")
+        missing = [c for c in columns if c not in frame.columns]
+        check(not missing, f"task.columns: {missing} not in {path}; its columns are "
+                           f"{', '.join(map(str, frame.columns))}")
+        frame = frame[list(columns)]
+    values = frame.apply(pd.to_numeric, errors="coerce")
+    bad = values.isna() & frame.notna()
+    if bad.to_numpy().any():
+        row = int(np.flatnonzero(bad.to_numpy().any(1))[0])
+        raise ConfigError(f"task.path: {path} data row {row + 1} is not numeric "
+                          f"({', '.join(map(str, frame.iloc[row].tolist()))})")
+    return values.to_numpy(dtype=float)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+def _read_one(path: str, columns: list[str]) -> list[np.ndarray]:
     if path.endswith(".npy"):
-        array = np.load(path, allow_pickle=False)
+        check(not columns, f"task.columns selects CSV columns by name; {path} is an NPY array")
+        try:
+            array = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            raise ConfigError(f"task.path: {path} is not a readable NPY array ({exc})") from None
         check(array.ndim in (2, 3), f"task.path: {path} must hold a (T, D) or (S, T, D) array, "
                                    f"got shape {array.shape}")
         return list(array) if array.ndim == 3 else [array]
-    rows = []
-    with open(path) as f:
-        for line_no, line in enumerate(f, 1):
-            line = line.split("#", 1)[0].strip()
-            if not line:
-                continue
-            try:
-                rows.append([float(v) for v in line.replace(",", " ").split()])
-            except ValueError:
-                raise ConfigError(f"task.path: {path} line {line_no} is not numeric") from None
-            check(len(rows[-1]) == len(rows[0]),
-                  f"task.path: {path} line {line_no} has {len(rows[-1])} columns, "
-                  f"expected {len(rows[0])} (ragged rows)")
-    check(len(rows) > 0, f"task.path: {path} holds no data rows")
-    return [np.array(rows)]
+    return [_read_text(path, columns)]
 
 
-def load_series(pattern: str, length: int, min_length: int) -> np.ndarray:
+def load_series(pattern: str, length: int, min_length: int,
+                columns: list[str] = ()) -> np.ndarray:
     """Series (S, T, D) from every file matching `pattern` (a file, a glob or a folder).
 
-    Each CSV file (rows = time steps, columns = features) is one series; an NPY file holds one
-    (T, D) series or a stack (S, T, D). `length` > 0 crops every series to its first `length`
-    steps; otherwise all series must have equal length.
+    Each CSV file (rows = time steps, columns = features, an optional header row) is one series;
+    `columns` picks and orders its columns by header name. An NPY file holds one (T, D) series
+    or a stack (S, T, D). `length` > 0 crops every series to its first `length` steps; otherwise
+    all series must have equal length.
     """
     check(bool(pattern), "task.path is empty: name a CSV/NPY file, a glob or a folder")
     paths = sorted(glob.glob(os.path.join(pattern, "*")) if os.path.isdir(pattern)
                    else glob.glob(pattern))
     paths = [p for p in paths if p.endswith((".csv", ".txt", ".npy"))]
     check(len(paths) > 0, f"task.path={pattern} matches no .csv, .txt or .npy file")
-    series = [s for p in paths for s in _read_one(p)]
+    series = [s for p in paths for s in _read_one(p, list(columns))]
     for p, s in zip(paths, series, strict=False):
         check(bool(np.isfinite(s).all()), f"task.path: {p} contains NaN or inf values")
         check(s.shape[1] == series[0].shape[1],

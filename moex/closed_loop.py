@@ -1,0 +1,118 @@
+"""The trained mixture run as an autonomous system (paper Sec. 2.2, 4): initial states, closed-loop
+generation and Lyapunov exponents averaged over samples, on any backend, in chunks of bounded
+memory. The dynamics themselves are `moex.model.closed_loop_step` and a backend's `closed_loop`."""
+
+import torch
+from tqdm.auto import tqdm
+
+from moex.kernels import Backend, get_backend
+from moex.metrics.lyapunov import initial_tangents
+from moex.model import ClosedLoopState
+
+CHUNK = 500  # closed-loop steps per call of the time loop (bounds the memory of the records)
+
+
+def trained_state(experts, gating, gate_targets, series, delay) -> ClosedLoopState:
+    """The trained initial state of every series (N = S): u_0, and data / ĝ in the delay lines.
+
+    Args:
+        experts, gating: trained parameters (experts empty for symbolic tasks).
+        gate_targets: (R, S, T, K) the gate estimates the gating RNN was trained on.
+        series: (S, L, D) the training series; delay: τ.
+    """
+    R = gate_targets.shape[0]
+    experts_u = experts["u0"] if experts else series.new_zeros(R, series.shape[0], 0, 0)
+    inputs = series[None, :, :delay].expand(R, -1, -1, -1)
+    return ClosedLoopState(experts_u, gating["u0"], inputs, gate_targets[:, :, :delay])
+
+
+def random_state(experts, gating, num_samples, num_features, delay,
+                 generator) -> ClosedLoopState:
+    """Random initial states: u ~ U[-1, 1], x ~ U[-1, 1] and random probability vectors in the
+    delay lines (Sec. 4; the C code fills the gate line with U(-1, 1) instead, spec §4.4)."""
+    R, K, H = gating["w_out"].shape
+    dtype = gating["w_out"].dtype
+
+    def uniform(*shape):
+        return torch.rand(shape, generator=generator, dtype=dtype) * 2 - 1
+
+    M = experts["w_rec"].shape[-1] if experts else 0
+    # normalised exponentials: uniform on the probability simplex
+    e = -torch.log(torch.rand((R, num_samples, delay, K), generator=generator,
+                              dtype=dtype).clamp_min(1e-300))
+    return ClosedLoopState(uniform(R, num_samples, K if experts else 0, M),
+                           uniform(R, num_samples, H),
+                           uniform(R, num_samples, delay, num_features),
+                           e / e.sum(-1, keepdim=True))
+
+
+def _chunks(total: int):
+    for start in range(0, total, CHUNK):
+        yield min(CHUNK, total - start)
+
+
+def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
+    """(R, N, steps, D) Gaussian noise on x_m, or None; drawn one step at a time so that the
+    random stream does not depend on how the steps are chunked."""
+    if noise_std <= 0:
+        return None
+    x = state.inputs[..., 0, :]
+    return torch.stack([noise_std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+                        for _ in range(steps)], 2)
+
+
+def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: float = 0.0,
+             generator=None, backend: Backend | None = None) -> dict[str, torch.Tensor]:
+    """Run the closed loop for `steps` steps on `backend` (default: auto).
+
+    Returns:
+        outputs (R, N, T, D), gates (R, N, T, K) and gating potentials (R, N, T, H).
+    """
+    backend = backend or get_backend()
+    parts = []
+    for size in _chunks(steps):
+        run = backend.closed_loop(experts, gating, state, size,
+                                  _noise(state, size, noise_std, generator))
+        state = run.state
+        parts.append((run.outputs, run.gates, run.gating_u))
+    return {name: torch.cat([p[i] for p in parts], 2)
+            for i, name in enumerate(("outputs", "gates", "gating_u"))}
+
+
+def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, transient: int,
+                         generator, num_exponents: int = 1, noise_std: float = 0.0,
+                         uniform_gates: bool = False, on_chunk=None, keep_potentials: int = 0,
+                         backend: Backend | None = None) -> torch.Tensor:
+    """The first k Lyapunov exponents (R, N, k) of the whole closed loop (spec §5.2).
+
+    Tangent vectors start random and orthonormal, are propagated by the exact Jacobian and
+    re-orthonormalised every step; `transient` steps align them, the next `steps` are averaged.
+
+    Args:
+        experts, gating, state: the trained mixture and its initial states (R, N, ...).
+        generator: draws the initial tangents and the noise.
+        num_exponents: k; noise_std: ρ of the noise on x_m (Sec. 4.3).
+        uniform_gates: differentiate the mixture with g = 1/K, as `mregn-lyapunov` does.
+        on_chunk: receives the `ClosedLoopRun` of every chunk after the transient.
+        keep_potentials: record u^g in the chunks that reach into the last so many steps (None
+            in the others: at the paper's scale it would be gigabytes).
+        backend: where the closed loop runs (default: auto).
+    """
+    backend = backend or get_backend()
+    tangents = initial_tangents(state.flat(), num_exponents, generator)
+    growth = 0
+    with tqdm(total=transient + steps, desc="lyapunov", disable=None, mininterval=1.0,
+              leave=False) as bar:
+        for counted, total in ((False, transient), (True, steps)):
+            done = 0
+            for size in _chunks(total):
+                keep = counted and done + size > total - keep_potentials
+                run = backend.closed_loop(experts, gating, state, size,
+                                          _noise(state, size, noise_std, generator), tangents,
+                                          counted, uniform_gates, keep)
+                state, tangents, growth = run.state, run.tangents, growth + run.growth
+                if counted and on_chunk is not None:
+                    on_chunk(run)
+                done += size
+                bar.update(size)
+    return growth / steps

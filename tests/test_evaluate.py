@@ -1,0 +1,138 @@
+"""The metric table (moex.evaluate), tracking during training, and the production Lyapunov path
+(moex.closed_loop on a backend) against a known exponent."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from moex import objectives
+from moex.closed_loop import closed_loop_lyapunov, generate, random_state, trained_state
+from moex.config import Config
+from moex.evaluate import EvalConfig, _train_block_kl, evaluate, phase2_targets
+from moex.kernels import get_backend
+from moex.metrics.switching import segment_symbols, switch_probability
+from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward
+from moex.pipeline import initial_parameters, load_task, run_train
+from moex.tasks import Dataset, TaskConfig, make_task
+from moex.train import (
+    ExpertPhaseConfig,
+    GatingPhaseConfig,
+    TrainConfig,
+    train_experts,
+    train_gating,
+)
+
+QUICK = EvalConfig(num_samples=3, lyapunov_steps=400, transient=50, plot_steps=100)
+
+
+def _trained(task: TaskConfig, model: ModelConfig, R=2, steps=(30, 20)):
+    cfg = Config(task=task, model=model, num_runs=R)
+    data = load_task(cfg)
+    series = torch.as_tensor(data.series)
+    S, _, D = series.shape
+    experts, gating = initial_parameters(cfg, S, D, torch.float64)
+    beta = None
+    if D:
+        experts, beta, _ = train_experts(experts, series, model, ExpertPhaseConfig(steps[0]),
+                                         TrainConfig())
+    targets = phase2_targets(beta, data, R, torch.float64)
+    gating, _ = train_gating(gating, targets, series[:, :-1] if D else series, model,
+                             GatingPhaseConfig(steps[1]), TrainConfig())
+    return data, experts, beta, gating
+
+
+def test_the_metric_table_of_a_lissajous_task():
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 4, 5
+    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+                                                      num_test_series=1), model)
+    rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, QUICK,
+                                 torch.Generator().manual_seed(0)).rows)
+    series = torch.as_tensor(data.series)
+    outputs, _ = expert_forward(experts, series[:, :-1])
+    ghat = gate_estimates(beta)
+    np.testing.assert_allclose(rows["E"], objectives.mixture_mse(outputs, series[:, 1:], ghat))
+    log_gates, _ = gating_forward(gating, ghat, series[:, :-1], 1)
+    kl = objectives.gating_kl(log_gates, ghat[:, :, 1:]) / (2 * 58 * 2)
+    np.testing.assert_allclose(rows["E_g"], kl)
+    assert (rows["lyapunov_positive"] == (rows["max_lyapunov"] > 0)).all()
+    assert rows["positive_sample_fraction"].between(0, 1).all()
+    for column in ("switch_prob", "switch_prob_gates", "nonperiodic_fraction"):
+        assert rows[column].dropna().between(0, 1).all(), column
+    truth = [segment_symbols(data.symbol_of[labels], data.period) for labels in data.labels]
+    assert (rows["data_switch_prob"] == switch_probability(truth)).all()
+    assert (rows["E_closed"] >= 0).all() and rows["block_kl_test"].notna().all()
+    assert (rows[["num_samples", "lyapunov_steps"]] == [3, 400]).all().all()
+
+
+def test_metrics_a_task_cannot_have_are_left_out():
+    model = ModelConfig(num_experts=7)
+    model.gating.context_size = 4
+    data, experts, beta, gating = _trained(TaskConfig(name="reber", num_series=2, length=30),
+                                           model)
+    rows = evaluate(experts, beta, gating, data, 1, dataclasses.replace(QUICK, block_length=3),
+                    torch.Generator().manual_seed(0)).rows
+    assert not {"E", "E_closed"} & set(rows[0]) and "block_kl_test" in rows[0]
+    # a user's series: no held-out data, no true labels
+    lissajous = make_task(TaskConfig(num_series=2, length=40, num_test_series=0), 0)
+    mine = Dataset(lissajous.series, -np.ones((2, 40), int), [], np.zeros(0, int))
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 3, 4
+    cfg = Config(model=model, num_runs=1)
+    experts, gating = initial_parameters(cfg, 2, 2, torch.float64)
+    beta = torch.zeros(1, 2, 39, 2)
+    rows = evaluate(experts, beta, gating, mine, 1, QUICK, torch.Generator().manual_seed(0)).rows
+    assert not {"block_kl_test", "data_switch_prob"} & set(rows[0])
+    assert all(not isinstance(v, float) or not math.isnan(v)
+               for k, v in rows[0].items() if k not in ("switch_prob", "switch_prob_gates",
+                                                         "mean_residence"))
+
+
+def test_tracking_during_training(tmp_path):
+    """eval.every tracks the training-data block KL and λ_max in the phase-2 history; the last
+    tracked block KL is that of the trained network."""
+    cfg = Config(task=TaskConfig(num_series=2, length=40, num_test_series=0), num_runs=2)
+    cfg.model.experts.context_size, cfg.model.gating.context_size = 4, 5
+    cfg.train = TrainConfig(experts=ExpertPhaseConfig(steps=6),
+                            gating=GatingPhaseConfig(steps=5, log_every=100))
+    cfg.eval = EvalConfig(enabled=False, every=2, track_samples=2, track_steps=100,
+                          transient=10)
+    payload = run_train(cfg, tmp_path)
+    history = pd.read_csv(tmp_path / "history.csv")
+    tracked = history[(history["phase"] == "gating") & history["block_kl_train"].notna()]
+    assert sorted(tracked["step"].unique()) == [0, 2, 4]
+    assert tracked["max_lyapunov"].notna().all()
+    data = load_task(cfg)
+    series = torch.as_tensor(data.series)
+    targets = gate_estimates(payload["beta"])
+    closed = generate(payload["experts"], payload["gating"],
+                      trained_state(payload["experts"], payload["gating"], targets, series, 1),
+                      targets.shape[2])
+    last = tracked[tracked["step"] == 4].sort_values("run")["block_kl_train"]
+    np.testing.assert_allclose(last, _train_block_kl(targets, closed["gates"], cfg.eval))
+
+
+@pytest.mark.parametrize("backend", ["reference", "compiled"])
+def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backend):
+    """With every weight and bias zero, each potential decays as u_n = (1 - ε) u_{n-1} and the
+    outputs and gates are constant: the largest exponent is ln(1 - min ε) exactly, here that of
+    the gating RNN, ln(1 - ε^g)."""
+    model = ModelConfig()
+    model.gating.time_constant = 0.07
+    cfg = Config(model=model, num_runs=2)
+    experts, gating = initial_parameters(cfg, 2, 2, torch.float64)
+    for params in (experts, gating):
+        for name, value in params.items():
+            if name not in ("tau", "u0"):
+                params[name] = torch.zeros_like(value)
+    state = random_state(experts, gating, 3, 2, 1, torch.Generator().manual_seed(0))
+    # (a long transient: the experts' faster decay must leave the tangents first)
+    lam = closed_loop_lyapunov(experts, gating, state, 200, 400,
+                               torch.Generator().manual_seed(1), num_exponents=2,
+                               backend=get_backend(backend))
+    torch.testing.assert_close(lam, torch.full_like(lam, math.log(1 - 0.07)), rtol=0,
+                               atol=1e-10)
