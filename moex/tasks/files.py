@@ -10,7 +10,6 @@ import pandas as pd
 
 from moex.errors import ConfigError, check
 
-
 SEPARATOR = r"\s*,\s*|\s+"  # commas or spaces
 
 
