@@ -44,7 +44,8 @@ def _write_job_index(sweep_dir: Path) -> None:
                        key=lambda p: (len(p.parent.parent.name), p.parent.parent.name)):
         overrides = OmegaConf.to_container(OmegaConf.load(path))
         rows.append({"folder": path.parent.parent.name, "overrides": " ".join(overrides)})
-    write_csv(sweep_dir / JOBS_INDEX, rows)
+    if rows:
+        write_csv(sweep_dir / JOBS_INDEX, rows)
 
 
 USAGE = """usage: moex <verb> [-m] [key=value ...]

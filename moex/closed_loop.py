@@ -29,7 +29,7 @@ def trained_state(experts, gating, gate_targets, series, delay) -> ClosedLoopSta
 def random_state(experts, gating, num_samples, num_features, delay,
                  generator) -> ClosedLoopState:
     """Random initial states: u ~ U[-1, 1], x ~ U[-1, 1] and random probability vectors in the
-    delay lines (Sec. 4; the C code fills the gate line with U(-1, 1) instead, spec §4.4)."""
+    delay lines (Sec. 4; the C code fills the gate line with U(-1, 1) instead)."""
     R, K, H = gating["w_out"].shape
     dtype = gating["w_out"].dtype
 
@@ -83,7 +83,7 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
                          generator, num_exponents: int = 1, noise_std: float = 0.0,
                          uniform_gates: bool = False, on_chunk=None, keep_potentials: int = 0,
                          backend: Backend | None = None) -> torch.Tensor:
-    """The first k Lyapunov exponents (R, N, k) of the whole closed loop (spec §5.2).
+    """The first k Lyapunov exponents (R, N, k) of the whole closed loop (Benettin's method).
 
     Tangent vectors start random and orthonormal, are propagated by the exact Jacobian and
     re-orthonormalised every step; `transient` steps align them, the next `steps` are averaged.

@@ -33,7 +33,7 @@ class EvalConfig:
     transient: int = 1000
     num_exponents: int = 1  # 1 = the maximum exponent only
     # gates in the Jacobian of the mixture: `real`, or `uniform` (1/K) as the authors'
-    # mregn-lyapunov computes them (a bug, spec §5.3), to compare with its exponents
+    # mregn-lyapunov computes them (a bug in that tool), to compare with its exponents
     jacobian_gates: str = "real"
     block_length: int = 5  # m of D_KL^(m) (3 for Reber)
     kl_floor: float = 1e-3  # model probability given to data blocks it never produced

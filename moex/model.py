@@ -50,14 +50,14 @@ class ModelConfig:
     """Sizes and constants of the mixture (paper Sec. 3.2 defaults).
 
     `init`: `paper` draws every weight and bias from U[-1/M, 1/M] and u_0 from U[-1, 1]
-    (Sec. 2.1.5); `mregn` follows the C code (spec §1.7): input weights U[±1/inputs], biases
+    (Sec. 2.1.5); `mregn` follows the authors' C code (mregn): input weights U[±1/inputs], biases
     U[±1], u_0 = 0. `learn_time_constants` learns τ = 1/ε per neuron, clamped to τ >= 1, as the C
-    code does by default (spec §1.3); the paper keeps ε fixed.
+    code does by default; the paper keeps ε fixed.
     """
 
     num_experts: int = 2  # K (the paper's N)
     delay: int = 1  # τ, feedback delay of Eq. 5 and of the closed loop
-    sigma_min: float = 0.05  # σ̄, the floor of every expert's σ (v = e^{2s} + σ̄², spec §1.8)
+    sigma_min: float = 0.05  # σ̄, the floor of every expert's σ (v = e^{2s} + σ̄², as in the C code)
     init: str = "paper"
     learn_time_constants: bool = False
     experts: ExpertsConfig = field(default_factory=ExpertsConfig)
@@ -168,7 +168,7 @@ def init_gating(cfg: ModelConfig, num_series: int, num_features: int,
 
 
 def expert_variances(experts: dict[str, torch.Tensor], sigma_min: float) -> torch.Tensor:
-    """σ_k² = e^{2 s_k} + σ̄², (R, K): a soft floor at σ̄ (spec §1.8)."""
+    """σ_k² = e^{2 s_k} + σ̄², (R, K): a soft floor at σ̄ (the C code's form)."""
     return torch.exp(2 * experts["log_sigma"]) + sigma_min**2
 
 
@@ -308,7 +308,7 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
         noise: (R, N, D) Gaussian noise added to x_m (Sec. 4.3), or None.
         tangents: a `ClosedLoopState` of tangent vectors (k, R, N, ...), or None.
         uniform_gates: differentiate Σ_k g_k y^k with g_k = 1/K in place of the real gates, as
-            the authors' `mregn-lyapunov` does (a bug, spec §5.3); the dynamics are unchanged.
+            the authors' `mregn-lyapunov` does (a bug in that tool); the dynamics are unchanged.
 
     Returns:
         a `Step`.

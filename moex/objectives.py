@@ -83,7 +83,7 @@ def gating_kl(log_gates: torch.Tensor, gate_targets: torch.Tensor) -> torch.Tens
 
 def initial_state_attraction(u0: torch.Tensor, potentials: torch.Tensor,
                              var_floor: float) -> torch.Tensor:
-    """The C code's attraction of u_0 to its own trajectory (spec §9.5), per run.
+    """The C code's attraction of u_0 to its own trajectory (not in the paper), per run.
 
     A Gaussian log-prior Σ -(u_0 - μ)² / (2 max(var, floor)) whose mean μ and variance var are the
     statistics of {u_0, u_1..u_T} of the same series, held constant (detached).

@@ -237,3 +237,31 @@ def plot_residence_panels(hists: dict[float, np.ndarray]):
         plot_residence(hist, ax=ax, switch_prob=p)
         ax.set_title(f"P = {p:g}")
     return fig
+
+
+def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=None,
+                    band: float = 0.0):
+    """One point per network, coloured by `group` (e.g. the P = 0.5 study's arms); with
+    `reference` (the data's value of `y`), its mean as a line and ±`band` shaded; a dotted
+    line at x = 0 (the sign of λ_max is what matters)."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.8), constrained_layout=True)
+    names = list(dict.fromkeys(runs[group]))
+    colours = plt.get_cmap("tab20")(np.linspace(0, 1, max(len(names), 2)))
+    markers = "os^Dv<>P"
+    for i, name in enumerate(names):
+        part = runs[runs[group] == name]
+        ax.scatter(part[x], part[y], s=22, color=colours[i], marker=markers[i % len(markers)],
+                   label=str(name), alpha=0.85, edgecolors="none")
+    if reference is not None and len(reference.dropna()):
+        level = float(reference.mean())
+        ax.axhline(level, color="black", lw=1, label=f"data ({level:.3f})")
+        if band:
+            ax.axhspan(level - band, level + band, color="grey", alpha=0.2, lw=0,
+                       label=f"±{band:g}")
+    ax.axvline(0, color="grey", lw=0.8, ls=":")
+    ax.set_xscale("symlog", linthresh=1e-4)
+    ax.set_xlabel("max Lyapunov exponent λ_max (symlog)" if x == "max_lyapunov" else x)
+    ax.set_ylabel("switching probability" if y == "switch_prob" else y)
+    ax.set_title(f"{y} against {x}, one point per network, by {group}")
+    ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    return fig

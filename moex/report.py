@@ -26,10 +26,13 @@ PAPER_TABLE2 = pd.DataFrame({  # two Lissajous curves, mean of 30 trials (Table 
     "paper_positive_percent": [93, 96, 96],
 })
 METRICS = ["E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
-           "switch_prob", "mean_residence", "nonperiodic_fraction"]
+           "switch_prob", "switch_prob_gates", "data_switch_prob", "mean_residence",
+           "nonperiodic_fraction"]
 SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
             "task.num_series": "num_series", "task.length": "length",
             "model.gating.context_size": "context_size", "eval.noise_var": "noise_var_setting"}
+CHOICES = {"p05_arm": "arm"}  # config groups whose chosen option is a setting
+NEAR = 0.05  # a network "switches at the data's rate" within ±NEAR (the P = 0.5 study's goal)
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict:
@@ -54,6 +57,11 @@ def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
         job_dir = config_path.parent.parent
         config = _flatten(yaml.safe_load(config_path.read_text()))
         settings = {name: config.get(key) for key, name in SETTINGS.items()}
+        hydra_path = config_path.with_name("hydra.yaml")
+        choices = (yaml.safe_load(hydra_path.read_text())["hydra"]["runtime"]["choices"]
+                   if hydra_path.exists() else {})
+        settings.update({name: choices[group] for group, name in CHOICES.items()
+                         if group in choices})
         status_path = job_dir / "status.json"
         status = json.loads(status_path.read_text()) if status_path.exists() else {}
         metrics_path = job_dir / io.METRICS
@@ -69,14 +77,32 @@ def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
             pd.DataFrame(jobs))
 
 
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial proportion, in percent."""
+    if n == 0:
+        return float("nan"), float("nan")
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, 100 * float(centre - half)), min(100.0, 100 * float(centre + half))
+
+
 def aggregate(runs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     """Mean and standard deviation over runs of every metric, and the share of runs with a
-    positive maximum Lyapunov exponent, per setting. Failed runs count as missing."""
+    positive maximum Lyapunov exponent (with its 95 % Wilson interval), per setting; with the
+    data's switching probability, also the share of runs within ±NEAR of it. Failed runs count
+    as missing."""
     ok = runs[~runs.get("failed", pd.Series(False, index=runs.index)).astype(bool)]
     grouped = ok.groupby(keys, dropna=False)
     table = grouped[[m for m in METRICS if m in ok]].agg(["mean", "std"])
     table.columns = [f"{m}_{s}" for m, s in table.columns]
     table["positive_percent"] = grouped["max_lyapunov"].apply(lambda x: 100 * (x > 0).mean())
+    ci = grouped["max_lyapunov"].apply(lambda x: wilson_interval(int((x > 0).sum()), len(x)))
+    table["positive_ci_low"] = ci.map(lambda c: c[0])
+    table["positive_ci_high"] = ci.map(lambda c: c[1])
+    if {"switch_prob", "data_switch_prob"} <= set(ok):
+        near = (ok["switch_prob"] - ok["data_switch_prob"]).abs() <= NEAR
+        table["near_data_percent"] = near.groupby([ok[k] for k in keys], dropna=False).mean() * 100
     table["num_runs"] = grouped.size()
     table["failed_runs"] = runs.groupby(keys, dropna=False).size() - table["num_runs"]
     return table.reset_index()
@@ -111,10 +137,18 @@ def paper_tables(summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
         tables["table1"] = PAPER_TABLE1.merge(reber[cols], on="context_size", how="outer")
     liss = summary[summary["task"] == "lissajous2"]
     if len(liss) and liss["switch_prob_task"].nunique() > 1:
-        cols = ["switch_prob_task", "switch_prob_mean", "switch_prob_std", "max_lyapunov_mean",
-                "positive_percent", "num_runs"]
+        cols = ["switch_prob_task", "data_switch_prob_mean", "switch_prob_mean", "switch_prob_std",
+                "near_data_percent", "max_lyapunov_mean", "max_lyapunov_std", "positive_percent",
+                "positive_ci_low", "positive_ci_high", "nonperiodic_fraction_mean", "num_runs"]
+        cols = [c for c in cols if c in liss]
         tables["table2"] = (PAPER_TABLE2.merge(liss[cols], on="switch_prob_task", how="outer")
                             .sort_values("switch_prob_task", ascending=False, ignore_index=True))
+    if "arm" in summary:
+        cols = ["arm", "switch_prob_mean", "switch_prob_std", "data_switch_prob_mean",
+                "near_data_percent", "max_lyapunov_mean", "positive_percent", "positive_ci_low",
+                "positive_ci_high", "nonperiodic_fraction_mean", "E_mean", "E_g_mean",
+                "E_closed_mean", "num_runs", "failed_runs"]
+        tables["p05_study"] = summary[[c for c in cols if c in summary]]
     return tables
 
 
@@ -152,6 +186,10 @@ def _figures(sweep_dir: Path, runs, summary, jobs) -> None:
                 fig = plotting.plot_heatmap(group, "num_series", "length", column,
                                             title=f"NC = {nc}")
                 plotting.save_figure(fig, figures / f"heatmap_{column}_NC{nc}.png")
+    if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
+        fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "arm",
+                                       reference=runs.get("data_switch_prob"), band=NEAR)
+        plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png")
     liss = jobs[(jobs["task"] == "lissajous2") & (jobs["status"] == "done")]
     hists = {}
     for _, job in liss.iterrows():

@@ -1,7 +1,7 @@
 """The two training phases (paper Sec. 2.1): experts with gate estimates, then the gating RNN.
 
 Both phases are gradient ascent with momentum (Eqs. 17-18) on R independent runs at once, with
-the C code's per-group learning-rate scaling (spec §2.2, §3.3) and the adaptive learning rate of
+the C code's per-group learning-rate scaling and the adaptive learning rate of
 Sec. 2.1.4, which each run applies to itself: it accepts or retries its own step. The objective
 and its gradients come from a backend (`moex.kernels`); the loop here is the same for all.
 """
@@ -41,14 +41,14 @@ class PhaseConfig:
     learning_rate: float = 0.01  # α̃
     momentum: float = 0.9  # η
     adaptive_lr: bool = True  # Sec. 2.1.4; criterion: the teacher-forced KL (phase 2)
-    attraction: bool = False  # the C code's u_0 attraction term (spec §9.5)
+    attraction: bool = False  # the C code's u_0 attraction term (not in the paper)
     log_every: int = 100
 
 
 @dataclass
 class ExpertPhaseConfig(PhaseConfig):
     steps: int = 30000
-    adaptive_lr: bool = False  # spec §2.4; criterion: the mixture MSE E
+    adaptive_lr: bool = False  # as the C code's -a; criterion: the mixture MSE E
     gate_prior_std: float = 10.0  # ς of the Brownian prior on β (Eq. 13)
 
 
@@ -68,7 +68,7 @@ class GatingPhaseConfig(PhaseConfig):
 class TrainConfig:
     """Both phases. `momentum_form`: `paper` keeps the step Δθ = αg + ηΔθ in the momentum
     buffer (Eq. 17); `mregn` keeps the raw gradient sum and scales the whole step by the adaptive
-    rate (spec §2.2, §2.4). The two agree whenever the rate is constant."""
+    rate. The two agree whenever the rate is constant."""
 
     experts: ExpertPhaseConfig = field(default_factory=ExpertPhaseConfig)
     gating: GatingPhaseConfig = field(default_factory=GatingPhaseConfig)
@@ -165,7 +165,7 @@ def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: 
 
     Args:
         params: learned parameters (R, ...) per group; fixed: the others (e.g. τ).
-        rates: the scaled learning rate of each group (spec §2.2).
+        rates: the scaled learning rate of each group (C code).
         problem: a backend's `ExpertProblem` or `GatingProblem`.
         criterion: statistic whose ratio r drives the adaptive rate (E or the KL).
         rule: supplies the adaptive thresholds and the momentum form.
@@ -253,7 +253,7 @@ def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: 
         else:
             velocity[frozen] = 0.0
         if "tau" in views:
-            np.maximum(views["tau"], 1.0, out=views["tau"])  # ε <= 1 (spec §1.3)
+            np.maximum(views["tau"], 1.0, out=views["tau"])  # ε <= 1, as in the C code
         tracked = hooks.monitor_every > 0 and (step % hooks.monitor_every == 0
                                                or step == steps - 1)
         if tracked:
@@ -308,7 +308,7 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
     params = {k: v.detach().cpu().numpy() for k, v in experts.items()}
     fixed = {} if model.learn_time_constants else {"tau": params.pop("tau")}
     params["beta"] = np.zeros((R, S, T, K), dtype=data.dtype)
-    # spec §2.2: weights, biases, τ and σ at α̃/(T d), initial states at α̃/d, β at α̃
+    # the C code's scaling: weights, biases, τ and σ at α̃/(T d), initial states at α̃/d, β at α̃
     alpha = cfg.learning_rate
     rates = {k: alpha / (S * T * D) for k in params}
     rates.update(u0=alpha / D, beta=alpha)
@@ -342,7 +342,7 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     T_g = T - model.delay
     params = {k: v.detach().cpu().numpy() for k, v in gating.items()}
     fixed = {} if model.learn_time_constants else {"tau": params.pop("tau")}
-    # spec §3.3: weights at α̃/(T_g N), initial states at α̃/N
+    # the C code's scaling: weights at α̃/(T_g N), initial states at α̃/N
     rates = {k: cfg.learning_rate / (S * T_g * K) for k in params}
     rates["u0"] = cfg.learning_rate / K
     problem = backend.gating_problem(np.ascontiguousarray(gate_targets.detach().cpu().numpy()),

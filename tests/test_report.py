@@ -2,10 +2,11 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pandas as pd
 import pytest
 
-from moex.report import aggregate, report, to_markdown
+from moex.report import aggregate, report, to_markdown, wilson_interval
 from tests.test_cli import TINY
 
 MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
@@ -57,6 +58,26 @@ def test_aggregate_mean_sd_and_positive_share():
     assert table.loc[10, "E_g_mean"] == 2.0 and table.loc[10, "E_g_std"] == 1.0
     assert abs(table.loc[10, "positive_percent"] - 200 / 3) < 1e-9
     assert table.loc[20, "num_runs"] == 1
+
+
+def test_wilson_interval_matches_its_closed_form_and_brackets_the_share():
+    low, high = wilson_interval(26, 30)  # z = 1.96: [70.3, 94.7] % (closed form, by hand)
+    assert abs(low - 70.32) < 0.01 and abs(high - 94.69) < 0.01
+    assert wilson_interval(0, 10)[0] == 0 and wilson_interval(10, 10)[1] == 100
+    assert all(np.isnan(wilson_interval(0, 0)))
+
+
+def test_aggregate_share_near_the_data_and_interval_per_arm():
+    runs = pd.DataFrame({"arm": ["a"] * 4 + ["b"] * 2,
+                         "switch_prob": [0.45, 0.40, 0.60, 0.50, 1.0, 0.48],
+                         "data_switch_prob": [0.47, 0.47, 0.47, 0.47, 0.47, 0.47],
+                         "max_lyapunov": [0.1, 0.2, -0.1, 0.3, 0.0, 0.1],
+                         "failed": [False] * 6})
+    table = aggregate(runs, ["arm"]).set_index("arm")
+    assert table.loc["a", "near_data_percent"] == 50 and table.loc["b", "near_data_percent"] == 50
+    assert table.loc["a", "positive_percent"] == 75 and table.loc["b", "positive_percent"] == 50
+    assert (table.loc["a", "positive_ci_low"], table.loc["a", "positive_ci_high"]) == \
+        wilson_interval(3, 4)
 
 
 def test_markdown_marks_missing_cells():

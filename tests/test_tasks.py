@@ -65,7 +65,7 @@ def test_lissajous9_transitions_and_continuity(rule, period=32, length=400_000):
     empirical = counts / counts.sum(1, keepdims=True)
     assert np.abs(empirical - transition).max() < 0.03
     steps = np.linalg.norm(np.diff(series, axis=0), axis=1)
-    assert steps.max() < 0.12  # no jumps at period 32 (spec §7.5: max step 0.111)
+    assert steps.max() < 0.12  # no jumps at period 32 (the largest step is 0.111)
 
 
 def test_reber_strings_obey_grammar_and_choice_probability():

@@ -57,7 +57,7 @@ def test_phase2_gradient_equals_finite_differences(group):
 
 
 def test_attraction_term_gradient_equals_finite_differences():
-    """With the u_0 attraction on, its statistics are constants (spec §9.5): compare against
+    """With the u_0 attraction on, its statistics are constants: compare against
     finite differences of the objective with those statistics frozen at the current point."""
     model, series, experts, _, _, _ = _tiny()
     cfg = ExpertPhaseConfig(attraction=True)
@@ -110,7 +110,7 @@ def test_batch_of_runs_equals_runs_trained_alone(form, backend):
 
 
 def test_learning_rate_scaling_per_group():
-    """One step from rest moves each group by its rate times the gradient (spec §2.2, §3.3)."""
+    """One step from rest moves each group by its rate times the gradient (the C code's scaling)."""
     task = make_task(TaskConfig(num_series=3, length=21), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()

@@ -253,7 +253,7 @@ def _gather(g, S, tau, lane_grads, grads, learn_eps):  # pragma: no cover
 def _run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
                g_u0):  # pragma: no cover
     """After the backward pass, for the lanes of run r: the C code's attraction of u_0 to the
-    mean μ of its own trajectory {u_0..u_T} (spec §9.5; value returned, gradient
+    mean μ of its own trajectory {u_0..u_T} (not in the paper; value returned, gradient
     (μ - u_0)/max(var, floor) added) and the u_0 gradients copied out to g_u0 (R, S, K', H)."""
     value = 0.0
     KK = g_u0.shape[2]

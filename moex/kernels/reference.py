@@ -141,7 +141,7 @@ def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor
                 tangents: torch.Tensor | None = None, count: bool = False,
                 uniform_gates: bool = False, potentials: bool = True) -> ClosedLoopRun:
     """`steps` closed-loop steps (`moex.model.closed_loop_step`) with tangent vectors
-    re-orthonormalised by QR after every step (Benettin, spec §5.1).
+    re-orthonormalised by QR after every step (Benettin et al. 1980).
 
     Args:
         experts, gating, state: as for `closed_loop_step`.

@@ -1,5 +1,5 @@
 """Lyapunov exponents of any step map by tangent propagation with QR re-orthonormalisation
-(Benettin et al.; spec §5.1), batched over leading axes (runs × samples)."""
+(Benettin et al. 1980), batched over leading axes (runs × samples)."""
 
 from collections.abc import Callable
 

@@ -1,5 +1,5 @@
-"""The paper's Lissajous tasks (Sec. 3.2): two circles touching at the origin (spec §7.3) and the
-nine curves around a central circle (spec §7.5), built on the switching engine."""
+"""The paper's Lissajous tasks (Sec. 3.2): two circles touching at the origin and the nine
+curves around a central circle, as the authors' C tools generate them, on the switching engine."""
 
 import math
 
@@ -11,7 +11,7 @@ HALF_PI = math.pi / 2
 
 
 def two_circles() -> list[Primitive]:
-    """L and R: circles of radius 0.4 centred at (∓0.4, 0), touching at the origin (spec §7.3)."""
+    """L and R: circles of radius 0.4 centred at (∓0.4, 0), touching at the origin."""
     return [
         Primitive("L", (0.4, 0.4), (1, 1), (HALF_PI, 0.0), (-0.4, 0.0)),
         Primitive("R", (-0.4, 0.4), (1, 1), (HALF_PI, 0.0), (0.4, 0.0)),
@@ -24,7 +24,7 @@ def two_circles_transition(switch_prob: float) -> np.ndarray:
 
 
 def nine_curves() -> list[Primitive]:
-    """Quarters 0-3 of the central circle C, then LL, LS, B0, B8, RL, RS, T0, T8 (spec §7.5)."""
+    """Quarters 0-3 of the central circle C, then LL, LS, B0, B8, RL, RS, T0, T8."""
     quarters = [Primitive("C", (-0.2, 0.2), (1, 1), (0.0, HALF_PI), (0.0, 0.0), 0.25)] * 4
     outer = [
         Primitive("LL", (0.32, 0.32), (1, 1), (0.0, HALF_PI), (-0.52, 0.0)),

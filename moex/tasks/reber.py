@@ -1,4 +1,4 @@
-"""The ergodic Reber automaton of the preliminary experiment (paper Sec. 3.1, Fig. 2; spec §7.6)."""
+"""The ergodic Reber automaton of the preliminary experiment (paper Sec. 3.1, Fig. 2)."""
 
 import numpy as np
 

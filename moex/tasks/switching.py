@@ -1,4 +1,4 @@
-"""Markov switching between periodic primitives (spec §7.1; paper Sec. 3.2).
+"""Markov switching between periodic primitives (paper Sec. 3.2).
 
 One phase φ_n = 2πn/P runs for the whole series and never jumps; the active primitive draws its
 point from the current phase, and a switch can happen only once the active primitive has run its
