@@ -246,11 +246,10 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     line at x = 0 (the sign of λ_max is what matters)."""
     fig, ax = plt.subplots(figsize=(7.5, 4.8), constrained_layout=True)
     names = list(dict.fromkeys(runs[group]))
-    colours = plt.get_cmap("tab20")(np.linspace(0, 1, max(len(names), 2)))
-    markers = "os^Dv<>P"
+    colours, markers = plt.get_cmap("tab10").colors, "os^D"  # 40 distinct (colour, marker)
     for i, name in enumerate(names):
         part = runs[runs[group] == name]
-        ax.scatter(part[x], part[y], s=22, color=colours[i], marker=markers[i % len(markers)],
+        ax.scatter(part[x], part[y], s=24, color=colours[i % 10], marker=markers[i // 10 % 4],
                    label=str(name), alpha=0.85, edgecolors="none")
     if reference is not None and len(reference.dropna()):
         level = float(reference.mean())
@@ -260,8 +259,10 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
                        label=f"±{band:g}")
     ax.axvline(0, color="grey", lw=0.8, ls=":")
     ax.set_xscale("symlog", linthresh=1e-4)
-    ax.set_xlabel("max Lyapunov exponent λ_max (symlog)" if x == "max_lyapunov" else x)
-    ax.set_ylabel("switching probability" if y == "switch_prob" else y)
-    ax.set_title(f"{y} against {x}, one point per network, by {group}")
+    ax.margins(x=0.08)
+    names = {"max_lyapunov": "λ_max", "switch_prob": "switching probability"}
+    ax.set_xlabel(f"{names.get(x, x)} (symlog axis)")
+    ax.set_ylabel(names.get(y, y))
+    ax.set_title(f"{names.get(y, y)} against {names.get(x, x)}, one point per network, by {group}")
     ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5))
     return fig

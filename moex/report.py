@@ -53,7 +53,8 @@ def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
         jobs: one row per job with its status (done, failed, interrupted, missing metrics).
     """
     runs, jobs = [], []
-    for config_path in sorted(Path(sweep_dir).glob("**/.hydra/config.yaml")):
+    for config_path in sorted(Path(sweep_dir).glob("**/.hydra/config.yaml"),  # job 2 before 10
+                              key=lambda p: (len(str(p)), str(p))):
         job_dir = config_path.parent.parent
         config = _flatten(yaml.safe_load(config_path.read_text()))
         settings = {name: config.get(key) for key, name in SETTINGS.items()}
@@ -148,7 +149,7 @@ def paper_tables(summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
                 "near_data_percent", "max_lyapunov_mean", "positive_percent", "positive_ci_low",
                 "positive_ci_high", "nonperiodic_fraction_mean", "E_mean", "E_g_mean",
                 "E_closed_mean", "num_runs", "failed_runs"]
-        tables["p05_study"] = summary[[c for c in cols if c in summary]]
+        tables["p05_study"] = summary[[c for c in cols if c in summary]]  # in sweep order
     return tables
 
 
@@ -162,8 +163,12 @@ def report(sweep_dir: Path) -> dict[str, pd.DataFrame]:
     if runs.empty:
         return out
     io.write_csv(sweep_dir / "summary.csv", runs)
-    keys = [k for k in SETTINGS.values() if k in runs and runs[k].nunique(dropna=False) > 1]
+    keys = [k for k in [*SETTINGS.values(), *CHOICES.values()]
+            if k in runs and runs[k].nunique(dropna=False) > 1]
     summary = aggregate(runs, keys or ["task"])
+    if "arm" in summary:  # arms in the sweep's order, not alphabetical
+        first = {arm: i for i, arm in enumerate(pd.unique(runs["arm"]))}
+        summary = summary.sort_values("arm", key=lambda a: a.map(first), ignore_index=True)
     for k in ("task", "switch_prob_task", "context_size"):  # always present for paper tables
         if k not in summary:
             summary[k] = runs[k].iloc[0]
@@ -217,7 +222,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.exit(2, f"moex: error: {args.sweep_dir} holds no job folder (.hydra/config.yaml)\n")
     for _, job in jobs[jobs["status"] != "done"].iterrows():
         print(f"job {job['job']}: {job['status']} {job['error']}".rstrip())
-    for name in ("table1", "table2", "summary"):
+    for name in ("table1", "table2", "p05_study", "summary"):
         if name in out:
             print(to_markdown(out[name]))
     print(f"moex: report written to {args.sweep_dir} ({(jobs['status'] == 'done').sum()} of "

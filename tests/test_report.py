@@ -88,3 +88,29 @@ def test_markdown_marks_missing_cells():
 def test_report_of_an_empty_folder_is_an_error(tmp_path):
     out = subprocess.run(MOEX + ["report", str(tmp_path)], capture_output=True, text=True)
     assert out.returncode == 2 and "holds no job folder" in out.stderr
+
+
+def test_report_of_a_study_reads_the_arm_from_hydra_choices(tmp_path):
+    """Arms are config-group choices (not config values): the report reads them from each job's
+    .hydra/hydra.yaml, tabulates per arm and draws switching probability against λ_max."""
+    for job, arm, switch in [("0", "baseline", [0.45, 1.0]), ("1", "nc30", [0.5, 0.48])]:
+        hydra_dir = tmp_path / job / ".hydra"
+        hydra_dir.mkdir(parents=True)
+        hydra_dir.joinpath("config.yaml").write_text(
+            "task:\n  name: lissajous2\n  switch_prob: 0.5\nmodel:\n  gating:\n"
+            "    context_size: 15\n")
+        hydra_dir.joinpath("hydra.yaml").write_text(
+            f"hydra:\n  runtime:\n    choices:\n      p05_arm: {arm}\n      task: lissajous2\n")
+        (tmp_path / job / "status.json").write_text(json.dumps({"status": "done"}))
+        pd.DataFrame({"run": [0, 1], "switch_prob": switch, "data_switch_prob": [0.47, 0.47],
+                      "max_lyapunov": [0.002, -0.001], "E_g": [0.002, 0.003],
+                      "failed": [False, False]}).to_csv(tmp_path / job / "metrics.csv",
+                                                        index=False)
+    out = report(tmp_path)
+    study = out["p05_study"].set_index("arm")
+    assert study.loc["baseline", "near_data_percent"] == 50
+    assert study.loc["nc30", "near_data_percent"] == 100
+    assert study.loc["baseline", "positive_percent"] == 50
+    assert (tmp_path / "figures" / "switch_prob_vs_lyapunov.png").stat().st_size > 0
+    assert pd.read_csv(tmp_path / "tables" / "p05_study.csv")["arm"].tolist() == \
+        ["baseline", "nc30"]
