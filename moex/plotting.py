@@ -260,9 +260,9 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     ax.axvline(0, color="grey", lw=0.8, ls=":")
     ax.set_xscale("symlog", linthresh=1e-4)
     ax.margins(x=0.08)
-    names = {"max_lyapunov": "λ_max", "switch_prob": "switching probability"}
-    ax.set_xlabel(f"{names.get(x, x)} (symlog axis)")
-    ax.set_ylabel(names.get(y, y))
-    ax.set_title(f"{names.get(y, y)} against {names.get(x, x)}, one point per network, by {group}")
+    label = {"max_lyapunov": "λ_max", "switch_prob": "switching probability"}
+    ax.set_xlabel(f"{label.get(x, x)} (symlog axis)")
+    ax.set_ylabel(label.get(y, y))
+    ax.set_title(f"{label.get(y, y)} against {label.get(x, x)}, one point per network, by {group}")
     ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5))
     return fig
