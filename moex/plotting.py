@@ -263,6 +263,6 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     label = {"max_lyapunov": "λ_max", "switch_prob": "switching probability"}
     ax.set_xlabel(f"{label.get(x, x)} (symlog axis)")
     ax.set_ylabel(label.get(y, y))
-    ax.set_title(f"{label.get(y, y)} against {label.get(x, x)}, one point per network, by {group}")
+    ax.set_title(f"{label.get(y, y)} against {label.get(x, x)}\none point per network, by {group}")
     ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5))
     return fig
