@@ -162,9 +162,7 @@ def validate(config_name: str, args: list[str], flags: list[str] = ()):
                 for cfg in configs:
                     VERBS_CHECK[config_name](cfg)
                 return configs[0]
-            except (HydraException, OmegaConfBaseException, ConfigError) as exc:
-                if isinstance(exc, ConfigError):
-                    raise
+            except (HydraException, OmegaConfBaseException) as exc:
                 raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
     finally:
         GlobalHydra.instance().clear()

@@ -97,14 +97,15 @@ def aggregate(runs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     grouped = ok.groupby(keys, dropna=False)
     table = grouped[[m for m in METRICS if m in ok]].agg(["mean", "std"])
     table.columns = [f"{m}_{s}" for m, s in table.columns]
-    table["positive_percent"] = grouped["max_lyapunov"].apply(lambda x: 100 * (x > 0).mean())
-    ci = grouped["max_lyapunov"].apply(lambda x: wilson_interval(int((x > 0).sum()), len(x)))
-    table["positive_ci_low"] = ci.map(lambda c: c[0])
-    table["positive_ci_high"] = ci.map(lambda c: c[1])
+    positives, count = grouped["max_lyapunov"].apply(lambda x: int((x > 0).sum())), grouped.size()
+    table["positive_percent"] = 100 * positives / count
+    ci = [wilson_interval(k, n) for k, n in zip(positives, count, strict=True)]
+    table["positive_ci_low"] = [low for low, _ in ci]
+    table["positive_ci_high"] = [high for _, high in ci]
     if {"switch_prob", "data_switch_prob"} <= set(ok):
         near = (ok["switch_prob"] - ok["data_switch_prob"]).abs() <= NEAR
         table["near_data_percent"] = near.groupby([ok[k] for k in keys], dropna=False).mean() * 100
-    table["num_runs"] = grouped.size()
+    table["num_runs"] = count
     table["failed_runs"] = runs.groupby(keys, dropna=False).size() - table["num_runs"]
     return table.reset_index()
 
