@@ -30,8 +30,13 @@ METRICS = ["E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapu
            "nonperiodic_fraction"]
 SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
             "task.num_series": "num_series", "task.length": "length",
-            "model.gating.context_size": "context_size", "eval.noise_var": "noise_var_setting"}
+            "model.gating.context_size": "context_size", "eval.noise_var": "noise_var_setting",
+            "eval.jacobian_gates": "jacobian_gates", "eval.num_samples": "eval_samples",
+            "eval.lyapunov_steps": "eval_steps"}
 CHOICES = {"p05_arm": "arm"}  # config groups whose chosen option is a setting
+# heat-map panels (Figs. 14, 16): setting -> (title, file-name part)
+PANELS = {"context_size": ("NC = {:g}", "_NC{:g}"),
+          "noise_var_setting": ("ρ² = {:g}", "_noise{:g}")}
 NEAR = 0.05  # a network "switches at the data's rate" within ±NEAR (the P = 0.5 study's goal)
 
 
@@ -46,34 +51,44 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
 
 
 def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Every job folder below `sweep_dir` (one with .hydra/config.yaml).
+    """Every job folder below `sweep_dir` (one with .hydra/config.yaml), and every re-evaluation
+    `moex evaluate` wrote inside one (<job>/evaluate/<date>/, e.g. at another noise level): a
+    re-evaluation is a job of its own whose eval.* settings come from its eval_config.yaml.
 
     Returns:
         runs: one row per (job, run) with the job's settings and its metrics.csv columns;
         jobs: one row per job with its status (done, failed, interrupted, missing metrics).
     """
     runs, jobs = [], []
+
+    def add(name: str, folder: Path, config: dict, choices: dict, status: dict) -> None:
+        settings = {name: config.get(key) for key, name in SETTINGS.items()}
+        settings.update({name: choices[group] for group, name in CHOICES.items()
+                         if group in choices})
+        metrics_path = folder / io.METRICS
+        state = status.get("status", "running or killed")
+        if state == "done" and not metrics_path.exists():
+            state = "missing metrics"
+        jobs.append({"job": name, **settings, "status": state,
+                     "error": status.get("error", ""), "path": str(folder)})
+        if metrics_path.exists():
+            runs.append(io.read_csv(metrics_path).assign(job=name, **settings))
+
     for config_path in sorted(Path(sweep_dir).glob("**/.hydra/config.yaml"),  # job 2 before 10
                               key=lambda p: (len(str(p)), str(p))):
         job_dir = config_path.parent.parent
         config = _flatten(yaml.safe_load(config_path.read_text()))
-        settings = {name: config.get(key) for key, name in SETTINGS.items()}
         hydra_path = config_path.with_name("hydra.yaml")
         choices = (yaml.safe_load(hydra_path.read_text())["hydra"]["runtime"]["choices"]
                    if hydra_path.exists() else {})
-        settings.update({name: choices[group] for group, name in CHOICES.items()
-                         if group in choices})
         status_path = job_dir / "status.json"
-        status = json.loads(status_path.read_text()) if status_path.exists() else {}
-        metrics_path = job_dir / io.METRICS
-        state = status.get("status", "running or killed")
-        if state == "done" and not metrics_path.exists():
-            state = "missing metrics"
-        jobs.append({"job": job_dir.name, **settings, "status": state,
-                     "error": status.get("error", ""), "path": str(job_dir)})
-        if metrics_path.exists():
-            frame = io.read_csv(metrics_path)
-            runs.append(frame.assign(job=job_dir.name, **settings))
+        add(job_dir.name, job_dir, config, choices,
+            json.loads(status_path.read_text()) if status_path.exists() else {})
+        for eval_config in sorted(job_dir.glob("evaluate/*/eval_config.yaml")):
+            folder = eval_config.parent
+            evaluated = _flatten({"eval": yaml.safe_load(eval_config.read_text())})
+            add(f"{job_dir.name}/evaluate/{folder.name}", folder, {**config, **evaluated},
+                choices, {"status": "done"} if (folder / io.METRICS).exists() else {})
     return (pd.concat(runs, ignore_index=True) if runs else pd.DataFrame(),
             pd.DataFrame(jobs))
 
@@ -186,17 +201,21 @@ def _figures(sweep_dir: Path, runs, summary, jobs) -> None:
     figures = sweep_dir / "figures"
     if {"num_series", "length"} <= set(summary) and summary["num_series"].nunique() > 1 \
             and summary["length"].nunique() > 1:
+        # one panel per NC, and per noise level when re-evaluations add one (Fig. 16)
+        panels = {k: v for k, v in PANELS.items() if k in summary}
         for column in ("E_closed_mean", "positive_percent", "nonperiodic_fraction_mean"):
-            for nc, group in summary.groupby("context_size") if "context_size" in summary \
-                    else [("all", summary)]:
-                fig = plotting.plot_heatmap(group, "num_series", "length", column,
-                                            title=f"NC = {nc}")
-                plotting.save_figure(fig, figures / f"heatmap_{column}_NC{nc}.png")
+            for values, group in summary.groupby(list(panels)):
+                named = list(zip(panels.values(), values, strict=True))
+                title = ", ".join(label.format(v) for (label, _), v in named)
+                suffix = "".join(part.format(v) for (_, part), v in named)
+                fig = plotting.plot_heatmap(group, "num_series", "length", column, title=title)
+                plotting.save_figure(fig, figures / f"heatmap_{column}{suffix}.png")
     if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "arm",
                                        reference=runs.get("data_switch_prob"), band=NEAR)
         plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png")
-    liss = jobs[(jobs["task"] == "lissajous2") & (jobs["status"] == "done")]
+    liss = jobs[(jobs["task"] == "lissajous2") & (jobs["status"] == "done")
+                & ~jobs["job"].str.contains("/evaluate/")]  # Fig. 9: the trained evaluation
     hists = {}
     for _, job in liss.iterrows():
         path = Path(job["path"]) / io.SAMPLES

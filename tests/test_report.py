@@ -114,3 +114,38 @@ def test_report_of_a_study_reads_the_arm_from_hydra_choices(tmp_path):
     assert (tmp_path / "figures" / "switch_prob_vs_lyapunov.png").stat().st_size > 0
     assert pd.read_csv(tmp_path / "tables" / "p05_study.csv")["arm"].tolist() == \
         ["baseline", "nc30"]
+
+
+def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
+    """`moex evaluate` inside a job (<job>/evaluate/<date>/) at another noise level is a job of
+    its own: Fig. 16's cells at ρ² = 0 and 0.001 side by side, one heat map per (NC, ρ²)."""
+    for job, (nt, lt) in enumerate([(2, 250), (2, 500), (5, 250), (5, 500)]):
+        hydra_dir = tmp_path / str(job) / ".hydra"
+        hydra_dir.mkdir(parents=True)
+        hydra_dir.joinpath("config.yaml").write_text(
+            f"task:\n  name: lissajous2\n  switch_prob: 0.5\n  num_series: {nt}\n"
+            f"  length: {lt}\nmodel:\n  gating:\n    context_size: 10\n"
+            "eval:\n  noise_var: 0.0\n  num_samples: 50\n")
+        (tmp_path / str(job) / "status.json").write_text(json.dumps({"status": "done"}))
+        again = tmp_path / str(job) / "evaluate" / "2026-11-25_09-00-00"
+        for folder, nonperiodic in [(tmp_path / str(job), 0.0), (again, 1.0)]:
+            folder.mkdir(parents=True, exist_ok=True)
+            pd.DataFrame({"run": [0, 1], "nonperiodic_fraction": [nonperiodic, nonperiodic / 2],
+                          "max_lyapunov": [0.1, -0.1], "E_closed": [0.01, 0.02],
+                          "failed": [False, False]}).to_csv(folder / "metrics.csv", index=False)
+        (folder / "eval_config.yaml").write_text("noise_var: 0.001\nnum_samples: 50\n")
+    # a re-evaluation still computing (no metrics yet) is listed, not counted
+    (tmp_path / "0" / "evaluate" / "2026-11-25_10-00-00").mkdir()
+    (tmp_path / "0" / "evaluate" / "2026-11-25_10-00-00" / "eval_config.yaml").write_text(
+        "noise_var: 0.01\n")
+    out = report(tmp_path)
+    jobs = out["jobs"].set_index("job")
+    assert jobs.loc["0/evaluate/2026-11-25_09-00-00", "status"] == "done"
+    assert jobs.loc["0/evaluate/2026-11-25_10-00-00", "status"] == "running or killed"
+    summary = out["summary"].set_index(["noise_var_setting", "num_series", "length"])
+    assert summary.loc[(0.0, 2, 250), "nonperiodic_fraction_mean"] == 0.0
+    assert summary.loc[(0.001, 5, 500), "nonperiodic_fraction_mean"] == 0.75
+    assert (summary["num_runs"] == 2).all() and len(summary) == 8
+    for noise in ("0", "0.001"):
+        assert (tmp_path / "figures" / f"heatmap_nonperiodic_fraction_mean_NC10_noise{noise}.png"
+                ).stat().st_size > 0
