@@ -240,10 +240,10 @@ def plot_residence_panels(hists: dict[float, np.ndarray]):
 
 
 def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=None,
-                    band: float = 0.0):
+                    band: float = 0.0, log_y: bool = False):
     """One point per network, coloured by `group` (e.g. the P = 0.5 study's arms); with
     `reference` (the data's value of `y`), its mean as a line and ±`band` shaded; a dotted
-    line at x = 0 (the sign of λ_max is what matters)."""
+    line at x = 0 (the sign of λ_max is what matters); `log_y` for values spanning decades."""
     fig, ax = plt.subplots(figsize=(7.5, 4.8), constrained_layout=True)
     names = list(dict.fromkeys(runs[group]))
     colours, markers = plt.get_cmap("tab10").colors, "os^D"  # 40 distinct (colour, marker)
@@ -260,9 +260,13 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     ax.axvline(0, color="grey", lw=0.8, ls=":")
     ax.set_xscale("symlog", linthresh=1e-4)
     ax.margins(x=0.08)
-    label = {"max_lyapunov": "λ_max", "switch_prob": "switching probability"}
+    if log_y:
+        ax.set_yscale("log")
+    label = {"max_lyapunov": "λ_max", "switch_prob": "switching probability",
+             "block_kl_test": "block KL, test data", "context_size": "NC"}
     ax.set_xlabel(f"{label.get(x, x)} (symlog axis)")
     ax.set_ylabel(label.get(y, y))
-    ax.set_title(f"{label.get(y, y)} against {label.get(x, x)}\none point per network, by {group}")
+    ax.set_title(f"{label.get(y, y)} against {label.get(x, x)}\n"
+                 f"one point per network, by {label.get(group, group)}")
     ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5))
     return fig

@@ -214,6 +214,11 @@ def _figures(sweep_dir: Path, runs, summary, jobs) -> None:
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "arm",
                                        reference=runs.get("data_switch_prob"), band=NEAR)
         plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png")
+    reber = runs[runs["task"] == "reber"]
+    if reber["context_size"].nunique() > 1 and {"max_lyapunov", "block_kl_test"} <= set(reber):
+        fig = plotting.plot_scatter_by(reber, "max_lyapunov", "block_kl_test", "context_size",
+                                       log_y=True)  # Table 1 per network: chaos and the test KL
+        plotting.save_figure(fig, figures / "table1_kl_vs_lyapunov.png")
     liss = jobs[(jobs["task"] == "lissajous2") & (jobs["status"] == "done")
                 & ~jobs["job"].str.contains("/evaluate/")]  # Fig. 9: the trained evaluation
     hists = {}

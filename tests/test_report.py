@@ -149,3 +149,21 @@ def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
     for noise in ("0", "0.001"):
         assert (tmp_path / "figures" / f"heatmap_nonperiodic_fraction_mean_NC10_noise{noise}.png"
                 ).stat().st_size > 0
+
+
+def test_report_of_table1_tabulates_per_context_size_and_plots_each_network(tmp_path):
+    for job, nc in enumerate([10, 20]):
+        hydra_dir = tmp_path / str(job) / ".hydra"
+        hydra_dir.mkdir(parents=True)
+        hydra_dir.joinpath("config.yaml").write_text(
+            f"task:\n  name: reber\nmodel:\n  gating:\n    context_size: {nc}\n")
+        (tmp_path / str(job) / "status.json").write_text(json.dumps({"status": "done"}))
+        pd.DataFrame({"run": [0, 1], "E_g": [0.1, 0.2], "block_kl_train": [1.0, 2.0],
+                      "block_kl_test": [1.5, 2.5], "max_lyapunov": [0.2, -0.01],
+                      "failed": [False, False]}).to_csv(tmp_path / str(job) / "metrics.csv",
+                                                        index=False)
+    table1 = report(tmp_path)["table1"].set_index("context_size")
+    assert table1.loc[10, "block_kl_test_mean"] == 2.0 and table1.loc[10, "positive_percent"] == 50
+    assert table1.loc[10, "paper_block_kl_test"] == 2.388665
+    assert table1.loc[30, "num_runs"] != table1.loc[30, "num_runs"]  # not run: missing
+    assert (tmp_path / "figures" / "table1_kl_vs_lyapunov.png").stat().st_size > 0
