@@ -90,22 +90,30 @@ def test_report_of_an_empty_folder_is_an_error(tmp_path):
     assert out.returncode == 2 and "holds no job folder" in out.stderr
 
 
+def _fake_job(job_dir, config: str, metrics: dict, choices: str = "") -> None:
+    """A finished job folder as a sweep leaves it: .hydra/config.yaml (and hydra.yaml with the
+    config-group `choices`), status.json and metrics.csv (two runs, none failed)."""
+    hydra_dir = job_dir / ".hydra"
+    hydra_dir.mkdir(parents=True)
+    hydra_dir.joinpath("config.yaml").write_text(config)
+    if choices:
+        hydra_dir.joinpath("hydra.yaml").write_text(
+            f"hydra:\n  runtime:\n    choices:\n{choices}")
+    (job_dir / "status.json").write_text(json.dumps({"status": "done"}))
+    pd.DataFrame({"run": [0, 1], **metrics, "failed": [False, False]}).to_csv(
+        job_dir / "metrics.csv", index=False)
+
+
 def test_report_of_a_study_reads_the_arm_from_hydra_choices(tmp_path):
     """Arms are config-group choices (not config values): the report reads them from each job's
     .hydra/hydra.yaml, tabulates per arm and draws switching probability against λ_max."""
     for job, arm, switch in [("0", "baseline", [0.45, 1.0]), ("1", "nc30", [0.5, 0.48])]:
-        hydra_dir = tmp_path / job / ".hydra"
-        hydra_dir.mkdir(parents=True)
-        hydra_dir.joinpath("config.yaml").write_text(
-            "task:\n  name: lissajous2\n  switch_prob: 0.5\nmodel:\n  gating:\n"
-            "    context_size: 15\n")
-        hydra_dir.joinpath("hydra.yaml").write_text(
-            f"hydra:\n  runtime:\n    choices:\n      p05_arm: {arm}\n      task: lissajous2\n")
-        (tmp_path / job / "status.json").write_text(json.dumps({"status": "done"}))
-        pd.DataFrame({"run": [0, 1], "switch_prob": switch, "data_switch_prob": [0.47, 0.47],
-                      "max_lyapunov": [0.002, -0.001], "E_g": [0.002, 0.003],
-                      "failed": [False, False]}).to_csv(tmp_path / job / "metrics.csv",
-                                                        index=False)
+        _fake_job(tmp_path / job,
+                  "task:\n  name: lissajous2\n  switch_prob: 0.5\nmodel:\n  gating:\n"
+                  "    context_size: 15\n",
+                  {"switch_prob": switch, "data_switch_prob": [0.47, 0.47],
+                   "max_lyapunov": [0.002, -0.001], "E_g": [0.002, 0.003]},
+                  choices=f"      p05_arm: {arm}\n      task: lissajous2\n")
     out = report(tmp_path)
     study = out["p05_study"].set_index("arm")
     assert study.loc["baseline", "near_data_percent"] == 50
@@ -119,21 +127,20 @@ def test_report_of_a_study_reads_the_arm_from_hydra_choices(tmp_path):
 def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
     """`moex evaluate` inside a job (<job>/evaluate/<date>/) at another noise level is a job of
     its own: Fig. 16's cells at ρ² = 0 and 0.001 side by side, one heat map per (NC, ρ²)."""
+    def metrics(nonperiodic):
+        return {"nonperiodic_fraction": [nonperiodic, nonperiodic / 2],
+                "max_lyapunov": [0.1, -0.1], "E_closed": [0.01, 0.02]}
+
     for job, (nt, lt) in enumerate([(2, 250), (2, 500), (5, 250), (5, 500)]):
-        hydra_dir = tmp_path / str(job) / ".hydra"
-        hydra_dir.mkdir(parents=True)
-        hydra_dir.joinpath("config.yaml").write_text(
-            f"task:\n  name: lissajous2\n  switch_prob: 0.5\n  num_series: {nt}\n"
-            f"  length: {lt}\nmodel:\n  gating:\n    context_size: 10\n"
-            "eval:\n  noise_var: 0.0\n  num_samples: 50\n")
-        (tmp_path / str(job) / "status.json").write_text(json.dumps({"status": "done"}))
+        _fake_job(tmp_path / str(job),
+                  f"task:\n  name: lissajous2\n  switch_prob: 0.5\n  num_series: {nt}\n"
+                  f"  length: {lt}\nmodel:\n  gating:\n    context_size: 10\n"
+                  "eval:\n  noise_var: 0.0\n  num_samples: 50\n", metrics(0.0))
         again = tmp_path / str(job) / "evaluate" / "2026-11-25_09-00-00"
-        for folder, nonperiodic in [(tmp_path / str(job), 0.0), (again, 1.0)]:
-            folder.mkdir(parents=True, exist_ok=True)
-            pd.DataFrame({"run": [0, 1], "nonperiodic_fraction": [nonperiodic, nonperiodic / 2],
-                          "max_lyapunov": [0.1, -0.1], "E_closed": [0.01, 0.02],
-                          "failed": [False, False]}).to_csv(folder / "metrics.csv", index=False)
-        (folder / "eval_config.yaml").write_text("noise_var: 0.001\nnum_samples: 50\n")
+        again.mkdir(parents=True)
+        pd.DataFrame({"run": [0, 1], **metrics(1.0), "failed": [False, False]}).to_csv(
+            again / "metrics.csv", index=False)
+        (again / "eval_config.yaml").write_text("noise_var: 0.001\nnum_samples: 50\n")
     # a re-evaluation still computing (no metrics yet) is listed, not counted
     (tmp_path / "0" / "evaluate" / "2026-11-25_10-00-00").mkdir()
     (tmp_path / "0" / "evaluate" / "2026-11-25_10-00-00" / "eval_config.yaml").write_text(
@@ -153,15 +160,10 @@ def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
 
 def test_report_of_table1_tabulates_per_context_size_and_plots_each_network(tmp_path):
     for job, nc in enumerate([10, 20]):
-        hydra_dir = tmp_path / str(job) / ".hydra"
-        hydra_dir.mkdir(parents=True)
-        hydra_dir.joinpath("config.yaml").write_text(
-            f"task:\n  name: reber\nmodel:\n  gating:\n    context_size: {nc}\n")
-        (tmp_path / str(job) / "status.json").write_text(json.dumps({"status": "done"}))
-        pd.DataFrame({"run": [0, 1], "E_g": [0.1, 0.2], "block_kl_train": [1.0, 2.0],
-                      "block_kl_test": [1.5, 2.5], "max_lyapunov": [0.2, -0.01],
-                      "failed": [False, False]}).to_csv(tmp_path / str(job) / "metrics.csv",
-                                                        index=False)
+        _fake_job(tmp_path / str(job),
+                  f"task:\n  name: reber\nmodel:\n  gating:\n    context_size: {nc}\n",
+                  {"E_g": [0.1, 0.2], "block_kl_train": [1.0, 2.0], "block_kl_test": [1.5, 2.5],
+                   "max_lyapunov": [0.2, -0.01]})
     table1 = report(tmp_path)["table1"].set_index("context_size")
     assert table1.loc[10, "block_kl_test_mean"] == 2.0 and table1.loc[10, "positive_percent"] == 50
     assert table1.loc[10, "paper_block_kl_test"] == 2.388665
