@@ -281,7 +281,7 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
         plotting.plot_trajectory(outputs, gates, axes[1],
                                  f"closed loop, {label}\nlast {len(outputs)} steps")
         plotting.save_figure(fig, figures / "trajectory.png")
-    shown = slice(-min(len(symbols), 100), None)
+    shown = slice(-min(len(symbols), max(100, round(10 * dataset.period))), None)
     bad = dataset.violations(symbols[shown]) if dataset.violations else None
     axes = plotting.plot_gate_series(outputs[shown], gates[shown], symbols[shown],
                                      dataset.symbol_names, bad=bad)

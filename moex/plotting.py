@@ -10,6 +10,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from moex.io import atomic_write  # noqa: E402
+from moex.metrics.switching import rle  # noqa: E402
 
 
 @dataclass
@@ -114,8 +115,9 @@ def plot_trajectory(points: np.ndarray, gates: np.ndarray, ax=None, title: str =
 
 def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray,
                      names: list[str], axes=None, bad: np.ndarray | None = None):
-    """Outputs (T, D) over the gate openings (T, K), each step labelled with its symbol; steps
-    flagged in `bad` (T,) are labelled in red (paper Figs. 4 and 8). D = 0: the gates alone."""
+    """Outputs (T, D) over the gate openings (T, K), labelled with the symbol of each step
+    (beyond 120 steps, of each run of one symbol that is not a brief flicker); steps flagged in
+    `bad` (T,) are labelled in red (paper Figs. 4, 8 and 13). D = 0: the gates alone."""
     if axes is None:
         rows = 2 if outputs.shape[1] else 1
         fig, axes = plt.subplots(rows, 1, figsize=(10, 2.2 * rows + 0.6), sharex=True,
@@ -134,9 +136,15 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
     axes[1].set_xlabel("step")
     axes[1].figure.colorbar(image, ax=list(dict.fromkeys(axes)), label="gate opening g",
                             pad=0.01, fraction=0.03)
-    if names and len(symbols) <= 120:
-        for n, s in enumerate(symbols):
-            axes[1].text(n, K - 0.45, names[s], ha="center", va="bottom", fontsize=6,
+    if names:  # every step's symbol in a short window, else the middle of each run of one
+        # symbol lasting at least 1/40 of the window (no overlapping labels for flickers)
+        steps = range(len(symbols))
+        if len(symbols) > 120:
+            _, lengths = rle(symbols)
+            starts = np.cumsum(lengths) - lengths
+            steps = (starts + lengths // 2)[lengths >= len(symbols) / 40]
+        for n in steps:
+            axes[1].text(n, K - 0.45, names[symbols[n]], ha="center", va="bottom", fontsize=6,
                          color="red" if bad is not None and bad[n] else "black")
     return axes
 
@@ -206,7 +214,10 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None):
     for i, ax in enumerate(np.ravel(axes)):
         ax.set_xticks([])
         ax.set_yticks([])
-        if i < K and (winners == i).any():
+        if i >= K:  # the grid's spare panels
+            ax.axis("off")
+            continue
+        if (winners == i).any():
             ax.scatter(outputs[winners == i, 0], outputs[winners == i, 1], s=1)
             ax.set_xlim(-1, 1)
             ax.set_ylim(-1, 1)
