@@ -114,19 +114,21 @@ def _teacher_forced(experts, beta, gating, dataset: Dataset, series, delay, targ
 
 def _switching_columns(symbols, winners, lam, dataset: Dataset, cfg: EvalConfig) -> dict:
     """Per run: switching probability per completed lap (Table 2) from the outputs and from the
-    winning gates, switches per period of time, repetitions, periodicity (Sec. 4.3)."""
+    winning gates, switches per period of time, repetitions, periodicity (Sec. 4.3) of the
+    samples with enough laps to judge it."""
     period = dataset.period
     segments = [switching.segment_symbols(s, period) for s in symbols]
     reps = np.concatenate([np.concatenate(list(switching.residence_times(s).values()) or
                                           [np.zeros(0, dtype=int)]) for s in segments])
+    nonperiodic, judged = switching.nonperiodic_share(segments, cfg.max_period)
     return {
         "switch_prob": switching.switch_probability(segments),
         "switch_prob_gates": switching.switch_probability(
             [switching.segment_symbols(s, period) for s in winners]),
         "switch_rate": switching.switch_rate(symbols, period),
         "mean_residence": float(reps.mean()) if len(reps) else float("nan"),
-        "nonperiodic_fraction": float(np.mean([not switching.is_periodic(s, cfg.max_period)
-                                               for s in segments])),
+        "nonperiodic_fraction": nonperiodic,
+        "periodicity_samples": judged,
     }, segments, reps
 
 

@@ -73,3 +73,15 @@ def test_switch_probability_and_rate_agree_on_whole_laps_and_differ_on_partial_o
     assert switch_rate([jitter], 25) == pytest.approx(4 / 8)
     half = np.repeat([0, 1, 0, 1], [25, 13, 25, 13])  # half laps: 3 switches in 3.04 periods
     assert switch_rate([half], 25) == pytest.approx(3 * 25 / 76)
+
+
+def test_nonperiodic_share_leaves_out_sequences_too_short_to_judge():
+    from moex.metrics.switching import nonperiodic_share
+
+    periodic = np.tile([0, 1, 1], 100)  # 300 laps, period 3
+    random = np.random.default_rng(1).integers(0, 2, 300)
+    short = np.array([0, 1])  # two laps: no period can be tested
+    assert nonperiodic_share([periodic, random, short], 100) == (0.5, 2)
+    assert nonperiodic_share([periodic[:101]], 100) == (0.0, 1)
+    share, judged = nonperiodic_share([short, periodic[:100]], 100)
+    assert np.isnan(share) and judged == 0

@@ -73,3 +73,14 @@ def is_periodic(seq, max_period: int = 100) -> bool:
     seq = np.asarray(seq)
     return any(np.array_equal(seq[p:], seq[:-p]) for p in range(1, min(max_period, len(seq) - 1)
                                                                    + 1))
+
+
+def nonperiodic_share(sequences, max_period: int = 100) -> tuple[float, int]:
+    """Share of the sequences with no period <= max_period (`is_periodic`), among those longer
+    than max_period (so that every candidate period is tested), and how many those are. Shorter
+    ones (an orbit that rarely completes a lap of a curve) cannot be judged and are left out;
+    NaN when none can be judged."""
+    judged = [s for s in sequences if len(s) > max_period]
+    if not judged:
+        return float("nan"), 0
+    return float(np.mean([not is_periodic(s, max_period) for s in judged])), len(judged)
