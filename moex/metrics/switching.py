@@ -68,7 +68,8 @@ def residence_times(seq) -> dict[int, np.ndarray]:
 def is_periodic(seq, max_period: int = 100) -> bool:
     """Whether seq[i] == seq[i + p] for all i, for some p <= max_period (paper Sec. 4.3).
 
-    The sequence should be longer than 2 · max_period for the answer to mean anything.
+    Every candidate period is tested only in a sequence longer than max_period
+    (`nonperiodic_share` leaves shorter ones out); the longer the sequence, the firmer the answer.
     """
     seq = np.asarray(seq)
     return any(np.array_equal(seq[p:], seq[:-p]) for p in range(1, min(max_period, len(seq) - 1)
