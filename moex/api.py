@@ -15,8 +15,9 @@ from moex.config import Config
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate, phase2_targets
 from moex.kernels import Backend, get_backend
-from moex.pipeline import evaluation_generator, initial_parameters, run_seeds
-from moex.tasks import Dataset, TaskConfig
+from moex.pipeline import evaluation_generator, in_data_units, initial_parameters, run_seeds
+from moex.tasks import Dataset, TaskConfig, user_data
+from moex.tasks.scaling import fit_scale
 from moex.train import train_experts, train_gating
 
 
@@ -78,16 +79,18 @@ class Fitted:
         with torch.no_grad():
             out = run_closed_loop(self.experts, self.gating, state, steps, noise_var**0.5,
                                   generator, self.backend)
-        return {name: value.numpy() for name, value in out.items()}
+        return in_data_units({name: value.numpy() for name, value in out.items()}, self.dataset)
 
 
 def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
-        gating_steps: int = 10000, num_runs: int = 1, seed: int = 0,
+        gating_steps: int = 10000, num_runs: int = 1, seed: int = 0, scale: str = "none",
         config: Config | None = None) -> Fitted:
     """Train R mixtures of RNN experts on `series` (both phases, paper Sec. 2.1).
 
     Args:
-        series: (S, T, D) or (T, D) signal, scaled to about [-0.8, 0.8] (the outputs are tanh).
+        series: (S, T, D) or (T, D) signal within [-1, 1] (the outputs are tanh), or any range
+            with `scale="auto"`, which maps each feature onto [-0.8, 0.8] for training and maps
+            generated outputs back (E and the other metrics are in the scaled units).
         num_experts, expert_steps, gating_steps, num_runs, seed: the most used settings.
         config: a full `Config` for everything else (sizes, time constants, rates, backend,
             evaluation); the keyword settings above replace its values.
@@ -110,8 +113,8 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
     check(series.shape[1] >= cfg.model.delay + 2,
           f"series have {series.shape[1]} steps; need at least {cfg.model.delay + 2}")
     S, _, D = series.shape
-    dataset = Dataset(series, -np.ones(series.shape[:2], dtype=np.int64), symbol_names=[],
-                      symbol_of=np.zeros(0, dtype=np.int64))
+    dataset = user_data(*fit_scale(series, scale, "series"))
+    series = dataset.series
     dtype = getattr(torch, cfg.precision)
     backend = get_backend(cfg.backend, cfg.device)
     data = torch.as_tensor(series, dtype=dtype)

@@ -4,10 +4,14 @@ Overrides are composed and validated with Hydra's compose API before the run sta
 value or unknown key ends with one line on stderr and exit code 2, and nothing is written.
 """
 
+import contextlib
 import difflib
+import fcntl
 import json
 import logging
+import os
 import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -23,15 +27,14 @@ from omegaconf import OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from moex import pipeline, report
-from moex.config import register_configs
-from moex.errors import ConfigError
+from moex import checkpoint, config, pipeline, report
+from moex.config import EvaluateConfig, register_configs
+from moex.errors import ConfigError, Interrupted, check
 from moex.io import atomic_write, write_csv
-from moex.train import TrainingInterrupted
 
-_PACKAGE_CONF = Path(__file__).resolve().parent / "conf"
 log = logging.getLogger("moex")
-CONF_DIR = str(_PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf")
+CONF_DIR = str(config.CONF_DIR)
+LOCK = ".moex.lock"
 
 JOBS_INDEX = "jobs.csv"
 
@@ -118,8 +121,9 @@ def _parse(args: list[str]) -> list:
 
 
 def _override_variants(args: list[str]) -> list[list[str]]:
-    """Override lists to validate: the first value of every sweep, then each other value alone."""
-    parsed = _parse([a for a in args if not a.startswith("hydra.")])
+    """Override lists to validate: the first value of every sweep, then each other value alone
+    (hydra.* keys included: Hydra's own config is checked as well)."""
+    parsed = _parse([a for a in args if not a.startswith("hydra.searchpath=")])
     choices = [[o.input_line] if not o.is_sweep_override()
                else [f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
                for o in parsed]
@@ -143,25 +147,37 @@ def _search_path(args: list[str], flags: list[str]) -> list[str]:
     return [f"hydra.searchpath=[{','.join(entries)}]"] if entries else []
 
 
+def _typed(composed, choices) -> object:
+    """The dataclass of a composed config; `eval=paper` of `moex evaluate` sets paper_sizes."""
+    cfg = OmegaConf.to_object(composed)
+    if isinstance(cfg, EvaluateConfig) and choices.get("eval") == "paper":
+        cfg.paper_sizes = True
+    return cfg
+
+
 def validate(config_name: str, args: list[str], flags: list[str] = ()):
     """Compose every override variant, build its config and load its data (or run folder);
-    raise `ConfigError` on the first problem. Returns the first variant's config."""
+    raise `ConfigError` on the first problem. Returns the first variant's config and its
+    composed Hydra settings."""
     register_configs()
     GlobalHydra.instance().clear()
     search = _search_path(args, list(flags))
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             try:
-                configs = []
+                configs, first_hydra = [], None
                 for overrides in _override_variants(args):
                     composed = compose(config_name, overrides=search + overrides,
                                        return_hydra_config=True)
+                    first_hydra = first_hydra or OmegaConf.to_container(
+                        composed.hydra, resolve=False)
+                    choices = dict(composed.hydra.runtime.choices)
                     with open_dict(composed):
                         del composed["hydra"]
-                    configs.append(OmegaConf.to_object(composed))
+                    configs.append(_typed(composed, choices))
                 for cfg in configs:
                     VERBS_CHECK[config_name](cfg)
-                return configs[0]
+                return configs[0], first_hydra
             except (HydraException, OmegaConfBaseException) as exc:
                 raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
     finally:
@@ -191,7 +207,7 @@ def _discard_if_empty(out_dir: Path, verb: str) -> bool:
     if verb == "train" or not out_dir.is_dir():
         return False
     logging.shutdown()  # release the log file before removing it
-    if {p.name for p in out_dir.iterdir()} - {f"{verb}.log"}:
+    if {p.name for p in out_dir.iterdir()} - {f"{verb}.log", LOCK}:
         return False
     shutil.rmtree(out_dir)
     if out_dir.parent.name == verb and not any(out_dir.parent.iterdir()):
@@ -208,9 +224,9 @@ def _job(run, verb: str):
     """
 
     def task_function(dict_cfg) -> None:
-        cfg = OmegaConf.to_object(dict_cfg)
         hydra_cfg = HydraConfig.get()
         out_dir = Path(hydra_cfg.runtime.output_dir)
+        cfg = _typed(dict_cfg, hydra_cfg.runtime.choices)
         status = (lambda **kw: _write_status(out_dir, verb=verb, **kw)) if verb == "train" \
             else (lambda **kw: None)
         started = time.time()
@@ -225,12 +241,17 @@ def _job(run, verb: str):
             _discard_if_empty(out_dir, verb)
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
-        except TrainingInterrupted as exc:
-            log.warning("%s; checkpoint saved in %s", exc, out_dir)
+        except Interrupted as exc:
+            log.warning("%s (%s)", exc, "trained state saved in " + str(out_dir)
+                        if verb == "train" else "nothing written")
             status(status="interrupted", error=str(exc))
-            print(f"moex: interrupted ({exc}); re-run the same command with "
-                  f"hydra.run.dir={out_dir} (or resume=true) to continue", file=sys.stderr)
-            sys.exit(128 + stop.signum)
+            if verb == "train":
+                print(f"moex: interrupted ({exc}); re-run the same command with "
+                      f"hydra.run.dir={out_dir} (or resume=true) to continue", file=sys.stderr)
+            else:
+                _discard_if_empty(out_dir, verb)
+                print(f"moex: interrupted ({exc}); nothing was written", file=sys.stderr)
+            sys.exit(128 + (stop.signum or signal.SIGINT))
         except Exception as exc:
             log.exception("job failed")
             status(status="failed", error=f"{type(exc).__name__}: {exc}")
@@ -247,10 +268,8 @@ def _job(run, verb: str):
 
 VERBS = {
     "train": ("config", _job(pipeline.run_train, "train")),
-    "evaluate": ("evaluate", _job(lambda tool, out, _: pipeline.run_evaluate(tool, out),
-                                  "evaluate")),
-    "generate": ("generate", _job(lambda tool, out, _: pipeline.run_generate(tool, out),
-                                  "generate")),
+    "evaluate": ("evaluate", _job(pipeline.run_evaluate, "evaluate")),
+    "generate": ("generate", _job(pipeline.run_generate, "generate")),
 }
 VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
                "generate": pipeline.load_run}
@@ -299,14 +318,17 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     config_name, task_function = VERBS[verb]
     hydra_flags, overrides = _split_flags(args)
+    claimed = None
     if not {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"} & set(hydra_flags):
         try:
-            cfg = validate(config_name, overrides, hydra_flags)
-            if verb == "train" and cfg.resume and not {"-m", "--multirun"} & set(hydra_flags) \
+            cfg, hydra_cfg = validate(config_name, overrides, hydra_flags)
+            multirun = bool({"-m", "--multirun"} & set(hydra_flags))
+            if verb == "train" and cfg.resume and not multirun \
                     and not any(a.startswith("hydra.run.dir=") for a in args):
                 args = args + [f"hydra.run.dir={_latest_run(cfg.task.name)}"]
             if verb != "train" and cfg.out_dir:
                 args = args + [f"hydra.run.dir={cfg.out_dir}"]
+            claimed = _claim_folder(args, multirun, verb, cfg, hydra_cfg)
         except ConfigError as exc:
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
@@ -314,4 +336,56 @@ def main(argv: list[str] | None = None) -> None:
     entry = hydra.main(version_base="1.3", config_path=CONF_DIR,
                        config_name=config_name)(task_function)
     sys.argv = [f"moex {verb}"] + args
-    entry()
+    try:
+        entry()
+    finally:
+        if claimed is not None:
+            _release(claimed, args, bool({"-m", "--multirun"} & set(hydra_flags)))
+
+
+def _named_folder(args: list[str], key: str) -> Path | None:
+    """The folder an explicit `key=...` override names (the last one wins), else None."""
+    values = [a.split("=", 1)[1] for a in args if a.startswith(f"{key}=")]
+    return Path(values[-1]) if values else None
+
+
+def _claim_folder(args: list[str], multirun: bool, verb: str, cfg, hydra_cfg) -> int | None:
+    """Before Hydra writes anything: check the folder a command was pointed at (a run folder,
+    an out_dir, a sweep folder) and lock it against a second moex process. A run folder that
+    holds a checkpoint must hold a readable one from the same training config, so that a
+    refused command never touches a finished run. Returns the lock's file descriptor."""
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    folder = _named_folder(args, key)
+    if folder is None:  # a new dated folder: nobody else writes it
+        return None
+    shown = "out_dir" if verb != "train" and not multirun else key
+    check(not folder.exists() or folder.is_dir(), f"{shown}={folder} is a file, not a folder")
+    if verb == "train" and not multirun and (folder / checkpoint.NAME).exists():
+        pipeline.check_same_training(checkpoint.load(folder / checkpoint.NAME).config, cfg,
+                                     folder / checkpoint.NAME)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise ConfigError(f"{shown}={folder} cannot be written ({exc.strerror})") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise ConfigError(f"{shown}={folder} is being written by another moex process (pid "
+                          f"{holder}); wait for it to finish or choose another folder") from None
+    if not (folder / LOCK).exists() or os.stat(folder / LOCK).st_ino != os.fstat(fd).st_ino:
+        os.close(fd)  # the holder removed the file as we opened it: claim the new one
+        return _claim_folder(args, multirun, verb, cfg, hydra_cfg)
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    return fd
+
+
+def _release(fd: int, args: list[str], multirun: bool) -> None:
+    """Remove the lock file (a finished folder keeps no trace of it), then unlock."""
+    folder = _named_folder(args, "hydra.sweep.dir" if multirun else "hydra.run.dir")
+    with contextlib.suppress(OSError):
+        (folder / LOCK).unlink()
+    os.close(fd)

@@ -5,6 +5,7 @@ memory. The dynamics themselves are `moex.model.closed_loop_step` and a backend'
 import torch
 from tqdm.auto import tqdm
 
+from moex.errors import Interrupted
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import initial_tangents
 from moex.model import ClosedLoopState
@@ -61,9 +62,21 @@ def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
                         for _ in range(steps)], 2)
 
 
+def never() -> bool:
+    return False
+
+
+def _check_stop(should_stop) -> None:
+    """Between chunks (well under a second each): stop when a signal asked for it."""
+    if should_stop():
+        raise Interrupted("the closed loop was stopped by a signal before it finished")
+
+
 def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: float = 0.0,
-             generator=None, backend: Backend | None = None) -> dict[str, torch.Tensor]:
-    """Run the closed loop for `steps` steps on `backend` (default: auto).
+             generator=None, backend: Backend | None = None,
+             should_stop=never) -> dict[str, torch.Tensor]:
+    """Run the closed loop for `steps` steps on `backend` (default: auto); `should_stop` is
+    asked between chunks (`Interrupted` when it says so).
 
     Returns:
         outputs (R, N, T, D), gates (R, N, T, K) and gating potentials (R, N, T, H).
@@ -71,6 +84,7 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: flo
     backend = backend or get_backend()
     parts = []
     for size in _chunks(steps):
+        _check_stop(should_stop)
         run = backend.closed_loop(experts, gating, state, size,
                                   _noise(state, size, noise_std, generator))
         state = run.state
@@ -82,7 +96,7 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: flo
 def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, transient: int,
                          generator, num_exponents: int = 1, noise_std: float = 0.0,
                          uniform_gates: bool = False, on_chunk=None, keep_potentials: int = 0,
-                         backend: Backend | None = None) -> torch.Tensor:
+                         backend: Backend | None = None, should_stop=never) -> torch.Tensor:
     """The first k Lyapunov exponents (R, N, k) of the whole closed loop (Benettin's method).
 
     Tangent vectors start random and orthonormal, are propagated by the exact Jacobian and
@@ -97,6 +111,7 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
         keep_potentials: record u^g in the chunks that reach into the last so many steps (None
             in the others: at the paper's scale it would be gigabytes).
         backend: where the closed loop runs (default: auto).
+        should_stop: asked between chunks; `Interrupted` is raised when it returns True.
     """
     backend = backend or get_backend()
     tangents = initial_tangents(state.flat(), num_exponents, generator)
@@ -106,6 +121,7 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
         for counted, total in ((False, transient), (True, steps)):
             done = 0
             for size in _chunks(total):
+                _check_stop(should_stop)
                 keep = counted and done + size > total - keep_potentials
                 run = backend.closed_loop(experts, gating, state, size,
                                           _noise(state, size, noise_std, generator), tangents,

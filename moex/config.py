@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Optional
 
 import torch
+import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
@@ -17,6 +18,8 @@ from moex.plotting import PlotConfig
 from moex.tasks import TaskConfig
 from moex.train import TrainConfig
 
+_PACKAGE_CONF = Path(__file__).resolve().parent / "conf"  # in a wheel; in a checkout: ../conf
+CONF_DIR = _PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf"
 PRECISIONS = ("float64", "float32")
 DEVICES = ("cpu", "cuda")
 
@@ -73,6 +76,19 @@ class EvaluateConfig(RunFolder):
     """`moex evaluate`: recompute every metric of a finished run."""
 
     eval: EvalOverrides = field(default_factory=EvalOverrides)  # None: the run's own value
+    paper_sizes: bool = False  # set by eval=paper: the paper's sizes for the run's task
+
+
+SIZE_KEYS = ("num_samples", "lyapunov_steps", "transient", "track_samples", "track_steps")
+
+
+def paper_eval_sizes(task_name: str) -> dict:
+    """The paper's evaluation sizes for a task: the `EvalConfig` defaults (Lissajous: 50 × 100
+    000 steps) with the task's own file (conf/task/<name>.yaml, e.g. Reber: 200 × 10 000) on top."""
+    sizes = {k: getattr(EvalConfig(), k) for k in SIZE_KEYS}
+    path = CONF_DIR / "task" / f"{task_name}.yaml"
+    own = (yaml.safe_load(path.read_text()) or {}).get("eval", {}) if path.is_file() else {}
+    return {**sizes, **{k: v for k, v in own.items() if k in SIZE_KEYS}}
 
 
 @dataclass

@@ -8,6 +8,11 @@ class ConfigError(ValueError):
     """
 
 
+class Interrupted(Exception):
+    """Work stopped on request (SIGINT/SIGTERM): training after saving its state, an evaluation
+    before writing anything. Re-running the same command continues."""
+
+
 def check(condition: bool, message: str) -> None:
     """Raise `ConfigError(message)` unless `condition` holds."""
     if not condition:

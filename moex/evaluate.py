@@ -12,7 +12,14 @@ import numpy as np
 import torch
 
 from moex import objectives
-from moex.closed_loop import CHUNK, closed_loop_lyapunov, generate, random_state, trained_state
+from moex.closed_loop import (
+    CHUNK,
+    closed_loop_lyapunov,
+    generate,
+    never,
+    random_state,
+    trained_state,
+)
 from moex.errors import check, check_positive
 from moex.kernels import Backend, get_backend
 from moex.metrics import switching
@@ -54,6 +61,13 @@ class EvalConfig:
               f"eval.jacobian_gates={self.jacobian_gates!r}; choose real or uniform")
         check(self.noise_var >= 0, f"eval.noise_var={self.noise_var} must be >= 0")
         check_positive("eval.kl_floor", self.kl_floor)
+
+
+# computed on the closed loop with the noise of eval.noise_var added to x_n; every other metric
+# (max_lyapunov and its companions included, as in the paper) on the noiseless loop
+NOISY_METRICS = ("block_kl_test", "switch_prob", "switch_prob_gates", "switch_rate",
+                 "mean_residence", "censored_stays", "nonperiodic_fraction",
+                 "periodicity_samples", "max_lyapunov_noisy")
 
 
 class Evaluation(NamedTuple):
@@ -112,29 +126,38 @@ def _teacher_forced(experts, beta, gating, dataset: Dataset, series, delay, targ
     return (error if experts else None), kl / (S * (T - delay) * K)
 
 
-def _switching_columns(symbols, winners, lam, dataset: Dataset, cfg: EvalConfig) -> dict:
+def _switching_columns(symbols, winners, dataset: Dataset, cfg: EvalConfig) -> tuple:
     """Per run: switching probability per completed lap (Table 2) from the outputs and from the
     winning gates, switches per period of time, repetitions, periodicity (Sec. 4.3) of the
-    samples with enough laps to judge it."""
+    samples with enough laps to judge it; then the laps, the completed stays and the stays cut
+    off by a sample's end."""
     period = dataset.period
     segments = [switching.segment_symbols(s, period) for s in symbols]
-    reps = np.concatenate([np.concatenate(list(switching.residence_times(s).values()) or
-                                          [np.zeros(0, dtype=int)]) for s in segments])
+
+    def stays(censored):
+        return np.concatenate([np.zeros(0, dtype=np.int64)] + [
+            length for s in segments
+            for length in switching.residence_times(s, censored).values()])
+
+    reps, cut = stays(False), stays(True)
+    every = np.concatenate([reps, cut])
     nonperiodic, judged = switching.nonperiodic_share(segments, cfg.max_period)
     return {
         "switch_prob": switching.switch_probability(segments),
         "switch_prob_gates": switching.switch_probability(
             [switching.segment_symbols(s, period) for s in winners]),
         "switch_rate": switching.switch_rate(symbols, period),
-        "mean_residence": float(reps.mean()) if len(reps) else float("nan"),
+        # every stay, those cut off by a sample's end at their observed length (a lower bound)
+        "mean_residence": float(every.mean()) if len(every) else float("nan"),
+        "censored_stays": len(cut),
         "nonperiodic_fraction": nonperiodic,
         "periodicity_samples": judged,
-    }, segments, reps
+    }, segments, reps, cut
 
 
 def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfig,
              generator: torch.Generator, backend: Backend | None = None,
-             target_temperature: float = 1.0) -> Evaluation:
+             target_temperature: float = 1.0, should_stop=never) -> Evaluation:
     """All metrics of R trained networks, one row per run, and arrays for the figures.
 
     Args:
@@ -143,6 +166,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         delay: τ; cfg: evaluation settings; generator: random initial states and noise.
         backend: where the closed loop runs; target_temperature: that of the phase-2 targets
             (E^g is measured against the targets the gating RNN was fitted to).
+        should_stop: asked between chunks of the closed loop (`Interrupted` when True).
     """
     backend = backend or get_backend()
     series = torch.as_tensor(dataset.series, dtype=gating["w_out"].dtype)
@@ -152,7 +176,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
     error, error_g = _teacher_forced(experts, beta, gating, dataset, series, delay, targets)
     # ---- closed loop from the trained initial states (Sec. 4.2)
     closed = generate(experts, gating, trained_state(experts, gating, targets, series, delay),
-                      targets.shape[2], backend=backend)
+                      targets.shape[2], backend=backend, should_stop=should_stop)
     kl_train = _train_block_kl(targets, closed["gates"], cfg)
     # ---- random initial states: Lyapunov exponents and long symbol sequences
     recorded, winners = [], []  # per-step symbols and winning gates, (R, N, steps) per chunk
@@ -166,21 +190,30 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
             kept.append(tuple(a[:, 0].clone() for a in (run.outputs, run.gates, run.gating_u)))
 
     state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
-    with torch.no_grad():
+    uniform = cfg.jacobian_gates == "uniform"
+    with torch.no_grad():  # the paper's λ_max is that of the noiseless loop; with noise (which
+        # only judges periodicity, Sec. 4.3) a second pass from the same initial states records
+        # the symbols: the first pass draws exactly what an evaluation without noise draws
         exponents = closed_loop_lyapunov(
+            experts, gating, state.like(state.flat().clone()), cfg.lyapunov_steps,
+            cfg.transient, generator, cfg.num_exponents, 0.0, uniform,
+            None if cfg.noise_var > 0 else on_chunk, cfg.plot_steps, backend,
+            should_stop).numpy()
+        noisy = None if cfg.noise_var == 0 else closed_loop_lyapunov(
             experts, gating, state, cfg.lyapunov_steps, cfg.transient, generator,
-            cfg.num_exponents, cfg.noise_var**0.5, cfg.jacobian_gates == "uniform", on_chunk,
-            cfg.plot_steps, backend).numpy()
+            cfg.num_exponents, cfg.noise_var**0.5, uniform, on_chunk, cfg.plot_steps, backend,
+            should_stop).numpy()
     sampled, gate_winners = np.concatenate(recorded, -1), np.concatenate(winners, -1)
     test = _test_symbols(dataset, backend)
     truth = _true_symbols(dataset)
-    rows, hist, transitions = [], [], []
+    rows, hist, censored_hist, transitions = [], [], [], []
     V = max(len(dataset.symbol_names), K)
     for r in range(R):
         lam = exponents[r]
-        columns, segments, reps = _switching_columns(sampled[r], gate_winners[r], lam, dataset,
-                                                     cfg)
-        hist.append(np.bincount(reps, minlength=cfg.max_period + 1)[: cfg.max_period + 1])
+        columns, segments, reps, cut = _switching_columns(sampled[r], gate_winners[r], dataset,
+                                                          cfg)
+        hist.append(_histogram(reps, cfg.max_period))
+        censored_hist.append(_histogram(cut, cfg.max_period))
         transitions.append(switching.transition_matrix(np.concatenate(segments), V))
         row = {"run": r}
         if error is not None:
@@ -199,6 +232,9 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
             **{f"lyapunov_{i + 1}": float(lam[:, i].mean()) for i in range(1, lam.shape[1])},
             **columns,
         })
+        if noisy is not None:
+            row.update(max_lyapunov_noisy=float(noisy[r, :, 0].mean()),
+                       noise_enters=" ".join(NOISY_METRICS))
         if truth:
             row["data_switch_prob"] = switching.switch_probability(
                 [switching.segment_symbols(s, dataset.period) for s in truth])
@@ -207,10 +243,16 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         rows.append(row)
     samples = {name: torch.cat([k[i] for k in kept], 1)[:, -cfg.plot_steps:].numpy()
                for i, name in enumerate(("outputs", "gates", "gating_u"))}
-    samples.update(residence_hist=np.stack(hist), transition=np.stack(transitions),
+    samples.update(residence_hist=np.stack(hist), residence_censored_hist=np.stack(censored_hist),
+                   transition=np.stack(transitions),
                    closed_outputs=closed["outputs"][:, 0].numpy(),
                    symbols=sampled[:, 0, -cfg.plot_steps:])
     return Evaluation(rows, samples)
+
+
+def _histogram(lengths: np.ndarray, top: int) -> np.ndarray:
+    """(top + 1,) counts of each length, lengths beyond `top` in the last bin."""
+    return np.bincount(np.minimum(lengths, top), minlength=top + 1)
 
 
 def _true_symbols(dataset: Dataset) -> list[np.ndarray]:

@@ -8,19 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
 import yaml
 
-from moex.errors import ConfigError
-
-CHECKPOINT = "checkpoint.pt"
 HISTORY = "history.csv"
 METRICS = "metrics.csv"
 SAMPLES = "samples.npz"
 FIGURES = "figures"
 LOG = "train.log"
 EVAL_SETTINGS = "eval_config.yaml"  # the evaluation settings `moex evaluate` used
-FORMAT_VERSION = 1
 
 
 def atomic_write(path: Path, write: Callable[[str], None]) -> Path:
@@ -36,29 +31,6 @@ def atomic_write(path: Path, write: Callable[[str], None]) -> Path:
         if os.path.exists(tmp):
             os.remove(tmp)
     return path
-
-
-def save_checkpoint(path: Path, payload: dict) -> Path:
-    """Save a plain dict of tensors, numbers, strings and nested dicts (no pickled objects)."""
-    payload = {"format_version": FORMAT_VERSION, **payload}
-    return atomic_write(path, lambda tmp: torch.save(payload, tmp))
-
-
-def load_checkpoint(path: Path) -> dict:
-    """Load `checkpoint.pt` with `weights_only=True`; a bad or foreign file is a `ConfigError`."""
-    given = Path(path)
-    path = given / CHECKPOINT if given.is_dir() or given.suffix != ".pt" else given
-    if not path.is_file():
-        raise ConfigError(f"run_dir={given} holds no {CHECKPOINT}")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for corrupt or foreign files
-        raise ConfigError(f"run_dir: {path} is not a readable moex checkpoint ({exc})") from None
-    version = payload.get("format_version") if isinstance(payload, dict) else None
-    if version != FORMAT_VERSION:
-        raise ConfigError(f"run_dir: {path} has checkpoint format {version}, this moex reads "
-                          f"format {FORMAT_VERSION}")
-    return payload
 
 
 def write_csv(path: Path, rows: list[dict] | pd.DataFrame) -> Path:

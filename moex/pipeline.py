@@ -13,14 +13,21 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import io, plotting
-from moex.closed_loop import generate, random_state, trained_state
-from moex.config import Config, EvaluateConfig, GenerateConfig, RunFolder, config_from_dict
+from moex import budget, checkpoint, io, plotting
+from moex.closed_loop import generate, never, random_state, trained_state
+from moex.config import (
+    Config,
+    EvaluateConfig,
+    GenerateConfig,
+    RunFolder,
+    config_from_dict,
+    paper_eval_sizes,
+)
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate, phase2_targets, track_metrics
 from moex.kernels import Backend, get_backend
 from moex.model import init_experts, init_gating
-from moex.tasks import Dataset, make_task, task_of_run
+from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
 from moex.train import Hooks, train_experts, train_gating
 
 log = logging.getLogger(__name__)
@@ -47,8 +54,16 @@ def evaluation_generator(cfg: Config) -> torch.Generator:
 
 
 def load_task(cfg: Config) -> Dataset:
-    """The task's data, checked against the model config (a `ConfigError` if they disagree)."""
+    """The task's data, checked against the model config and the memory a training on it needs
+    (a `ConfigError` if they disagree, before generating data that could not be trained on)."""
+    check(cfg.plot.run < cfg.num_runs,
+          f"plot.run={cfg.plot.run} is outside [-1, {cfg.num_runs - 1}] (num_runs={cfg.num_runs})")
+    shape = planned_shape(cfg.task)
+    if shape is not None:
+        budget.check_train(cfg, *shape)
     dataset = make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
+    if shape is None:
+        budget.check_train(cfg, *dataset.series.shape)
     K, names = cfg.model.num_experts, dataset.symbol_names
     if dataset.gate_targets is not None:  # symbolic: one gate per symbol
         check(K == len(names), f"model.num_experts={K} must equal the {len(names)} symbols of "
@@ -84,7 +99,7 @@ class StopRequest:
             signal.signal(sig, handler)
 
 
-def _check_same_training(saved: dict, cfg: Config, path: Path) -> None:
+def check_same_training(saved: dict, cfg: Config, path: Path) -> None:
     """A checkpoint may only be resumed by the config that wrote it (eval settings aside)."""
     now = dataclasses.asdict(cfg)
     saved = dataclasses.asdict(config_from_dict(saved))
@@ -117,7 +132,8 @@ def _phase1_cache(cfg: Config) -> Path | None:
     return Path(cfg.cache_dir) / f"phase1-{digest}.pt"
 
 
-def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> dict:
+def run_train(cfg: Config, out_dir: Path,
+              stop: StopRequest | None = None) -> checkpoint.Checkpoint:
     """Train R runs of the mixture on the task and write the run folder; resumable.
 
     A checkpoint already in `out_dir` (from the same config) is continued: a finished run is not
@@ -131,42 +147,43 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
         stop: the interruption flag (signals are caught by the caller).
 
     Returns:
-        the final checkpoint payload (plain dict).
+        the final `Checkpoint`.
     """
     out_dir, stop = Path(out_dir), stop or StopRequest()
-    path = out_dir / io.CHECKPOINT
-    saved = io.load_checkpoint(path) if path.exists() else None
+    path = out_dir / checkpoint.NAME
+    saved = checkpoint.load(path) if path.exists() else None
     if saved is not None:
-        _check_same_training(saved["config"], cfg, path)
-        log.info("resuming %s from its %s phase", path, saved["phase"])
+        check_same_training(saved.config, cfg, path)
+        log.info("resuming %s from its %s phase", path, saved.phase)
     dtype = getattr(torch, cfg.precision)
     backend = get_backend(cfg.backend, cfg.device)
     dataset = load_task(cfg)
     series = torch.as_tensor(dataset.series, dtype=dtype)
     S, L, D = series.shape
     delay = cfg.model.delay
-    if saved is not None and saved["phase"] == "done":
+    if saved is not None and saved.phase == "done":
         if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
-            evaluate_run(cfg, dataset, saved["experts"], saved["beta"], saved["gating"], out_dir,
-                         saved["failed"], backend)
+            evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
+                         saved.failed, backend, stop)
         return saved
     log.info("task %s: %d series x %d steps, %d features; %d runs on %s/%s, %s backend",
              cfg.task.name, S, L, D, cfg.num_runs, cfg.device, cfg.precision, backend.name)
     # every draw happens on every start, so resumed and fresh runs see the same generators
     experts, gating = initial_parameters(cfg, S, D, dtype)
     track_rng = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0x7AC)
-    payload = {"config": dataclasses.asdict(cfg), "series": series,
-               "labels": torch.as_tensor(dataset.labels), "experts": {}, "beta": None,
-               "gating": {}, "experts_rows": []}
+    record = checkpoint.Checkpoint(
+        dataclasses.asdict(cfg), "experts", series, torch.as_tensor(dataset.labels),
+        data_scale={k: torch.as_tensor(v) for k, v in dataset.scale.as_dict().items()})
 
     def hooks(phase: str, **extra) -> Hooks:
         def save(state):
-            payload.update(phase=phase, train_state=_cpu(state), track_rng=track_rng.get_state())
-            io.save_checkpoint(path, payload)
+            record.phase, record.train_state = phase, _cpu(state)
+            record.track_rng = track_rng.get_state()
+            record.save(path)
 
-        resume = saved["train_state"] if saved is not None and saved["phase"] == phase else None
-        if resume is not None and "track_rng" in saved:
-            track_rng.set_state(saved["track_rng"])
+        resume = saved.train_state if saved is not None and saved.phase == phase else None
+        if resume is not None and saved.track_rng is not None:
+            track_rng.set_state(saved.track_rng)
         return Hooks(save=save, save_every=cfg.train.checkpoint_every, should_stop=stop,
                      resume=resume, **extra)
 
@@ -174,22 +191,22 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
     beta = None
     if D > 0:  # symbolic tasks have no experts: their gates are the one-hot symbols
         cached = _phase1_cache(cfg)
-        if saved is not None and saved["phase"] == "gating":
-            experts, beta = saved["experts"], saved["beta"]
-            payload["experts_rows"] = saved["experts_rows"]
+        if saved is not None and saved.phase == "gating":
+            experts, beta = saved.experts, saved.beta
+            record.experts_rows = saved.experts_rows
         elif cached is not None and cached.exists():
             log.info("phase 1 reused from %s", cached)
             done = torch.load(cached, map_location="cpu", weights_only=True)
-            experts, beta, payload["experts_rows"] = done["experts"], done["beta"], done["rows"]
+            experts, beta, record.experts_rows = done["experts"], done["beta"], done["rows"]
         else:
-            experts, beta, payload["experts_rows"] = train_experts(
+            experts, beta, record.experts_rows = train_experts(
                 experts, series, cfg.model, cfg.train.experts, cfg.train, hooks("experts"),
                 backend)
             if cached is not None:
                 io.atomic_write(cached, lambda tmp: torch.save(
                     {"experts": _cpu(experts), "beta": _cpu(beta),
-                     "rows": payload["experts_rows"]}, tmp))
-        payload.update(experts=_cpu(experts), beta=_cpu(beta))
+                     "rows": record.experts_rows}, tmp))
+        record.experts, record.beta = _cpu(experts), _cpu(beta)
     # ---- phase 2: x_n aligned with ĝ_n (the whole series when D = 0)
     gating_inputs = series[:, :-delay] if D > 0 else series
     gate_targets = phase2_targets(beta, dataset, cfg.num_runs, dtype,
@@ -204,38 +221,40 @@ def run_train(cfg: Config, out_dir: Path, stop: StopRequest | None = None) -> di
         gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
         hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend,
         seeds=run_seeds(cfg.seed, cfg.num_runs))
-    history = pd.DataFrame(payload["experts_rows"] + gating_rows)
+    history = pd.DataFrame(record.experts_rows + gating_rows)
     failed = history.groupby("run")["failed"].any().reindex(range(cfg.num_runs), fill_value=False)
     for run in np.flatnonzero(failed.to_numpy()):
         log.warning("run %d failed: its objective or parameters became non-finite; it was "
                     "frozen and its metrics are NaN", run)
-    payload.update(phase="done", gating=_cpu(gating), train_state=None,
-                   failed=[bool(f) for f in failed])
-    io.save_checkpoint(path, payload)
+    record.phase, record.gating, record.train_state = "done", _cpu(gating), None
+    record.failed = [bool(f) for f in failed]
+    record.save(path)
     io.write_csv(out_dir / io.HISTORY, history)
     plotting.save_figure(plotting.plot_learning_curves(history),
                          out_dir / io.FIGURES / "learning_curves.png")
     _log_summary(history)
     if cfg.eval.enabled:
-        evaluate_run(cfg, dataset, payload["experts"], payload["beta"], payload["gating"],
-                     out_dir, payload["failed"], backend)
-    return payload
+        evaluate_run(cfg, dataset, record.experts, record.beta, record.gating, out_dir,
+                     record.failed, backend, stop)
+    return record
 
 
 def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path,
-                 failed: list[bool], backend: Backend):
-    """Run every metric, then write metrics.csv, samples.npz and the figures.
+                 failed: list[bool], backend: Backend, stop=never):
+    """Run every metric, then write metrics.csv, samples.npz and the figures (nothing when
+    `stop` interrupts it).
 
     Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
     """
     generator = evaluation_generator(cfg)
     with np.errstate(invalid="ignore"):
         rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg.eval,
-                                 generator, backend, cfg.train.gating.target_temperature)
+                                 generator, backend, cfg.train.gating.target_temperature, stop)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
     metrics.loc[failed, metrics.columns.difference(["run"])] = np.nan
     metrics["failed"] = failed
     io.write_csv(out_dir / io.METRICS, metrics)
+    samples = in_data_units(samples, dataset)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     ok = metrics[~metrics["failed"]]
     _plot_samples(samples, dataset, cfg, out_dir, metrics)
@@ -255,9 +274,7 @@ LOGGED_METRICS = [("E", "E"), ("E_g", "E^g"), ("E_closed", "E^closed"),
 
 def _chosen_run(cfg: Config, metrics: pd.DataFrame | None) -> tuple[int, str]:
     """The run the single-run figures show, and why."""
-    if cfg.plot.run >= 0:
-        check(cfg.plot.run < cfg.num_runs,
-              f"plot.run={cfg.plot.run} is outside [0, {cfg.num_runs - 1}]")
+    if cfg.plot.run >= 0:  # checked against num_runs with the config (load_task)
         return cfg.plot.run, f"plot.run={cfg.plot.run}"
     ok = None if metrics is None else metrics[~metrics["failed"].astype(bool)]
     if ok is None or ok["max_lyapunov"].isna().all():
@@ -276,7 +293,7 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
     gating_u, symbols = samples["gating_u"][run], samples["symbols"][run]
     if outputs.shape[-1] >= 2:
         fig, axes = plt.subplots(1, 2, figsize=(9, 4.4), constrained_layout=True)
-        plotting.plot_teaching_data(dataset.series[:3], axes[0],
+        plotting.plot_teaching_data(dataset.scale.to_data(dataset.series[:3]), axes[0],
                                     f"teaching data ({min(3, len(dataset.series))} series)")
         plotting.plot_trajectory(outputs, gates, axes[1],
                                  f"closed loop, {label}\nlast {len(outputs)} steps")
@@ -292,6 +309,7 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
         plotting.save_figure(ax.figure, figures / "phase_portrait.png")
     if metrics is not None and dataset.prototypes is not None:
         ax = plotting.plot_residence(samples["residence_hist"], switch_prob=dataset.switch_prob,
+                                     censored_hist=samples.get("residence_censored_hist"),
                                      title=f"repetitions of a curve, {cfg.num_runs} runs pooled")
         plotting.save_figure(ax.figure, figures / "residence_times.png")
     if metrics is not None and outputs.shape[-1] >= 2:
@@ -308,66 +326,79 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
         plotting.save_figure(axes.flat[0].figure, figures / "experts.png")
 
 
+def in_data_units(samples: dict, dataset: Dataset) -> dict:
+    """Generated signals (outputs, closed_outputs) mapped back to the data's own units where
+    the data was scaled (`task.scale=auto`); metrics stay in the model's units."""
+    return {k: dataset.scale.to_data(v) if k in ("outputs", "closed_outputs") else v
+            for k, v in samples.items()}
+
+
 @dataclasses.dataclass
 class TrainedRun:
     """A finished run folder: its config (with `eval` overrides), checkpoint, data and backend."""
 
     cfg: Config
-    payload: dict
+    saved: checkpoint.Checkpoint
     dataset: Dataset
     backend: Backend
 
 
 def load_run(tool: RunFolder) -> TrainedRun:
     """The config (with `eval` overrides), checkpoint and data of a finished run folder."""
-    payload = io.load_checkpoint(Path(tool.run_dir))
-    check(payload.get("phase") == "done", f"run_dir={tool.run_dir} holds an unfinished "
-                                          f"training; finish it with moex train first")
-    cfg = config_from_dict(payload["config"])
-    if isinstance(tool, EvaluateConfig):
+    saved = checkpoint.load(Path(tool.run_dir))
+    check(saved.phase == "done", f"run_dir={tool.run_dir} holds an unfinished training; "
+                                 f"finish it with moex train first")
+    cfg = config_from_dict(saved.config)
+    if isinstance(tool, EvaluateConfig):  # explicit keys over eval=paper over the run's own
         overrides = {k: v for k, v in dataclasses.asdict(tool.eval).items() if v is not None}
-        cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **overrides})
+        sizes = paper_eval_sizes(cfg.task.name) if tool.paper_sizes else {}
+        cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **sizes, **overrides})
+    if isinstance(tool, EvaluateConfig):
+        budget.check_evaluate(cfg)
+    if isinstance(tool, GenerateConfig):
+        budget.check_generate(cfg, tool.steps, tool.num_samples)
     backend = get_backend(cfg.backend, cfg.device)
-    dataset = task_of_run(cfg.task, cfg.seed, payload["series"].numpy(),
-                          payload["labels"].numpy(), min_length=cfg.model.delay + 2)
-    return TrainedRun(cfg, payload, dataset, backend)
+    dataset = task_of_run(cfg.task, cfg.seed, saved.series.numpy(), Scale(
+        **saved.scale_arrays()), min_length=cfg.model.delay + 2)
+    return TrainedRun(cfg, saved, dataset, backend)
 
 
-def run_evaluate(tool: EvaluateConfig, out_dir: Path) -> pd.DataFrame:
+def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFrame:
     """Re-run the evaluation of a finished run from its checkpoint (no retraining) into
     `out_dir`: metrics.csv, samples.npz, figures/ and the evaluation settings used."""
     run = load_run(tool)
-    payload = run.payload
-    metrics = evaluate_run(run.cfg, run.dataset, payload["experts"], payload["beta"],
-                           payload["gating"], Path(out_dir), payload["failed"], run.backend)
+    saved = run.saved
+    metrics = evaluate_run(run.cfg, run.dataset, saved.experts, saved.beta, saved.gating,
+                           Path(out_dir), saved.failed, run.backend, stop)
     io.write_yaml(Path(out_dir) / io.EVAL_SETTINGS, dataclasses.asdict(run.cfg.eval))
     return metrics
 
 
-def run_generate(tool: GenerateConfig, out_dir: Path) -> dict:
+def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
     """Closed-loop samples of every run from random initial states (or the trained state of
     series `from_series`) into `out_dir`: samples.npz and figures."""
     run = load_run(tool)
-    cfg, payload, dataset = run.cfg, run.payload, run.dataset
-    experts, gating = payload["experts"], payload["gating"]
+    cfg, saved, dataset = run.cfg, run.saved, run.dataset
+    experts, gating = saved.experts, saved.gating
     generator = torch.Generator().manual_seed(tool.seed)
     S, _, D = dataset.series.shape
     check(-1 <= tool.from_series < S, f"from_series={tool.from_series} is outside [-1, {S - 1}]")
     if tool.from_series < 0:
         state = random_state(experts, gating, tool.num_samples, D, cfg.model.delay, generator)
     else:  # the trained initial state of one series, repeated for every (noisy) sample
-        estimates = phase2_targets(payload["beta"], dataset, cfg.num_runs,
+        estimates = phase2_targets(saved.beta, dataset, cfg.num_runs,
                                    gating["w_out"].dtype, cfg.train.gating.target_temperature)
         k = [tool.from_series] * tool.num_samples
         state = trained_state({n: v[:, k] if n == "u0" else v for n, v in experts.items()},
                               {n: v[:, k] if n == "u0" else v for n, v in gating.items()},
-                              estimates[:, k], payload["series"][k], cfg.model.delay)
+                              estimates[:, k], saved.series[k], cfg.model.delay)
     with torch.no_grad():
         out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator,
-                       run.backend)
+                       run.backend, stop)
     samples = {k: v.numpy() for k, v in out.items()}
     samples["symbols"] = dataset.symbolize(samples["outputs"], samples["gates"],
                                            run.backend.nearest_symbols)
+    samples = in_data_units(samples, dataset)
     out_dir = Path(out_dir)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     first = {k: v[:, 0] for k, v in samples.items()}

@@ -160,22 +160,31 @@ def plot_phase_portrait(gating_u: np.ndarray, ax=None, title: str = ""):
 
 
 def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = None,
-                   title: str = "repetitions of a curve before a switch"):
+                   title: str = "repetitions of a curve before a switch",
+                   censored_hist: np.ndarray | None = None):
     """Distribution of repetitions of a curve: model (pooled over runs) as bars, the geometric
-    law (1 - P)^(k-1) P of the task as a line when P is known (paper Fig. 9)."""
+    law (1 - P)^(k-1) P of the task as a line when P is known (paper Fig. 9). Stays cut off by
+    the end of a sample (`censored_hist`, their true length is at least the one shown) are
+    stacked on top, hatched; the last bin holds every longer stay."""
     ax = ax or plt.figure().gca()
-    model = model_hist.sum(0) / max(model_hist.sum(), 1)
+    cut = np.zeros_like(model_hist) if censored_hist is None else censored_hist
+    total = max(model_hist.sum() + cut.sum(), 1)
+    model, censored = model_hist.sum(0) / total, cut.sum(0) / total
     k = np.arange(len(model))
-    top = max(int(np.flatnonzero(model).max()) + 2 if model.any() else 10, 10)
+    both = model + censored
+    top = max(int(np.flatnonzero(both).max()) + 2 if both.any() else 10, 10)
     ax.bar(k[1:top], model[1:top], color="tab:blue", alpha=0.6, label="trained networks")
+    if censored.any():
+        ax.bar(k[1:top], censored[1:top], bottom=model[1:top], color="none",
+               edgecolor="tab:blue", hatch="///", label="cut off by the sample's end (≥)")
     if switch_prob is not None:
         law = (1 - switch_prob) ** (k[1:top] - 1) * switch_prob
         ax.plot(k[1:top], law, "k.-", label=f"data: geometric, P = {switch_prob:g}")
     ax.set_xlabel("repetitions of a curve")
     ax.set_ylabel("probability")
-    if model[1:top].any():
+    if both[1:top].any():
         ax.set_yscale("log")  # down to a tenth of the rarest observed count (or 1e-3)
-        ax.set_ylim(min(model[model > 0].min() / 10, 1e-3), 1.5)
+        ax.set_ylim(min(both[both > 0].min() / 10, 1e-3), 1.5)
     ax.set_title(title)
     ax.legend(fontsize=8)
     return ax
@@ -240,12 +249,13 @@ def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "
     return ax.figure
 
 
-def plot_residence_panels(hists: dict[float, np.ndarray]):
-    """Residence-time distributions, one panel per switching probability P (paper Fig. 9)."""
+def plot_residence_panels(hists: dict[float, tuple[np.ndarray, np.ndarray | None]]):
+    """Residence-time distributions, one panel per switching probability P (paper Fig. 9):
+    (completed, cut-off) histograms per P."""
     fig, axes = plt.subplots(1, len(hists), figsize=(4 * len(hists), 3.2),
                              constrained_layout=True, squeeze=False)
-    for ax, (p, hist) in zip(axes[0], sorted(hists.items(), reverse=True), strict=True):
-        plot_residence(hist, ax=ax, switch_prob=p)
+    for ax, (p, (hist, cut)) in zip(axes[0], sorted(hists.items(), reverse=True), strict=True):
+        plot_residence(hist, ax=ax, switch_prob=p, censored_hist=cut)
         ax.set_title(f"P = {p:g}")
     return fig
 

@@ -2,6 +2,7 @@
 aggregate over runs, and write CSV, Markdown and figures at the multirun root."""
 
 import json
+from io import StringIO
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import pandas as pd
 import yaml
 
 from moex import io, plotting
+from moex.errors import ConfigError, check
 
 # the paper's numbers, for the adjacent columns
 PAPER_TABLE1 = pd.DataFrame({  # Reber, mean of 50 trials (Table 1)
@@ -28,12 +30,18 @@ PAPER_TABLE2 = pd.DataFrame({  # two Lissajous curves, mean of 30 trials (Table 
 METRICS = ["E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
            "switch_prob", "switch_prob_gates", "data_switch_prob", "mean_residence",
            "nonperiodic_fraction"]
+# settings the paper's tables and figures are keyed by, under short column names; every other
+# setting that varies between jobs becomes a column under its dotted config key
 SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
             "task.num_series": "num_series", "task.length": "length",
             "model.gating.context_size": "context_size", "eval.noise_var": "noise_var_setting",
             "eval.jacobian_gates": "jacobian_gates", "eval.num_samples": "eval_samples",
             "eval.lyapunov_steps": "eval_steps"}
 CHOICES = {"p05_arm": "arm"}  # config groups whose chosen option is a setting
+# keys that cannot change a job's numbers: where it writes, how often it logs, what it plots
+BOOKKEEPING = ("out_dir", "resume", "cache_dir", "run_dir", "eval.enabled", "eval.plot_steps",
+               "train.checkpoint_every", "train.experts.log_every", "train.gating.log_every",
+               "plot.")
 # heat-map panels (Figs. 14, 16): setting -> (title, file-name part)
 PANELS = {"context_size": ("NC = {:g}", "_NC{:g}"),
           "noise_var_setting": ("ρ² = {:g}", "_noise{:g}")}
@@ -50,47 +58,94 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
     return out
 
 
-def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
     """Every job folder below `sweep_dir` (one with .hydra/config.yaml), and every re-evaluation
     `moex evaluate` wrote inside one (<job>/evaluate/<date>/, e.g. at another noise level): a
     re-evaluation is a job of its own whose eval.* settings come from its eval_config.yaml.
 
     Returns:
         runs: one row per (job, run) with the job's settings and its metrics.csv columns;
-        jobs: one row per job with its status (done, failed, interrupted, missing metrics).
+        jobs: one row per job with its status (done, failed, interrupted, missing metrics);
+        varying: the columns of the settings that differ between jobs.
     """
-    runs, jobs = [], []
+    found = []  # (name, folder, settings, status) per job
 
     def add(name: str, folder: Path, config: dict, choices: dict, status: dict) -> None:
-        settings = {name: config.get(key) for key, name in SETTINGS.items()}
-        settings.update({name: choices[group] for group, name in CHOICES.items()
-                         if group in choices})
-        metrics_path = folder / io.METRICS
-        state = status.get("status", "running or killed")
-        if state == "done" and not metrics_path.exists():
-            state = "missing metrics"
-        jobs.append({"job": name, **settings, "status": state,
-                     "error": status.get("error", ""), "path": str(folder)})
-        if metrics_path.exists():
-            runs.append(io.read_csv(metrics_path).assign(job=name, **settings))
+        settings = {k: _hashable(v) for k, v in config.items()
+                    if not k.startswith(BOOKKEEPING)}
+        settings.update({f"choice:{group}": option for group, option in choices.items()
+                         if not group.startswith("hydra/")})
+        found.append((name, folder, settings, status))
 
     for config_path in sorted(Path(sweep_dir).glob("**/.hydra/config.yaml"),  # job 2 before 10
                               key=lambda p: (len(str(p)), str(p))):
         job_dir = config_path.parent.parent
-        config = _flatten(yaml.safe_load(config_path.read_text()))
+        config = _flatten(_read(config_path, yaml.safe_load, dict))
         hydra_path = config_path.with_name("hydra.yaml")
-        choices = (yaml.safe_load(hydra_path.read_text())["hydra"]["runtime"]["choices"]
-                   if hydra_path.exists() else {})
+        choices = (_read(hydra_path, lambda text: yaml.safe_load(text)["hydra"]["runtime"]
+                         ["choices"], dict) if hydra_path.exists() else {})
         status_path = job_dir / "status.json"
         add(job_dir.name, job_dir, config, choices,
-            json.loads(status_path.read_text()) if status_path.exists() else {})
+            _read(status_path, json.loads, dict) if status_path.exists() else {})
         for eval_config in sorted(job_dir.glob("evaluate/*/eval_config.yaml")):
             folder = eval_config.parent
-            evaluated = _flatten({"eval": yaml.safe_load(eval_config.read_text())})
+            evaluated = _flatten({"eval": _read(eval_config, yaml.safe_load, dict)})
             add(f"{job_dir.name}/evaluate/{folder.name}", folder, {**config, **evaluated},
                 choices, {"status": "done"} if (folder / io.METRICS).exists() else {})
-    return (pd.concat(runs, ignore_index=True) if runs else pd.DataFrame(),
-            pd.DataFrame(jobs))
+    varying = varying_settings([settings for _, _, settings, _ in found])
+    runs, jobs = [], []
+    for name, folder, settings, status in found:
+        columns = {column: settings.get(key) for key, column in _columns(varying).items()}
+        metrics_path = folder / io.METRICS
+        state = status.get("status", "running or killed")
+        if state == "done" and not metrics_path.exists():
+            state = "missing metrics"
+        jobs.append({"job": name, **columns, "status": state,
+                     "error": status.get("error", ""), "path": str(folder)})
+        if metrics_path.exists():
+            metrics = _read(metrics_path, lambda text: pd.read_csv(StringIO(text)), pd.DataFrame)
+            check("run" in metrics, f"{metrics_path} has no run column, so it is not a moex "
+                                    f"metrics.csv; fix or remove it")
+            runs.append(metrics.assign(job=name, **columns))
+    return (pd.concat(runs, ignore_index=True) if runs else pd.DataFrame(), pd.DataFrame(jobs),
+            [_columns(varying)[k] for k in varying])
+
+
+def _read(path: Path, parse, kind: type):
+    """`parse` of the text of `path`, which must give a `kind`; a damaged file is a
+    `ConfigError` naming it."""
+    try:
+        value = parse(path.read_text())
+    except Exception as exc:  # yaml, json, pandas and decoding errors alike
+        raise ConfigError(f"{path} cannot be read ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0] if str(exc) else ''}); fix or remove "
+                          f"it") from None
+    check(isinstance(value, kind), f"{path} does not hold a {kind.__name__}; fix or remove it")
+    return value
+
+
+def _hashable(value):
+    """A config value as something a table can group by (lists and dicts as their YAML)."""
+    if isinstance(value, list | dict):
+        return yaml.safe_dump(value, default_flow_style=True).strip()
+    return value
+
+
+def varying_settings(jobs: list[dict]) -> list[str]:
+    """The keys whose value differs between jobs (a key some jobs lack counts as differing),
+    in first-seen order."""
+    keys = list(dict.fromkeys(k for settings in jobs for k in settings))
+    return [k for k in keys if len({repr(settings.get(k)) for settings in jobs}) > 1]
+
+
+def _columns(varying: list[str]) -> dict[str, str]:
+    """Column name of each setting: the short names of SETTINGS and CHOICES (always present),
+    then every other varying key under its config key (a choice as its group name)."""
+    columns = dict(SETTINGS)
+    columns.update({f"choice:{group}": name for group, name in CHOICES.items()})
+    for key in varying:
+        columns.setdefault(key, key.removeprefix("choice:"))
+    return columns
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -143,25 +198,30 @@ def _write_table(out: Path, name: str, frame: pd.DataFrame) -> None:
                     lambda tmp: Path(tmp).write_text(to_markdown(frame)))
 
 
-def paper_tables(summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
+def paper_tables(summary: pd.DataFrame, keys: list[str]) -> dict[str, pd.DataFrame]:
     """Table 1 (Reber, by context size) and Table 2 (two Lissajous, by P) beside the paper's
-    numbers, for the settings the sweep has; rows the sweep lacks are shown as missing."""
+    numbers, for the settings the sweep has; rows the sweep lacks are shown as missing. Every
+    other setting in `keys` (those that vary between jobs) is a column of its own."""
     tables = {}
     reber = summary[summary["task"] == "reber"]
     if len(reber):
-        cols = ["context_size", "E_g_mean", "block_kl_train_mean", "block_kl_test_mean",
-                "max_lyapunov_mean", "positive_percent", "num_runs"]
-        tables["table1"] = PAPER_TABLE1.merge(reber[cols], on="context_size", how="outer")
+        cols = ["context_size", *_others(keys, "context_size"), "E_g_mean",
+                "block_kl_train_mean", "block_kl_test_mean", "max_lyapunov_mean",
+                "positive_percent", "num_runs"]
+        tables["table1"] = PAPER_TABLE1.merge(reber[[c for c in cols if c in reber]],
+                                              on="context_size", how="outer")
     liss = summary[summary["task"] == "lissajous2"]
     if len(liss) and liss["switch_prob_task"].nunique() > 1:
-        cols = ["switch_prob_task", "data_switch_prob_mean", "switch_prob_mean", "switch_prob_std",
+        cols = ["switch_prob_task", *_others(keys, "switch_prob_task", "task"),
+                "data_switch_prob_mean", "switch_prob_mean", "switch_prob_std",
                 "near_data_percent", "max_lyapunov_mean", "max_lyapunov_std", "positive_percent",
                 "positive_ci_low", "positive_ci_high", "nonperiodic_fraction_mean", "num_runs"]
         cols = [c for c in cols if c in liss]
         tables["table2"] = (PAPER_TABLE2.merge(liss[cols], on="switch_prob_task", how="outer")
                             .sort_values("switch_prob_task", ascending=False, ignore_index=True))
     if "arm" in summary:
-        cols = ["arm", "switch_prob_mean", "switch_prob_std", "data_switch_prob_mean",
+        cols = ["arm", *_others(keys, "arm"), "switch_prob_mean", "switch_prob_std",
+                "data_switch_prob_mean",
                 "near_data_percent", "max_lyapunov_mean", "positive_percent", "positive_ci_low",
                 "positive_ci_high", "nonperiodic_fraction_mean", "E_mean", "E_g_mean",
                 "E_closed_mean", "num_runs", "failed_runs"]
@@ -169,18 +229,20 @@ def paper_tables(summary: pd.DataFrame) -> dict[str, pd.DataFrame]:
     return tables
 
 
+def _others(keys: list[str], *shown: str) -> list[str]:
+    return [k for k in keys if k not in shown]
+
+
 def report(sweep_dir: Path) -> dict[str, pd.DataFrame]:
     """Write summary.csv, tables/*.csv|md and figures/*.png into `sweep_dir`; safe to re-run."""
     sweep_dir = Path(sweep_dir)
-    runs, jobs = gather(sweep_dir)
+    runs, jobs, keys = gather(sweep_dir)
     out = {"jobs": jobs}
     if len(jobs):
         _write_table(sweep_dir, "jobs", jobs.drop(columns=["path"]))
     if runs.empty:
         return out
     io.write_csv(sweep_dir / "summary.csv", runs)
-    keys = [k for k in [*SETTINGS.values(), *CHOICES.values()]
-            if k in runs and runs[k].nunique(dropna=False) > 1]
     summary = aggregate(runs, keys or ["task"])
     if "arm" in summary:  # arms in the sweep's order, not alphabetical
         first = {arm: i for i, arm in enumerate(pd.unique(runs["arm"]))}
@@ -190,24 +252,28 @@ def report(sweep_dir: Path) -> dict[str, pd.DataFrame]:
             summary[k] = runs[k].iloc[0]
     _write_table(sweep_dir, "by_setting", summary)
     out["summary"] = summary
-    for name, table in paper_tables(summary).items():
+    for name, table in paper_tables(summary, keys).items():
         _write_table(sweep_dir, name, table)
         out[name] = table
-    _figures(sweep_dir, runs, summary, jobs)
+    _figures(sweep_dir, runs, summary, jobs, keys)
     return out
 
 
-def _figures(sweep_dir: Path, runs, summary, jobs) -> None:
+def _figures(sweep_dir: Path, runs, summary, jobs, keys) -> None:
     figures = sweep_dir / "figures"
     if {"num_series", "length"} <= set(summary) and summary["num_series"].nunique() > 1 \
             and summary["length"].nunique() > 1:
-        # one panel per NC, and per noise level when re-evaluations add one (Fig. 16)
-        panels = {k: v for k, v in PANELS.items() if k in summary}
+        # one panel per value of every other setting that varies: NC, and the noise level
+        # when re-evaluations add one (Fig. 16)
+        others = [k for k in PANELS if k in summary] + [
+            k for k in keys if k not in ("num_series", "length", *PANELS)]
         for column in ("E_closed_mean", "positive_percent", "nonperiodic_fraction_mean"):
-            for values, group in summary.groupby(list(panels)):
-                named = list(zip(panels.values(), values, strict=True))
-                title = ", ".join(label.format(v) for (label, _), v in named)
-                suffix = "".join(part.format(v) for (_, part), v in named)
+            for values, group in summary.groupby(others):
+                named = list(zip(others, values, strict=True))
+                title = ", ".join(PANELS[k][0].format(v) if k in PANELS else f"{k} = {v}"
+                                  for k, v in named)
+                suffix = "".join(PANELS[k][1].format(v) if k in PANELS else f"_{k}{v}"
+                                 for k, v in named)
                 fig = plotting.plot_heatmap(group, "num_series", "length", column, title=title)
                 plotting.save_figure(fig, figures / f"heatmap_{column}{suffix}.png")
     if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
@@ -226,10 +292,14 @@ def _figures(sweep_dir: Path, runs, summary, jobs) -> None:
         path = Path(job["path"]) / io.SAMPLES
         if path.exists():
             with np.load(path) as data:
-                if "residence_hist" in data:
-                    hists.setdefault(job["switch_prob_task"], []).append(data["residence_hist"])
+                if "residence_hist" in data:  # cut-off stays: not in older folders
+                    cut = data.get("residence_censored_hist", 0 * data["residence_hist"])
+                    hists.setdefault(job["switch_prob_task"], []).append(
+                        (data["residence_hist"], cut))
     if len(hists) > 1:
-        fig = plotting.plot_residence_panels({p: np.concatenate(h) for p, h in hists.items()})
+        fig = plotting.plot_residence_panels(
+            {p: tuple(np.concatenate(part) for part in zip(*h, strict=True))
+             for p, h in hists.items()})
         plotting.save_figure(fig, figures / "residence_times.png")
 
 
@@ -241,7 +311,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if not args.sweep_dir.is_dir():
         parser.exit(2, f"moex: error: {args.sweep_dir} is not a folder\n")
-    out = report(args.sweep_dir)
+    try:
+        out = report(args.sweep_dir)
+    except ConfigError as exc:
+        parser.exit(2, f"moex: error: {exc}\n")
     jobs = out["jobs"]
     if jobs.empty:
         parser.exit(2, f"moex: error: {args.sweep_dir} holds no job folder (.hydra/config.yaml)\n")

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from moex.errors import check, check_positive, check_range
+from moex.errors import Interrupted, check, check_positive, check_range
 from moex.kernels import Backend, get_backend
 from moex.model import ModelConfig
 
@@ -116,7 +116,7 @@ class Hooks:
     resume: dict | None = None  # a state from `save`, to continue from
 
 
-class TrainingInterrupted(Exception):
+class TrainingInterrupted(Interrupted):
     """Training stopped on request after saving its state; re-run to resume."""
 
 

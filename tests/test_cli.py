@@ -100,7 +100,11 @@ def test_a_failed_evaluation_leaves_nothing_behind(tmp_path):
     before = sorted(p.name for p in run_dir.iterdir())
     for verb in ("evaluate", "generate"):
         result = _moex([verb, f"run_dir={run_dir}"], cwd=tmp_path)
-        assert result.returncode == 1 and "moex: error:" in result.stderr, result.stderr
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.strip() == (f"moex: error: {run_dir}/checkpoint.pt: its gating "
+                                         f"network lacks w_rec; it is not a usable moex "
+                                         f"checkpoint (train again into another folder, or "
+                                         f"restore the file)")
         assert sorted(p.name for p in run_dir.iterdir()) == before
 
 
@@ -182,7 +186,7 @@ def test_bad_transition_matrix_and_csv(tmp_path):
          "need at least 5 (model.delay + 2)"),
         (["task=markov_primitives", "task.transition=[[0.5,0.4],[0.5,0.5]]"],
          "task.transition[0] sums to 0.9, not 1"),
-        (["task=csv", f"task.path={tmp_path}/bad.csv"], "contains NaN or inf"),
+        (["task=csv", f"task.path={tmp_path}/bad.csv"], "has NaN or inf values (first at step 1)"),
         (["task=csv"], "task.path"),
     ]:
         result = _moex(["train", *args, f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path)
@@ -198,11 +202,12 @@ def test_run_dir_without_checkpoint(verb, tmp_path):
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
     result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
-    assert result.returncode == 2 and "is not a readable moex checkpoint" in result.stderr
+    assert result.returncode == 2 and "cannot be read" in result.stderr
+    assert "it is not a usable moex checkpoint" in result.stderr
     torch.save({"format_version": 99}, tmp_path / "checkpoint.pt")
     result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
     assert result.returncode == 2
-    assert "has checkpoint format 99, this moex reads format 1" in result.stderr
+    assert "its format is 99; this moex reads formats 1 and 2" in result.stderr
 
 
 def test_missing_launcher_plugin_is_named(tmp_path):

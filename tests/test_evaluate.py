@@ -101,16 +101,16 @@ def test_tracking_during_training(tmp_path):
                             gating=GatingPhaseConfig(steps=5, log_every=100))
     cfg.eval = EvalConfig(enabled=False, every=2, track_samples=2, track_steps=100,
                           transient=10)
-    payload = run_train(cfg, tmp_path)
+    saved = run_train(cfg, tmp_path)
     history = pd.read_csv(tmp_path / "history.csv")
     tracked = history[(history["phase"] == "gating") & history["block_kl_train"].notna()]
     assert sorted(tracked["step"].unique()) == [0, 2, 4]
     assert tracked["max_lyapunov"].notna().all()
     data = load_task(cfg)
     series = torch.as_tensor(data.series)
-    targets = gate_estimates(payload["beta"])
-    closed = generate(payload["experts"], payload["gating"],
-                      trained_state(payload["experts"], payload["gating"], targets, series, 1),
+    targets = gate_estimates(saved.beta)
+    closed = generate(saved.experts, saved.gating,
+                      trained_state(saved.experts, saved.gating, targets, series, 1),
                       targets.shape[2])
     last = tracked[tracked["step"] == 4].sort_values("run")["block_kl_train"]
     np.testing.assert_allclose(last, _train_block_kl(targets, closed["gates"], cfg.eval))
@@ -136,3 +136,28 @@ def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backen
                                backend=get_backend(backend))
     torch.testing.assert_close(lam, torch.full_like(lam, math.log(1 - 0.07)), rtol=0,
                                atol=1e-10)
+
+
+def test_noise_enters_only_the_metrics_it_is_said_to():
+    """With ρ² > 0, λ_max is still that of the noiseless loop (bit for bit the exponent of an
+    evaluation without noise), the noisy exponent stands beside it, and the noisy columns are
+    named."""
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 4, 5
+    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+                                                      num_test_series=1), model)
+
+    def table(noise_var):
+        cfg = dataclasses.replace(QUICK, noise_var=noise_var)
+        return pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg,
+                                     torch.Generator().manual_seed(0)).rows)
+
+    clean, noisy = table(0.0), table(0.01)
+    assert "max_lyapunov_noisy" not in clean and "noise_enters" not in clean
+    for column in ("max_lyapunov", "positive_sample_fraction", "E", "E_g", "E_closed",
+                   "block_kl_train"):
+        assert (clean[column] == noisy[column]).all(), column
+    assert (noisy["max_lyapunov_noisy"] != noisy["max_lyapunov"]).all()
+    named = set(noisy["noise_enters"].iloc[0].split())
+    assert {"switch_prob", "nonperiodic_fraction", "max_lyapunov_noisy"} <= named
+    assert not {"max_lyapunov", "E_closed"} & named

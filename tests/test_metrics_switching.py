@@ -85,3 +85,29 @@ def test_nonperiodic_share_leaves_out_sequences_too_short_to_judge():
     assert nonperiodic_share([periodic[:101]], 100) == (0.0, 1)
     share, judged = nonperiodic_share([short, periodic[:100]], 100)
     assert np.isnan(share) and judged == 0
+
+
+def test_residence_times_keep_the_stays_cut_off_by_the_sample_ends():
+    never = np.zeros(50, dtype=int)  # one stay longer than the sample: nothing completed
+    assert residence_times(never) == {}
+    assert residence_times(never, censored=True)[0].tolist() == [50]
+    seq = [0] * 3 + [1] * 4 + [0] * 2 + [1] * 6  # first (3) and last (6) stays are cut off
+    done, cut = residence_times(seq), residence_times(seq, censored=True)
+    assert {k: v.tolist() for k, v in done.items()} == {0: [2], 1: [4]}
+    assert {k: v.tolist() for k, v in cut.items()} == {0: [3], 1: [6]}
+
+
+def test_a_network_that_never_switches_has_long_stays_not_short_ones():
+    """Stays longer than the sample were once dropped: a network that stayed on one curve had
+    mean_residence 1 (its few jitter stays). Every stay now counts, the cut-off ones flagged."""
+    from types import SimpleNamespace
+
+    from moex.evaluate import EvalConfig, _switching_columns
+
+    period, laps = 25, 40
+    stay = np.zeros((3, period * laps), dtype=int)  # 3 samples, each on curve 0 throughout
+    columns, _, done, cut = _switching_columns(stay, stay, SimpleNamespace(period=period),
+                                               EvalConfig(max_period=10))
+    assert columns["switch_prob"] == 0 and len(done) == 0
+    assert columns["mean_residence"] == laps and columns["censored_stays"] == 3
+    assert cut.tolist() == [laps] * 3

@@ -169,3 +169,35 @@ def test_report_of_table1_tabulates_per_context_size_and_plots_each_network(tmp_
     assert table1.loc[10, "paper_block_kl_test"] == 2.388665
     assert table1.loc[30, "num_runs"] != table1.loc[30, "num_runs"]  # not run: missing
     assert (tmp_path / "figures" / "table1_kl_vs_lyapunov.png").stat().st_size > 0
+
+
+def test_report_never_pools_a_setting_it_has_no_name_for(tmp_path):
+    """A sweep over a key the report has no short name for (the phase-2 target temperature):
+    one row per value, the key named in summary.csv, by_setting, jobs and Table 2."""
+    for job, (p, temperature, switch) in enumerate([(0.5, 1, [0.1, 0.2]), (0.5, 0, [0.5, 0.6]),
+                                                   (0.25, 1, [0.3, 0.3]), (0.25, 0, [0.2, 0.2])]):
+        _fake_job(tmp_path / str(job),
+                  f"task:\n  name: lissajous2\n  switch_prob: {p}\nmodel:\n  gating:\n"
+                  f"    context_size: 15\ntrain:\n  gating:\n"
+                  f"    target_temperature: {temperature}\n"
+                  f"  checkpoint_every: {job}\n",  # bookkeeping: differs, groups nothing
+                  {"switch_prob": switch, "max_lyapunov": [0.1, 0.2]})
+    out = report(tmp_path)
+    key = "train.gating.target_temperature"
+    summary = out["summary"].set_index(["switch_prob_task", key])
+    assert len(summary) == 4 and (summary["num_runs"] == 2).all()
+    assert summary.loc[(0.5, 1), "switch_prob_mean"] == pytest.approx(0.15)
+    assert summary.loc[(0.5, 0), "switch_prob_mean"] == pytest.approx(0.55)
+    assert "train.checkpoint_every" not in out["summary"]
+    assert key in pd.read_csv(tmp_path / "summary.csv")
+    assert key in (tmp_path / "tables" / "jobs.md").read_text()
+    table2 = out["table2"]
+    assert key in table2 and len(table2.dropna(subset=["num_runs"])) == 4
+
+
+def test_report_groups_jobs_that_lack_a_key_apart_from_those_that_set_it(tmp_path):
+    reber = "task:\n  name: reber\nmodel:\n  gating:\n    context_size: 20\n"
+    _fake_job(tmp_path / "0", reber, {"max_lyapunov": [0.1, 0.2]})
+    _fake_job(tmp_path / "1", reber + "seed: 3\n", {"max_lyapunov": [0.3, 0.4]})
+    summary = report(tmp_path)["summary"]
+    assert len(summary) == 2 and summary["seed"].isna().sum() == 1

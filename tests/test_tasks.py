@@ -114,3 +114,14 @@ def test_csv_task(tmp_path):
     (tmp_path / "s1.csv").write_text("0.1,0.2\n0.3\n" * 30)
     with pytest.raises(ConfigError, match="rows of different lengths"):
         make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
+
+
+def test_data_seed_sets_the_data_apart_from_the_networks():
+    from moex.tasks import TaskConfig, make_task
+
+    base = TaskConfig(num_series=2, length=200)
+    own = make_task(base, 3).series
+    fixed = TaskConfig(num_series=2, length=200, data_seed=3)
+    np.testing.assert_array_equal(make_task(fixed, 0).series, own)  # seed no longer matters
+    np.testing.assert_array_equal(make_task(fixed, 7).series, own)
+    assert not np.array_equal(make_task(base, 0).series, own)

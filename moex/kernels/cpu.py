@@ -24,7 +24,7 @@ import torch
 from numba import get_num_threads, njit, prange
 
 from moex.kernels import input_noise
-from moex.kernels.simd import JIT, LB, exp, lanes, log, padded, stack, tanh
+from moex.kernels.simd import JIT, LB, exp, fma, lanes, log, padded, stack, tanh
 from moex.model import ClosedLoopRun
 
 # ---------------------------------------------------------------------------------------------
@@ -56,17 +56,17 @@ def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pr
                 acc[v] = 0.0
             for d in range(NI):
                 for v in range(LB):
-                    acc[v] += wi[i, d, v] * X[t, d, v]
+                    acc[v] = fma(wi[i, d, v], X[t, d, v], acc[v])
             for j in range(H):
                 for v in range(LB):
-                    acc[v] += wr[i, j, v] * c[j, v]
+                    acc[v] = fma(wr[i, j, v], c[j, v], acc[v])
             for v in range(LB):
-                u[i, v] = (1.0 - eps[i, v]) * u[i, v] + eps[i, v] * acc[v]
+                u[i, v] = fma(eps[i, v], acc[v] - u[i, v], u[i, v])  # (1 - ε) u + ε acc
         for i in range(H):
             for v in range(LB):
                 c[i, v] = tanh(u[i, v] + bc[i, v])
                 s1[i, v] += u[i, v]
-                s2[i, v] += u[i, v] * u[i, v]
+                s2[i, v] = fma(u[i, v], u[i, v], s2[i, v])
         if keep_c:
             for i in range(H):
                 for v in range(LB):
@@ -80,7 +80,7 @@ def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pr
                 acc[v] = bo[o, v]
             for i in range(H):
                 for v in range(LB):
-                    acc[v] += wo[o, i, v] * c[i, v]
+                    acc[v] = fma(wo[o, i, v], c[i, v], acc[v])
             if squash:
                 for v in range(LB):
                     Y[t, o, v] = tanh(acc[v])
@@ -130,7 +130,7 @@ def _backward(DY, X, C0, C, U, u0, wr, wo, eps, g_wi, g_wr, g_wo, g_bc, g_bo, g_
                 acc[v] = back[i, v]
             for o in range(NO):
                 for v in range(LB):
-                    acc[v] += wo[o, i, v] * DY[t, o, v]
+                    acc[v] = fma(wo[o, i, v], DY[t, o, v], acc[v])
             for v in range(LB):
                 dq = (1.0 - C[t, i, v] * C[t, i, v]) * acc[v]
                 gbc[i, v] += dq
@@ -141,14 +141,14 @@ def _backward(DY, X, C0, C, U, u0, wr, wo, eps, g_wi, g_wr, g_wo, g_bc, g_bo, g_
                 gbo[o, v] += DY[t, o, v]
             for i in range(H):
                 for v in range(LB):
-                    gwo[o * H + i, v] += DY[t, o, v] * C[t, i, v]
+                    gwo[o * H + i, v] = fma(DY[t, o, v], C[t, i, v], gwo[o * H + i, v])
         for i in range(H):
             for d in range(NI):
                 for v in range(LB):
-                    gwi[i * NI + d, v] += ea[i, v] * X[t, d, v]
+                    gwi[i * NI + d, v] = fma(ea[i, v], X[t, d, v], gwi[i * NI + d, v])
             for j in range(H):
                 for v in range(LB):
-                    gwr[i * H + j, v] += ea[i, v] * prev[j, v]
+                    gwr[i * H + j, v] = fma(ea[i, v], prev[j, v], gwr[i * H + j, v])
         if learn_eps:  # ∂u_t/∂ε = s_t - u_{t-1} = (u_t - u_{t-1}) / ε
             u_prev = U[t - 1] if t > 0 else u0
             for i in range(H):
@@ -160,7 +160,7 @@ def _backward(DY, X, C0, C, U, u0, wr, wo, eps, g_wi, g_wr, g_wo, g_bc, g_bo, g_
                 acc[v] = 0.0
             for i in range(H):
                 for v in range(LB):
-                    acc[v] += wr[i, j, v] * ea[i, v]
+                    acc[v] = fma(wr[i, j, v], ea[i, v], acc[v])
             for v in range(LB):
                 back[j, v] = acc[v]
     for i in range(H):  # c_{-1} = tanh(u_0 + b_c) feeds step 0
@@ -333,7 +333,8 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             z[k, t] = 0.0
         for d in range(D):
             for t in range(T):
-                z[k, t] += (y[k, d, t] - target[d, t]) ** 2
+                diff = y[k, d, t] - target[d, t]
+                z[k, t] = fma(diff, diff, z[k, t])
         for t in range(T):
             z[k, t] = log_ghat[k, t] + norm - z[k, t] / (2.0 * var[r, k])
     for t in range(T):
@@ -355,9 +356,9 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             total[t] = -target[d, t]
         for k in range(K):
             for t in range(T):
-                total[t] += exp(log_ghat[k, t]) * y[k, d, t]
+                total[t] = fma(exp(log_ghat[k, t]), y[k, d, t], total[t])
         for t in range(T):
-            error += total[t] * total[t]
+            error = fma(total[t], total[t], error)
     prior = 0.0
     inv = 1.0 / (prior_std * prior_std)
     log_norm = 0.5 * log(2.0 * math.pi * prior_std * prior_std)
@@ -383,7 +384,8 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             sq[t] = 0.0
         for d in range(D):
             for t in range(T):
-                sq[t] += (y[k, d, t] - target[d, t]) ** 2
+                diff = y[k, d, t] - target[d, t]
+                sq[t] = fma(diff, diff, sq[t])
         sigma_term = 0.0
         for t in range(T):
             sigma_term += resp[t] * (sq[t] / var[r, k] - D)
@@ -819,10 +821,10 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                     acc[v] = 0.0
                 for d in range(D):
                     for v in range(LB):
-                        acc[v] += e_wi[e, i, d, v] * x[d, v]
+                        acc[v] = fma(e_wi[e, i, d, v], x[d, v], acc[v])
                 for j in range(M):
                     for v in range(LB):
-                        acc[v] += e_wr[e, i, j, v] * ce[e * M + j, v]
+                        acc[v] = fma(e_wr[e, i, j, v], ce[e * M + j, v], acc[v])
                 for v in range(LB):
                     ue[e * M + i, v] = (1.0 - e_eps[e, i, v]) * ue[e * M + i, v] \
                         + e_eps[e, i, v] * acc[v]
@@ -835,7 +837,7 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                     acc[v] = e_bo[e, d, v]
                 for i in range(M):
                     for v in range(LB):
-                        acc[v] += e_wo[e, d, i, v] * ce[e * M + i, v]
+                        acc[v] = fma(e_wo[e, d, i, v], ce[e * M + i, v], acc[v])
                 for v in range(LB):
                     outs[e * D + d, v] = tanh(acc[v])
         for d in range(D):  # Eq. 4; without experts (symbolic tasks) D = 0
@@ -843,7 +845,7 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                 y[d, v] = 0.0
             for e in range(KE):
                 for v in range(LB):
-                    y[d, v] += g[e, v] * outs[e * D + d, v]
+                    y[d, v] = fma(g[e, v], outs[e * D + d, v], y[d, v])
         # gating RNN, Eqs. 5-8: reads (g_m, x_m), emits g_{m+τ}
         for h in range(H):
             for v in range(LB):
@@ -853,13 +855,13 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                 acc[v] = 0.0
             for k in range(K):
                 for v in range(LB):
-                    acc[v] += g_wi[h, k, v] * g[k, v]
+                    acc[v] = fma(g_wi[h, k, v], g[k, v], acc[v])
             for d in range(D):
                 for v in range(LB):
-                    acc[v] += g_wi[h, K + d, v] * x[d, v]
+                    acc[v] = fma(g_wi[h, K + d, v], x[d, v], acc[v])
             for j in range(H):
                 for v in range(LB):
-                    acc[v] += g_wr[h, j, v] * cg[j, v]
+                    acc[v] = fma(g_wr[h, j, v], cg[j, v], acc[v])
             for v in range(LB):
                 ug[h, v] = (1.0 - g_eps[h, v]) * ug[h, v] + g_eps[h, v] * acc[v]
         for h in range(H):
@@ -871,7 +873,7 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                 acc[v] = g_bo[k, v]
             for h in range(H):
                 for v in range(LB):
-                    acc[v] += g_wo[k, h, v] * cg[h, v]
+                    acc[v] = fma(g_wo[k, h, v], cg[h, v], acc[v])
             for v in range(LB):
                 ng[k, v] = acc[v]
         for v in range(LB):
@@ -898,10 +900,10 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                         acc[v] = 0.0
                     for d in range(D):
                         for v in range(LB):
-                            acc[v] += e_wi[e, i, d, v] * V[n, ox + d, v]
+                            acc[v] = fma(e_wi[e, i, d, v], V[n, ox + d, v], acc[v])
                     for j in range(M):
                         for v in range(LB):
-                            acc[v] += e_wr[e, i, j, v] * dc[e * M + j, v]
+                            acc[v] = fma(e_wr[e, i, j, v], dc[e * M + j, v], acc[v])
                     for v in range(LB):
                         nv[e * M + i, v] = (1.0 - e_eps[e, i, v]) * V[n, e * M + i, v] \
                             + e_eps[e, i, v] * acc[v]
@@ -916,7 +918,7 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                         acc[v] = 0.0
                     for i in range(M):
                         for v in range(LB):
-                            acc[v] += e_wo[e, d, i, v] * dc[e * M + i, v]
+                            acc[v] = fma(e_wo[e, d, i, v], dc[e * M + i, v], acc[v])
                     for v in range(LB):
                         weight = 1.0 / KE if uniform_gates else g[e, v]
                         dy[d, v] += V[n, ot + e, v] * outs[e * D + d, v] + weight \
@@ -929,13 +931,13 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                     acc[v] = 0.0
                 for k in range(K):
                     for v in range(LB):
-                        acc[v] += g_wi[h, k, v] * V[n, ot + k, v]
+                        acc[v] = fma(g_wi[h, k, v], V[n, ot + k, v], acc[v])
                 for d in range(D):
                     for v in range(LB):
-                        acc[v] += g_wi[h, K + d, v] * V[n, ox + d, v]
+                        acc[v] = fma(g_wi[h, K + d, v], V[n, ox + d, v], acc[v])
                 for j in range(H):
                     for v in range(LB):
-                        acc[v] += g_wr[h, j, v] * dcgv[j, v]
+                        acc[v] = fma(g_wr[h, j, v], dcgv[j, v], acc[v])
                 for v in range(LB):
                     nv[og + h, v] = (1.0 - g_eps[h, v]) * V[n, og + h, v] + g_eps[h, v] * acc[v]
             for h in range(H):
@@ -948,10 +950,10 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                     acc[v] = 0.0
                 for h in range(H):
                     for v in range(LB):
-                        acc[v] += g_wo[k, h, v] * dcgv[h, v]
+                        acc[v] = fma(g_wo[k, h, v], dcgv[h, v], acc[v])
                 for v in range(LB):
                     dl[k, v] = acc[v]
-                    total[v] += ng[k, v] * acc[v]
+                    total[v] = fma(ng[k, v], acc[v], total[v])
             for q in range(TAU - 1):  # the delay lines shift by one
                 for d in range(D):
                     for v in range(LB):
@@ -974,7 +976,7 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                     acc[v] = 0.0
                 for q in range(dim):
                     for v in range(LB):
-                        acc[v] += V[w, q, v] * V[n, q, v]
+                        acc[v] = fma(V[w, q, v], V[n, q, v], acc[v])
                 for q in range(dim):
                     for v in range(LB):
                         V[n, q, v] -= acc[v] * V[w, q, v]
@@ -982,7 +984,7 @@ def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out
                 acc[v] = 0.0
             for q in range(dim):
                 for v in range(LB):
-                    acc[v] += V[n, q, v] * V[n, q, v]
+                    acc[v] = fma(V[n, q, v], V[n, q, v], acc[v])
             for v in range(LB):
                 acc[v] = np.sqrt(acc[v])
             for q in range(dim):
@@ -1149,7 +1151,7 @@ def _nearest(points, prototypes, symbols, out):  # pragma: no cover
             for d in range(D):
                 for v in range(LB):
                     diff = points[d, b * LB + v] - prototypes[p, d]
-                    dist[v] += diff * diff
+                    dist[v] = fma(diff, diff, dist[v])
             for v in range(LB):
                 closer = dist[v] < best[v]
                 best[v] = dist[v] if closer else best[v]

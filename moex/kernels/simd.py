@@ -18,10 +18,28 @@ numba.config.SLP_VECTORIZE = 1  # read when numba builds its pass manager, befor
 
 LB = 8  # lanes per block: one AVX-512 vector of float64 (two AVX2 vectors)
 
-# `reassoc` is left out: it would fold the rounding trick of `exp` (x + c - c) into x
-FASTMATH = {"nnan", "ninf", "nsz", "arcp", "contract", "afn"}
+# Only flags that never change a finite result: `contract` (fuse a·b + c where LLVM sees fit),
+# `arcp`, `afn` and `reassoc` let the same source round differently depending on what LLVM
+# inlined around it, and a kernel compiled in the process then gave other last bits than the
+# same kernel loaded from numba's cache (the chaotic closed loop amplified them into other
+# metrics). Fused multiply-adds are written out with `fma` instead: one rounding, everywhere.
+FASTMATH = {"nnan", "ninf", "nsz"}
 # error_model="numpy": no ZeroDivisionError branch on float division, which blocks vectorisation
 JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
+
+
+@intrinsic
+def fma(typingctx, a, b, c):
+    """a·b + c rounded once (llvm.fma: a vector FMA instruction where the CPU has one), in the
+    widest type of the three; written out where a product is accumulated, since the compiler
+    may not fuse."""
+    kind = typingctx.unify_types(a, b, c)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*(context.cast(builder, v, t, kind) for v, t in zip(
+            args, signature.args, strict=True)))
+
+    return kind(a, b, c), codegen
 
 
 @intrinsic
@@ -101,21 +119,21 @@ def exp(x):
     x = float(x)
     x = x if x > -700.0 else -700.0  # conditional expressions vectorise; min/max branch
     x = x if x < 700.0 else 700.0
-    shifted = x * _LOG2E + _ROUND
+    shifted = fma(x, _LOG2E, _ROUND)
     k = shifted - _ROUND  # round(x / ln 2)
-    r = x - k * _LN2_HI - k * _LN2_LO  # |r| <= ln 2 / 2
+    r = fma(k, -_LN2_LO, fma(k, -_LN2_HI, x))  # |r| <= ln 2 / 2
     p = 1.0 / 39916800.0  # Taylor series of e^r to degree 11
-    p = p * r + 1.0 / 3628800.0
-    p = p * r + 1.0 / 362880.0
-    p = p * r + 1.0 / 40320.0
-    p = p * r + 1.0 / 5040.0
-    p = p * r + 1.0 / 720.0
-    p = p * r + 1.0 / 120.0
-    p = p * r + 1.0 / 24.0
-    p = p * r + 1.0 / 6.0
-    p = p * r + 0.5
-    p = p * r + 1.0
-    p = p * r + 1.0
+    p = fma(p, r, 1.0 / 3628800.0)
+    p = fma(p, r, 1.0 / 362880.0)
+    p = fma(p, r, 1.0 / 40320.0)
+    p = fma(p, r, 1.0 / 5040.0)
+    p = fma(p, r, 1.0 / 720.0)
+    p = fma(p, r, 1.0 / 120.0)
+    p = fma(p, r, 1.0 / 24.0)
+    p = fma(p, r, 1.0 / 6.0)
+    p = fma(p, r, 0.5)
+    p = fma(p, r, 1.0)
+    p = fma(p, r, 1.0)
     return p * _as_float((_as_bits(shifted) + 1023) << 52)  # times 2^k
 
 
@@ -131,17 +149,17 @@ def log(x):
     z = (m - 1.0) / (m + 1.0)
     z2 = z * z
     p = 1.0 / 21.0
-    p = p * z2 + 1.0 / 19.0
-    p = p * z2 + 1.0 / 17.0
-    p = p * z2 + 1.0 / 15.0
-    p = p * z2 + 1.0 / 13.0
-    p = p * z2 + 1.0 / 11.0
-    p = p * z2 + 1.0 / 9.0
-    p = p * z2 + 1.0 / 7.0
-    p = p * z2 + 1.0 / 5.0
-    p = p * z2 + 1.0 / 3.0
-    p = p * z2 + 1.0
-    return 2.0 * z * p + e * _LN2
+    p = fma(p, z2, 1.0 / 19.0)
+    p = fma(p, z2, 1.0 / 17.0)
+    p = fma(p, z2, 1.0 / 15.0)
+    p = fma(p, z2, 1.0 / 13.0)
+    p = fma(p, z2, 1.0 / 11.0)
+    p = fma(p, z2, 1.0 / 9.0)
+    p = fma(p, z2, 1.0 / 7.0)
+    p = fma(p, z2, 1.0 / 5.0)
+    p = fma(p, z2, 1.0 / 3.0)
+    p = fma(p, z2, 1.0)
+    return fma(2.0 * z, p, e * _LN2)
 
 
 @njit(inline="always", **JIT)

@@ -57,11 +57,17 @@ def transition_matrix(seq, num_symbols: int) -> np.ndarray:
         return counts / counts.sum(1, keepdims=True)
 
 
-def residence_times(seq) -> dict[int, np.ndarray]:
-    """Lengths of the runs of each symbol: for a Markov source that stays with probability p
-    they are geometric with mean 1/(1 - p). The first and last (censored) runs are dropped."""
+def residence_times(seq, censored: bool = False) -> dict[int, np.ndarray]:
+    """Lengths of the stays of each symbol. By default the completed stays, entered and left
+    within `seq`: for a Markov source that stays with probability p they are geometric with mean
+    1/(1 - p). With `censored`, the stays cut off by an end of `seq` instead (the first and the
+    last; a sequence that never switches is one such stay): their true lengths are at least
+    these. Dropping them silently would drop exactly the longest stays."""
     values, lengths = rle(seq)
-    values, lengths = values[1:-1], lengths[1:-1]
+    cut = np.zeros(len(values), bool)
+    cut[[0, -1] if len(values) else []] = True
+    keep = cut if censored else ~cut
+    values, lengths = values[keep], lengths[keep]
     return {int(v): lengths[values == v] for v in np.unique(values)}
 
 

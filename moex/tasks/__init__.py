@@ -14,6 +14,7 @@ import numpy as np
 from moex.errors import check, check_positive, check_range
 from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
 from moex.tasks import files, lissajous, reber
+from moex.tasks.scaling import SCALES, Scale, fit_scale
 from moex.tasks.switching import (
     Primitive,
     check_transition,
@@ -40,6 +41,8 @@ class TaskConfig:
     transition: list[Any] = field(default_factory=list)  # markov_primitives
     path: str = ""  # csv: file, glob or folder
     columns: list[str] = field(default_factory=list)  # csv: columns by header name (all if [])
+    scale: str = "none"  # csv: none (data must lie in [-1, 1]) | auto (each feature linearly)
+    data_seed: int = -1  # the data's own seed; -1: the run's `seed` (data and networks together)
 
     def __post_init__(self):
         check(self.name in TASKS, f"task.name={self.name!r} is unknown; choose one of "
@@ -55,6 +58,9 @@ class TaskConfig:
         check(self.transition_rule in ("paper", "mregn"),
               f"task.transition_rule={self.transition_rule!r}; choose paper or mregn")
         check(self.burn_in >= 0, f"task.burn_in={self.burn_in} must be >= 0")
+        check(self.scale in SCALES, f"task.scale={self.scale!r}; choose none or auto")
+        check(self.data_seed >= -1, f"task.data_seed={self.data_seed} must be >= 0, or -1 for "
+                                    f"the run's seed")
 
 
 @dataclass
@@ -72,6 +78,7 @@ class Dataset:
         test: held-out data from the same source, or None.
         period: steps a primitive lasts (1 where every step is a symbol), to count repetitions.
         violations: symbols (T,) -> (T,) bool, the steps a grammar forbids (Reber), or None.
+        scale: the map from the model's units back to the data's (user data, `task.scale`).
     """
 
     series: np.ndarray
@@ -85,6 +92,7 @@ class Dataset:
     test: "Dataset | None" = None
     period: float = 1.0
     violations: Callable[[np.ndarray], np.ndarray] | None = None
+    scale: Scale = field(default_factory=Scale)
 
     def symbolize(self, outputs: np.ndarray, gates: np.ndarray,
                   nearest=symbolize_nearest) -> np.ndarray:
@@ -178,9 +186,15 @@ def _reber(cfg, rng):
 
 
 def _csv(cfg, rng, min_length=3):
-    series = files.load_series(cfg.path, cfg.length, min_length, cfg.columns)
-    labels = -np.ones(series.shape[:2], dtype=np.int64)
-    return Dataset(series, labels, symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
+    series, scale = fit_scale(files.load_series(cfg.path, cfg.length, min_length, cfg.columns),
+                              cfg.scale, f"task.path={cfg.path}")
+    return user_data(series, scale)
+
+
+def user_data(series: np.ndarray, scale: Scale | None = None) -> Dataset:
+    """A `Dataset` of a user's series (S, T, D) in model units: no labels, no symbols."""
+    return Dataset(series, -np.ones(series.shape[:2], dtype=np.int64), symbol_names=[],
+                   symbol_of=np.zeros(0, dtype=np.int64), scale=scale or Scale())
 
 
 TASKS = {
@@ -192,8 +206,19 @@ TASKS = {
 }
 
 
+def planned_shape(cfg: TaskConfig) -> tuple[int, int, int] | None:
+    """(S, T, D) of the training data a generated task will have, known before generating it
+    (None for files: their size is known once read)."""
+    if cfg.name == "csv":
+        return None
+    dims = {"reber": 0, "markov_primitives": len(dict(cfg.primitives[0]).get("amplitude", ()))
+            if cfg.primitives else 0}
+    return cfg.num_series, cfg.length, dims.get(cfg.name, 2)
+
+
 def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
-    """Generate (or load) the task's data, deterministically given `seed`.
+    """Generate (or load) the task's data, deterministically given `seed` (or `cfg.data_seed`
+    where it is set: then networks of other seeds train on the same data).
 
     Args:
         cfg: the task config; `cfg.name` selects the generator.
@@ -203,6 +228,7 @@ def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
     Returns:
         the training `Dataset`, with the held-out series in `.test`.
     """
+    seed = seed if cfg.data_seed < 0 else cfg.data_seed
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xDA7A]))
     if cfg.name == "csv":
         return _csv(cfg, rng, min_length)
@@ -211,14 +237,15 @@ def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
     return TASKS[cfg.name](cfg, rng)
 
 
-def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, labels: np.ndarray,
+def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, scale: Scale,
                 min_length: int = 3) -> Dataset:
     """The data a finished run was trained on: regenerated from its seed where the task is
-    generated (held-out series included), the series stored in its checkpoint where it came from
-    files (they may have moved since)."""
+    generated (held-out series included), the series (in model units) and scale stored in its
+    checkpoint where it came from files (they may have moved since)."""
     if cfg.name == "csv":
-        return Dataset(series, labels, symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64))
+        return user_data(series, scale)
     return make_task(cfg, seed, min_length)
 
 
-__all__ = ["TaskConfig", "Dataset", "make_task", "task_of_run", "TASKS"]
+__all__ = ["TaskConfig", "Dataset", "Scale", "make_task", "planned_shape", "task_of_run",
+           "user_data", "TASKS"]

@@ -17,7 +17,7 @@ def _read_text(path: str, columns: list[str]) -> np.ndarray:
     """One (T, D) series from a CSV/TXT file: numbers separated by commas or spaces, `#`
     comments, an optional header row of column names (required to pick `columns` by name)."""
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8-sig") as f:  # a byte-order mark is not data
             text = f.read()
     except UnicodeDecodeError:
         raise ConfigError(f"task.path: {path} is not a text file (it does not decode as UTF-8); "
@@ -67,6 +67,9 @@ def _read_one(path: str, columns: list[str]) -> list[np.ndarray]:
             raise ConfigError(f"task.path: {path} is not a readable NPY array ({exc})") from None
         check(array.ndim in (2, 3), f"task.path: {path} must hold a (T, D) or (S, T, D) array, "
                                    f"got shape {array.shape}")
+        check(array.dtype.kind in "iuf", f"task.path: {path} holds {array.dtype} values; give "
+                                         f"real numbers (integers or floats)")
+        array = array.astype(float)
         return list(array) if array.ndim == 3 else [array]
     return [_read_text(path, columns)]
 
@@ -85,11 +88,15 @@ def load_series(pattern: str, length: int, min_length: int,
                    else glob.glob(pattern))
     paths = [p for p in paths if p.endswith((".csv", ".txt", ".npy"))]
     check(len(paths) > 0, f"task.path={pattern} matches no .csv, .txt or .npy file")
-    series = [s for p in paths for s in _read_one(p, list(columns))]
-    for p, s in zip(paths, series, strict=False):
-        check(bool(np.isfinite(s).all()), f"task.path: {p} contains NaN or inf values")
-        check(s.shape[1] == series[0].shape[1],
-              f"task.path: {p} has {s.shape[1]} columns, expected {series[0].shape[1]}")
+    sources = [(p, i, s) for p in paths for i, s in enumerate(_read_one(p, list(columns)))]
+    for p, i, s in sources:  # every series of a stack, named by its index
+        where = f"{p} (series {i})" if p.endswith(".npy") else p
+        bad = np.flatnonzero(~np.isfinite(s).all(1))
+        check(not len(bad), f"task.path: {where} has NaN or inf values (first at step "
+                            f"{bad[0] if len(bad) else 0}); remove or fill them")
+        check(s.shape[1] == sources[0][2].shape[1],
+              f"task.path: {where} has {s.shape[1]} columns, expected {sources[0][2].shape[1]}")
+    series = [s for _, _, s in sources]
     lengths = {len(s) for s in series}
     if length > 0:
         check(min(lengths) >= length, f"task.length={length} exceeds the shortest series "
