@@ -14,6 +14,7 @@ import shutil
 import signal
 import sys
 import time
+from importlib import metadata
 from pathlib import Path
 
 import hydra
@@ -51,7 +52,7 @@ def _write_job_index(sweep_dir: Path) -> None:
         write_csv(sweep_dir / JOBS_INDEX, rows)
 
 
-USAGE = """usage: moex <verb> [-m] [key=value ...]
+USAGE = """usage: moex <verb> [-m] [key=value ...]    (moex --version: the installed version)
 
 verbs:
   train      train both phases on a task, evaluate, and write a run folder
@@ -309,6 +310,9 @@ def main(argv: list[str] | None = None) -> None:
         print(USAGE)
         return
     verb, args = argv[0], argv[1:]
+    if verb in ("--version", "-V"):
+        print(f"moex {metadata.version('moex')}")
+        return
     if verb == "report":  # a folder in, tables out: plain argparse, no Hydra
         report.main(args)
         return

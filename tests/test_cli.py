@@ -224,9 +224,11 @@ def test_missing_launcher_plugin_is_named(tmp_path):
                                      "is not installed; pip install -e '.[slurm]'")
 
 
-def test_unknown_verb():
+def test_unknown_verb_and_version():
     result = _moex(["fly"], cwd=".")
     assert result.returncode == 2 and "unknown verb 'fly'" in result.stderr
+    result = _moex(["--version"], cwd=".")
+    assert result.returncode == 0 and result.stdout.strip() == "moex 0.1.0"
 
 
 def test_csv_run_evaluates_from_another_directory(tmp_path):

@@ -132,9 +132,9 @@ def _backward(DY, X, C0, C, U, u0, wr, wo, eps, g_wi, g_wr, g_wo, g_bc, g_bo, g_
                 for v in range(LB):
                     acc[v] = fma(wo[o, i, v], DY[t, o, v], acc[v])
             for v in range(LB):
-                dq = (1.0 - C[t, i, v] * C[t, i, v]) * acc[v]
+                dq = fma(-C[t, i, v], C[t, i, v], 1.0) * acc[v]
                 gbc[i, v] += dq
-                a[i, v] = dq + (1.0 - eps[i, v]) * a[i, v]
+                a[i, v] = fma(1.0 - eps[i, v], a[i, v], dq)
                 ea[i, v] = eps[i, v] * a[i, v]
         for o in range(NO):
             for v in range(LB):
@@ -394,7 +394,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             for t in range(T):
                 out = y[k, d, t]
                 DY[lane // LB, t, d, lane % LB] = resp[t] * (target[d, t] - out) / var[r, k] \
-                    * (1.0 - out * out)
+                    * fma(-out, out, 1.0)
 
 
 @njit(**JIT)
