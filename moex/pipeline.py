@@ -251,6 +251,8 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
         rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg.eval,
                                  generator, backend, cfg.train.gating.target_temperature, stop)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
+    counts = metrics.select_dtypes("integer").columns  # stay integers beside a failed run's NaN
+    metrics = metrics.astype({c: "Int64" for c in counts})
     metrics.loc[failed, metrics.columns.difference(["run"])] = np.nan
     metrics["failed"] = failed
     io.write_csv(out_dir / io.METRICS, metrics)

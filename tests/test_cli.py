@@ -45,6 +45,8 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
     for column in ("E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
                    "switch_prob"):
         assert metrics[column].notna().all(), column
+    for column in ("num_samples", "lyapunov_steps", "block_length", "censored_stays"):
+        assert metrics[column].dtype == "int64", column  # counts are written as integers
     # 200 steps hold at most 8 laps, too few to test periods up to 100: no sample is judged
     assert (metrics["periodicity_samples"] == 0).all()
     assert metrics["nonperiodic_fraction"].isna().all()
