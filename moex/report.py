@@ -144,7 +144,9 @@ def _columns(varying: list[str]) -> dict[str, str]:
     columns = dict(SETTINGS)
     columns.update({f"choice:{group}": name for group, name in CHOICES.items()})
     for key in varying:
-        columns.setdefault(key, key.removeprefix("choice:"))
+        if key not in columns:  # a choice named like a setting column (task=...) gets a suffix
+            name = key.removeprefix("choice:")
+            columns[key] = name if name not in columns.values() else f"{name}_choice"
     return columns
 
 

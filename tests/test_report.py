@@ -201,3 +201,13 @@ def test_report_groups_jobs_that_lack_a_key_apart_from_those_that_set_it(tmp_pat
     _fake_job(tmp_path / "1", reber + "seed: 3\n", {"max_lyapunov": [0.3, 0.4]})
     summary = report(tmp_path)["summary"]
     assert len(summary) == 2 and summary["seed"].isna().sum() == 1
+
+
+def test_a_sweep_over_a_config_group_names_the_choice_apart_from_the_setting(tmp_path):
+    """`-m task=reber,lissajous2` varies both task.name and the `task` choice: two columns."""
+    for job, task in enumerate(["reber", "lissajous2"]):
+        _fake_job(tmp_path / str(job), f"task:\n  name: {task}\nmodel:\n  gating:\n"
+                  f"    context_size: 20\n", {"max_lyapunov": [0.1, 0.2]},
+                  choices=f"      task: {task}\n")
+    summary = report(tmp_path)["summary"]
+    assert summary["task"].tolist() == summary["task_choice"].tolist() and len(summary) == 2
