@@ -146,6 +146,11 @@ def test_more_bad_input_before_any_work(override, fragment, tmp_path):
 
 
 def test_folders_that_are_files_or_too_big_a_generation(trained, tmp_path):
+    # a folder that cannot be created (read-only file systems answer alike; root may write
+    # anywhere else, so /proc stands in for them)
+    result = _moex(["train", "task=lissajous2", "hydra.run.dir=/proc/moex-test/run"],
+                   cwd=tmp_path)
+    _one_error_line(result, "hydra.run.dir=/proc/moex-test/run cannot be written")
     (tmp_path / "file").write_text("x")
     result = _moex(["train", "task=lissajous2", f"hydra.run.dir={tmp_path}/file"], cwd=tmp_path)
     _one_error_line(result, f"hydra.run.dir={tmp_path}/file is a file, not a folder")
@@ -212,3 +217,25 @@ def test_eval_paper_on_the_command_line_sets_the_papers_sizes(trained):
     assert tool.paper_sizes
     tool, _ = validate("evaluate", [f"run_dir={trained}", "eval=quick"])
     assert not tool.paper_sizes and tool.eval.num_samples == 4
+
+
+def test_sigint_during_trains_evaluation_keeps_the_trained_checkpoint(tmp_path):
+    run_dir = tmp_path / "run"
+    args = ["train", "task=lissajous2", *TINY, f"hydra.run.dir={run_dir}"]
+    process = subprocess.Popen(MOEX + args + ["eval.num_samples=20",
+                                              "eval.lyapunov_steps=10000000"],
+                               cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    deadline = time.time() + 300
+    log = run_dir / "train.log"
+    while time.time() < deadline and not (log.exists() and "final E_g" in log.read_text()):
+        time.sleep(0.2)
+    time.sleep(5)  # inside the evaluation's closed loop
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    assert checkpoint.load(run_dir).phase == "done" and not (run_dir / "metrics.csv").exists()
+    assert '"interrupted"' in (run_dir / "status.json").read_text()
+    result = _moex(args, cwd=tmp_path)  # the same training, evaluated this time
+    assert result.returncode == 0, result.stderr
+    assert (run_dir / "metrics.csv").exists()
