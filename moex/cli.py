@@ -158,27 +158,24 @@ def _typed(composed, choices) -> object:
 
 def validate(config_name: str, args: list[str], flags: list[str] = ()):
     """Compose every override variant, build its config and load its data (or run folder);
-    raise `ConfigError` on the first problem. Returns the first variant's config and its
-    composed Hydra settings."""
+    raise `ConfigError` on the first problem. Returns the first variant's config."""
     register_configs()
     GlobalHydra.instance().clear()
     search = _search_path(args, list(flags))
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             try:
-                configs, first_hydra = [], None
+                configs = []
                 for overrides in _override_variants(args):
                     composed = compose(config_name, overrides=search + overrides,
                                        return_hydra_config=True)
-                    first_hydra = first_hydra or OmegaConf.to_container(
-                        composed.hydra, resolve=False)
                     choices = dict(composed.hydra.runtime.choices)
                     with open_dict(composed):
                         del composed["hydra"]
                     configs.append(_typed(composed, choices))
                 for cfg in configs:
                     VERBS_CHECK[config_name](cfg)
-                return configs[0], first_hydra
+                return configs[0]
             except (HydraException, OmegaConfBaseException) as exc:
                 raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
     finally:
@@ -325,14 +322,14 @@ def main(argv: list[str] | None = None) -> None:
     claimed = None
     if not {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"} & set(hydra_flags):
         try:
-            cfg, hydra_cfg = validate(config_name, overrides, hydra_flags)
+            cfg = validate(config_name, overrides, hydra_flags)
             multirun = bool({"-m", "--multirun"} & set(hydra_flags))
             if verb == "train" and cfg.resume and not multirun \
                     and not any(a.startswith("hydra.run.dir=") for a in args):
                 args = args + [f"hydra.run.dir={_latest_run(cfg.task.name)}"]
             if verb != "train" and cfg.out_dir:
                 args = args + [f"hydra.run.dir={cfg.out_dir}"]
-            claimed = _claim_folder(args, multirun, verb, cfg, hydra_cfg)
+            claimed = _claim_folder(args, multirun, verb, cfg)
         except ConfigError as exc:
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
@@ -353,7 +350,7 @@ def _named_folder(args: list[str], key: str) -> Path | None:
     return Path(values[-1]) if values else None
 
 
-def _claim_folder(args: list[str], multirun: bool, verb: str, cfg, hydra_cfg) -> int | None:
+def _claim_folder(args: list[str], multirun: bool, verb: str, cfg) -> int | None:
     """Before Hydra writes anything: check the folder a command was pointed at (a run folder,
     an out_dir, a sweep folder) and lock it against a second moex process. A run folder that
     holds a checkpoint must hold a readable one from the same training config, so that a
@@ -381,7 +378,7 @@ def _claim_folder(args: list[str], multirun: bool, verb: str, cfg, hydra_cfg) ->
                           f"{holder}); wait for it to finish or choose another folder") from None
     if not (folder / LOCK).exists() or os.stat(folder / LOCK).st_ino != os.fstat(fd).st_ino:
         os.close(fd)  # the holder removed the file as we opened it: claim the new one
-        return _claim_folder(args, multirun, verb, cfg, hydra_cfg)
+        return _claim_folder(args, multirun, verb, cfg)
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode(), 0)
     return fd
