@@ -6,6 +6,7 @@ Two-Lissajous sizes: 10 series x 1000 steps, N = 2 experts, M = 10, M_g = 15, τ
 
     python benchmarks/bench_epochs.py --runs 1 30 --threads 1 2
     python benchmarks/bench_epochs.py --task reber --context-sizes 20 50 --runs 50 --threads 1
+    python benchmarks/bench_epochs.py --backends gpu --device cuda --runs 90 900 --threads 1
 
 Each number is the marginal cost of an epoch (a run of 5 + --steps epochs minus a run of 5, so
 the set-up of a training call is left out), the best of --repeats such pairs after a warm-up
@@ -47,7 +48,7 @@ def _time(fn, steps: int, repeats: int, base: int = 5) -> tuple[float, float]:
 
 
 def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
-          context_size: int, dtype: str) -> list[dict]:
+          context_size: int, dtype: str, device: str = "cpu") -> list[dict]:
     torch.set_num_threads(threads)
     numba.set_num_threads(threads)
     cfg = Config(task=TaskConfig(name=task))
@@ -60,7 +61,7 @@ def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats:
     series = torch.as_tensor(data.series, dtype=dtype)
     S, _, D = series.shape
     gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, runs)]
-    chosen = get_backend(backend)
+    chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     results = []
 
     def record(name, fn):
@@ -103,14 +104,15 @@ def main():
     parser.add_argument("--task", default="lissajous2", choices=["lissajous2", "reber"])
     parser.add_argument("--runs", type=int, nargs="+", default=[1, 30])
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--backends", nargs="+", default=["compiled"])
+    parser.add_argument("--backends", nargs="+", default=["cpu"])
+    parser.add_argument("--device", default="cpu", help="for reference and gpu: cpu or cuda")
     parser.add_argument("--context-sizes", type=int, nargs="+", default=[15])
     parser.add_argument("--dtype", default="float64", choices=["float64", "float32"])
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    print(f"# {os.uname().nodename}, numba threading layer: see `python -m numba -s`; "
-          f"{args.dtype}")
+    gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
+    print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {args.dtype}")
     print("| task | phase | runs | backend | threads | NC | CPU ms per network-epoch | "
           "wall ms per network-epoch |")
     print("|---|---|---|---|---|---|---|---|")
@@ -119,7 +121,7 @@ def main():
             for threads in args.threads:
                 for size in args.context_sizes:
                     bench(args.task, runs, backend, threads, args.steps, args.repeats, size,
-                          args.dtype)
+                          args.dtype, args.device)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,9 @@ from docs/data_seeds_summary.csv (written by `moex report` over the `data_seeds`
 One-way random-effects split of each metric over networks into a between-data-set part and a
 within-data-set part (the same initial networks on every data set), the share of the variance
 the data set explains (intraclass correlation), and a permutation p-value for "the data set
-makes no difference" (data-set labels shuffled 20 000 times; no SciPy needed).
+makes no difference" (data-set labels shuffled 20 000 times; no SciPy needed); then the same
+split by initial network (the `run` index: network r starts from the same weights on every data
+set), which asks whether the network, rather than the data, decides.
 """
 
 from pathlib import Path
@@ -31,14 +33,15 @@ def _f_statistic(values: np.ndarray, groups: np.ndarray) -> tuple[float, float, 
     return between / within, max((between - within) / n, 0.0), within
 
 
-def split(runs: pd.DataFrame, metric: str, permutations: int = 20000) -> dict:
-    values, groups = runs[metric].to_numpy(float), runs[KEY].to_numpy()
+def split(runs: pd.DataFrame, metric: str, key: str = KEY, permutations: int = 20000) -> dict:
+    values, groups = runs[metric].to_numpy(float), runs[key].to_numpy()
     f, between, within = _f_statistic(values, groups)
     rng = np.random.default_rng(0)
     null = [_f_statistic(values, rng.permutation(groups))[0] for _ in range(permutations)]
-    return {"metric": metric, "mean": values.mean(), "sd between data sets": np.sqrt(between),
-            "sd within a data set": np.sqrt(within),
-            "share of variance from the data": between / (between + within),
+    what = "data sets" if key == KEY else "initial networks"
+    return {"metric": metric, "mean": values.mean(), f"sd between {what}": np.sqrt(between),
+            "sd within": np.sqrt(within),
+            f"share of variance from the {what}": between / (between + within),
             "permutation p": (1 + sum(x >= f for x in null)) / (1 + permutations)}
 
 
@@ -53,9 +56,14 @@ def main() -> None:
                                                          lambda x: int((x > 0).sum())),
         data_switch_prob=("data_switch_prob", "first"))
     print(to_markdown(per_set.reset_index()))
-    table = pd.DataFrame([split(runs, m) for m in ("switch_prob", "max_lyapunov",
-                                                   "nonperiodic_fraction")])
-    print(to_markdown(table))
+    metrics = ("switch_prob", "max_lyapunov", "nonperiodic_fraction")
+    print(to_markdown(pd.DataFrame([split(runs, m) for m in metrics])))
+    per_network = runs.groupby("run").agg(
+        data_sets=(KEY, "size"), switch_prob=("switch_prob", "mean"),
+        switch_min=("switch_prob", "min"), switch_max=("switch_prob", "max"),
+        stay_on_one_curve=("switch_prob", lambda x: int((x < STAYS).sum())))
+    print(to_markdown(per_network.reset_index()))
+    print(to_markdown(pd.DataFrame([split(runs, m, "run") for m in metrics])))
 
 
 if __name__ == "__main__":

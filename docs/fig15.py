@@ -1,7 +1,12 @@
 """Fig. 15 looked for: flips of the tracked λ_max between consecutive tracking points, against the
 noise floor of the tracking estimate, from a `paper_fig15` run folder.
 
-    python docs/fig15.py outputs/paper_fig15/<date>
+    python docs/fig15.py outputs/paper_fig15/<date> [NOISY_EVAL_DIR]
+
+writes docs/fig15_summary.csv (per network: the noise floor, flips, and the evaluation's λ_max and
+switching, with ρ² = 10⁻⁴ beside them when NOISY_EVAL_DIR, a `moex evaluate ... eval.noise_var=
+0.0001` folder, is given) and docs/fig15_tracked.png (the tracked λ_max of every network against
+its ±2-sd band).
 
 The paper's flip: λ_max from −5.4·10⁻⁵ to +9.95·10⁻⁴ within 10 learning steps. A flip here is a
 pair of consecutive tracked points (eval.every apart) going from below −FLOOR_FACTOR × floor to
@@ -13,6 +18,10 @@ states: a change smaller than that is the estimator's noise, not the network's.
 import sys
 from pathlib import Path
 
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np
 import pandas as pd
 import torch
@@ -58,10 +67,49 @@ def flips(history: pd.DataFrame, floor: np.ndarray) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def plot(history: pd.DataFrame, table: pd.DataFrame, path: Path) -> None:
+    """One panel per network: tracked λ_max against the gating step, the ±2-sd band shaded."""
+    tracked = history[(history["phase"] == "gating") & history["max_lyapunov"].notna()]
+    runs = sorted(tracked["run"].unique())
+    cols = 5
+    fig, axes = plt.subplots(-(-len(runs) // cols), cols, figsize=(13, 5), sharex=True,
+                             sharey=True, squeeze=False)
+    for ax, run in zip(axes.flat, runs, strict=False):
+        x = tracked[tracked["run"] == run].sort_values("step")
+        band = FLOOR_FACTOR * table.set_index("run").loc[run, "floor"]
+        ax.axhspan(-band, band, color="0.85", lw=0, label=f"±{FLOOR_FACTOR} sd of the estimate")
+        ax.plot(x["step"], x["max_lyapunov"], lw=0.6, color="C0")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_yscale("symlog", linthresh=1e-4)
+        ax.set_title(f"network {run}: λ_max ends {x['max_lyapunov'].iloc[-1]:+.1e}", fontsize=9)
+    for ax in axes.flat[len(runs):]:
+        ax.set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("gating step")
+    for ax in axes[:, 0]:
+        ax.set_ylabel(r"tracked $\lambda_{\max}$")
+    axes.flat[0].legend(fontsize=8, loc="lower right")
+    fig.suptitle(r"Fig. 15 looked for: $\lambda_{\max}$ (4 samples × 5000 steps) every 10 "
+                 r"gating steps, NT 10 / LT 1000 / NC 30")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main() -> None:
     run_dir = Path(sys.argv[1])
-    table = flips(pd.read_csv(run_dir / "history.csv"), noise_floor(run_dir))
+    history = pd.read_csv(run_dir / "history.csv")
+    table = flips(history, noise_floor(run_dir))
+    metrics = pd.read_csv(run_dir / "metrics.csv")[["run", "max_lyapunov", "switch_prob",
+                                                     "nonperiodic_fraction"]]
+    table = table.merge(metrics.rename(columns={"max_lyapunov": "eval_max_lyapunov"}), on="run")
+    if len(sys.argv) > 2:
+        noisy = pd.read_csv(Path(sys.argv[2]) / "metrics.csv")[
+            ["run", "max_lyapunov_noisy", "switch_prob", "nonperiodic_fraction"]]
+        table = table.merge(noisy, on="run", suffixes=("", "_noise1e-4"))
     print(to_markdown(table))
+    docs = Path(__file__).parent
+    table.to_csv(docs / "fig15_summary.csv", index=False)
+    plot(history, table, docs / "fig15_tracked.png")
 
 
 if __name__ == "__main__":

@@ -1,21 +1,31 @@
 """The Python API: fit the mixture to your own arrays (in a notebook, say), without files or
 Hydra. `fit` trains both phases (paper Sec. 2.1) and returns a `Fitted` whose `evaluate` and
-`generate` run the closed loop (Sec. 2.2-4). Everything the CLI can set is a `Config` field."""
+`generate` run the closed loop (Sec. 2.2-4). Everything the CLI can set is a `Config` field.
+`load(run_dir)` gives the same `Fitted` for a run folder of `moex train`; `Fitted.save(dir)`
+writes a run folder that `moex evaluate` / `moex generate` accept."""
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
 
+from moex import checkpoint, io
 from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import random_state, trained_state
-from moex.config import Config
+from moex.config import Config, RunFolder
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate, phase2_targets
 from moex.kernels import Backend, get_backend
-from moex.pipeline import evaluation_generator, in_data_units, initial_parameters, run_seeds
+from moex.pipeline import (
+    evaluation_generator,
+    in_data_units,
+    initial_parameters,
+    load_run,
+    run_seeds,
+)
 from moex.tasks import Dataset, TaskConfig, user_data
 from moex.tasks.scaling import fit_scale
 from moex.train import train_experts, train_gating
@@ -35,10 +45,30 @@ class Fitted:
     config: Config
     dataset: Dataset
     experts: dict[str, torch.Tensor]
-    beta: torch.Tensor
+    beta: torch.Tensor | None  # None for symbolic tasks (no experts)
     gating: dict[str, torch.Tensor]
     history: pd.DataFrame
     backend: Backend
+
+    def save(self, run_dir) -> Path:
+        """Write a finished run folder (checkpoint.pt, history.csv) that `moex evaluate
+        run_dir=...`, `moex generate` and `load` accept; refuses a folder that holds a run."""
+        path = Path(run_dir)
+        check(not (path / checkpoint.NAME).exists(),
+              f"{path} already holds a run ({checkpoint.NAME}); save into another folder")
+        path.mkdir(parents=True, exist_ok=True)
+        R = self.config.num_runs
+        failed = self.history.groupby("run")["failed"].any().reindex(range(R), fill_value=False)
+        record = checkpoint.Checkpoint(
+            dataclasses.asdict(self.config), "done", torch.as_tensor(self.dataset.series),
+            torch.as_tensor(self.dataset.labels), experts=self.experts, beta=self.beta,
+            gating=self.gating,
+            experts_rows=self.history[self.history["phase"] == "experts"].to_dict("records"),
+            failed=[bool(f) for f in failed],
+            data_scale={k: torch.as_tensor(v) for k, v in self.dataset.scale.as_dict().items()})
+        io.write_csv(path / io.HISTORY, self.history)
+        record.save(path / checkpoint.NAME)
+        return path
 
     def evaluate(self, quick: bool = False, **eval_settings) -> pd.DataFrame:
         """The metric table, one row per run: E, E^g, E^closed, the block KL of the closed loop
@@ -80,6 +110,17 @@ class Fitted:
             out = run_closed_loop(self.experts, self.gating, state, steps, noise_var**0.5,
                                   generator, self.backend)
         return in_data_units({name: value.numpy() for name, value in out.items()}, self.dataset)
+
+
+def load(run_dir) -> Fitted:
+    """A finished run folder (from `moex train` or `Fitted.save`) as the `Fitted` that `fit`
+    returns: its config, data, parameters, learning history and backend."""
+    run = load_run(RunFolder(run_dir=str(run_dir)))
+    history_file = Path(run_dir) / io.HISTORY
+    history = (pd.read_csv(history_file) if history_file.exists()
+               else pd.DataFrame(run.saved.experts_rows))
+    return Fitted(run.cfg, run.dataset, run.saved.experts, run.saved.beta, run.saved.gating,
+                  history, run.backend)
 
 
 def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
@@ -129,4 +170,4 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
     return Fitted(cfg, dataset, experts, beta, gating, pd.DataFrame(rows + gating_rows), backend)
 
 
-__all__ = ["EvalConfig", "Fitted", "fit"]
+__all__ = ["EvalConfig", "Fitted", "fit", "load"]

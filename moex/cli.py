@@ -213,6 +213,24 @@ def _discard_if_empty(out_dir: Path, verb: str) -> bool:
     return True
 
 
+_sweeps: set[Path] = set()  # the sweep folders this process ran jobs in (basic launcher)
+
+
+def _sweep_summary(sweep_dir: Path, verb: str) -> str:
+    """One line at the end of a sweep: where it is, how its jobs ended, and what to run next."""
+    ended: dict[str, int] = {}
+    seconds = 0.0
+    for path in sweep_dir.glob(f"*/{STATUS}"):
+        with contextlib.suppress(OSError, ValueError):
+            status = json.loads(path.read_text())
+            ended[status.get("status", "?")] = ended.get(status.get("status", "?"), 0) + 1
+            seconds += float(status.get("seconds", 0.0))
+    jobs = len(list(sweep_dir.glob("*/.hydra")))
+    counts = ", ".join(f"{n} {state}" for state, n in sorted(ended.items())) or f"{jobs} jobs"
+    hint = f"; compare them with: moex report {sweep_dir}" if verb == "train" else ""
+    return f"moex: sweep folder {sweep_dir}: {jobs} jobs ({counts}, {seconds / 60:.1f} min){hint}"
+
+
 def _job(run, verb: str):
     """A Hydra task function calling `run(cfg, out_dir, stop)`.
 
@@ -229,6 +247,7 @@ def _job(run, verb: str):
             else (lambda **kw: None)
         started = time.time()
         if hydra_cfg.mode == RunMode.MULTIRUN:
+            _sweeps.add(Path(hydra_cfg.sweep.dir).resolve())
             _write_job_index(Path(hydra_cfg.sweep.dir))
         try:
             with logging_redirect_tqdm(), pipeline.StopRequest() as stop:
@@ -337,11 +356,17 @@ def main(argv: list[str] | None = None) -> None:
     entry = hydra.main(version_base="1.3", config_path=CONF_DIR,
                        config_name=config_name)(task_function)
     sys.argv = [f"moex {verb}"] + args
+    multirun = bool({"-m", "--multirun"} & set(hydra_flags))
     try:
         entry()
     finally:
         if claimed is not None:
-            _release(claimed, args, bool({"-m", "--multirun"} & set(hydra_flags)))
+            _release(claimed, args, multirun)
+    sweep = _named_folder(args, "hydra.sweep.dir")
+    if multirun and sweep is not None and sweep.is_dir():
+        _sweeps.add(sweep.resolve())
+    for folder in sorted(_sweeps):
+        print(_sweep_summary(folder, verb))
 
 
 def _named_folder(args: list[str], key: str) -> Path | None:

@@ -34,7 +34,7 @@ class Config:
     num_runs: int = 1  # R networks trained side by side, run r seeded by (seed, r)
     precision: str = "float64"  # of training and evaluation; tests and defaults use float64
     device: str = "cpu"
-    backend: str = "auto"  # auto | reference | compiled (numba, CPU)
+    backend: str = "auto"  # auto | reference (PyTorch) | cpu (numba) | gpu (Triton)
     resume: bool = False  # continue the latest run folder of this task (or hydra.run.dir)
     cache_dir: str = ""  # phase-1 results shared by jobs that differ only in the gating net
     plot: PlotConfig = field(default_factory=PlotConfig)
@@ -49,7 +49,7 @@ class Config:
               f"device=cuda but this machine has no CUDA device PyTorch can use (torch "
               f"{torch.__version__}); use device=cpu")
         check(self.backend in BACKENDS,
-              f"backend={self.backend!r}; choose one of {', '.join(BACKENDS)}")
+              f"backend={self.backend!r}; choose one of {', '.join(BACKENDS[:4])}")
 
 
 # every EvalConfig key, optional: what `moex evaluate` overrides in the run's own eval config

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import budget, checkpoint, io, plotting
+from moex import budget, checkpoint, io, plotting, run_page
 from moex.closed_loop import generate, never, random_state, trained_state
 from moex.config import (
     Config,
@@ -26,6 +26,7 @@ from moex.config import (
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate, phase2_targets, track_metrics
 from moex.kernels import Backend, get_backend
+from moex.metrics.table import LOGGED, METRICS
 from moex.model import init_experts, init_gating
 from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
 from moex.train import Hooks, train_experts, train_gating
@@ -231,8 +232,10 @@ def run_train(cfg: Config, out_dir: Path,
     record.save(path)
     io.write_csv(out_dir / io.HISTORY, history)
     plotting.save_figure(plotting.plot_learning_curves(history),
-                         out_dir / io.FIGURES / "learning_curves.png")
+                         out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
     _log_summary(history)
+    if not cfg.eval.enabled:
+        run_page.write(out_dir, cfg, None, f"moex run {out_dir.name}")
     if cfg.eval.enabled:
         evaluate_run(cfg, dataset, record.experts, record.beta, record.gating, out_dir,
                      record.failed, backend, stop)
@@ -260,6 +263,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     io.save_arrays(out_dir / io.SAMPLES, samples)
     ok = metrics[~metrics["failed"]]
     _plot_samples(samples, dataset, cfg, out_dir, metrics)
+    run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
     log.info("λ_max positive in %d of %d runs (mean %.4g)", int((ok["max_lyapunov"] > 0).sum()),
              len(ok), ok["max_lyapunov"].mean())
     for _, row in ok.iterrows():
@@ -268,64 +272,72 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     return metrics
 
 
-LOGGED_METRICS = [("E", "E"), ("E_g", "E^g"), ("E_closed", "E^closed"),
-                  ("block_kl_train", "block KL train"), ("block_kl_test", "test"),
-                  ("max_lyapunov", "λ_max"), ("switch_prob", "switching prob."),
-                  ("data_switch_prob", "data"), ("nonperiodic_fraction", "nonperiodic")]
+LOGGED_METRICS = [(name, METRICS[name].text) for name in LOGGED]
 
 
 def _chosen_run(cfg: Config, metrics: pd.DataFrame | None) -> tuple[int, str]:
-    """The run the single-run figures show, and why."""
+    """The run the single-run figures show, and a title that says which and why."""
+    R = cfg.num_runs
     if cfg.plot.run >= 0:  # checked against num_runs with the config (load_task)
-        return cfg.plot.run, f"plot.run={cfg.plot.run}"
+        return cfg.plot.run, f"run {cfg.plot.run} of {R}"
     ok = None if metrics is None else metrics[~metrics["failed"].astype(bool)]
     if ok is None or ok["max_lyapunov"].isna().all():
-        return 0, "run 0"
-    return int(ok.loc[ok["max_lyapunov"].idxmax(), "run"]), "highest λ_max"
+        return 0, f"run 0 of {R}"
+    run = int(ok.loc[ok["max_lyapunov"].idxmax(), "run"])
+    lam = ok["max_lyapunov"].max()
+    return run, f"run {run} of {R} (largest $\\lambda_{{\\max}}$ = {lam:+.1e})"
+
+
+def _run_title(row) -> str:
+    """A panel title that states the run's facts."""
+    if row["failed"]:
+        return f"run {row['run']}: failed"
+    return (f"run {row['run']}: $\\lambda_{{\\max}}$ = {row['max_lyapunov']:+.1e}\n"
+            f"switching {row.get('switch_prob', np.nan):.2f}")
 
 
 def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
                   metrics: pd.DataFrame | None = None) -> None:
     """Figures of one run's closed-loop sample, and of every run (small multiples, residence
     times) when the metric table is there to title them."""
-    figures = out_dir / io.FIGURES
-    run, why = _chosen_run(cfg, metrics)
-    label = f"run {run} ({why})" if why.startswith("highest") else f"run {run}"
+    figures, fmt = out_dir / io.FIGURES, cfg.plot.format
+    run, label = _chosen_run(cfg, metrics)
     outputs, gates = samples["outputs"][run], samples["gates"][run]
     gating_u, symbols = samples["gating_u"][run], samples["symbols"][run]
     if outputs.shape[-1] >= 2:
-        fig, axes = plt.subplots(1, 2, figsize=(9, 4.4), constrained_layout=True)
+        fig, axes = plt.subplots(1, 2, figsize=(9, 5), constrained_layout=True, sharex=True,
+                                 sharey=True)
         plotting.plot_teaching_data(dataset.scale.to_data(dataset.series[:3]), axes[0],
                                     f"teaching data ({min(3, len(dataset.series))} series)")
         plotting.plot_trajectory(outputs, gates, axes[1],
                                  f"closed loop, {label}\nlast {len(outputs)} steps")
-        plotting.save_figure(fig, figures / "trajectory.png")
+        plotting.save_figure(fig, figures / "trajectory.png", fmt)
     shown = slice(-min(len(symbols), max(100, round(10 * dataset.period))), None)
     bad = dataset.violations(symbols[shown]) if dataset.violations else None
     axes = plotting.plot_gate_series(outputs[shown], gates[shown], symbols[shown],
                                      dataset.symbol_names, bad=bad)
     axes[0].set_title(f"closed loop, {label}: outputs, gate openings and symbols")
-    plotting.save_figure(axes[0].figure, figures / "gates.png")
+    plotting.save_figure(axes[0].figure, figures / "gates.png", fmt)
     if gating_u.shape[-1] >= 2:
-        ax = plotting.plot_phase_portrait(gating_u, title=f"gating potentials, {label}")
-        plotting.save_figure(ax.figure, figures / "phase_portrait.png")
+        tail = gating_u[len(gating_u) // 10:]  # the first tenth as a transient
+        ax = plotting.plot_phase_portrait(tail, title=f"gating potentials, {label}")
+        plotting.save_figure(ax.figure, figures / "phase_portrait.png", fmt)
     if metrics is not None and dataset.prototypes is not None:
+        pooled = "1 run" if cfg.num_runs == 1 else f"{cfg.num_runs} runs pooled"
         ax = plotting.plot_residence(samples["residence_hist"], switch_prob=dataset.switch_prob,
                                      censored_hist=samples.get("residence_censored_hist"),
-                                     title=f"repetitions of a curve, {cfg.num_runs} runs pooled")
-        plotting.save_figure(ax.figure, figures / "residence_times.png")
+                                     title=f"repetitions of a curve before a switch, {pooled}")
+        plotting.save_figure(ax.figure, figures / "residence_times.png", fmt)
     if metrics is not None and outputs.shape[-1] >= 2:
-        titles = [f"run {r}: failed" if row["failed"] else
-                  f"run {r}: P {row.get('switch_prob', np.nan):.2f}, "
-                  f"λ {row['max_lyapunov']:.1e}" for r, row in metrics.iterrows()]
-        fig = plotting.plot_run_trajectories(samples["outputs"], samples["gates"], titles)
-        fig.suptitle("the closed loop of every run (P: switching probability, λ: λ_max)",
-                     fontsize=9)
-        plotting.save_figure(fig, figures / "runs.png")
+        fig = plotting.plot_run_trajectories(
+            samples["outputs"], samples["gates"],
+            [_run_title(row) for _, row in metrics.iterrows()],
+            f"the closed loop of each of the {cfg.num_runs} runs, last "
+            f"{samples['outputs'].shape[1]} steps")
+        plotting.save_figure(fig, figures / "runs.png", fmt)
     if gates.shape[-1] > 2 and outputs.shape[-1] >= 2:
-        axes = plotting.plot_expert_panels(outputs, gates)
-        axes.flat[0].figure.suptitle(f"where each expert wins, {label}")
-        plotting.save_figure(axes.flat[0].figure, figures / "experts.png")
+        axes = plotting.plot_expert_panels(outputs, gates, title=f"where each expert wins, {label}")
+        plotting.save_figure(axes.flat[0].figure, figures / "experts.png", fmt)
 
 
 def in_data_units(samples: dict, dataset: Dataset) -> dict:

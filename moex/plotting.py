@@ -1,6 +1,10 @@
-"""Figures from DataFrames and arrays only: each `plot_*` draws on an Axes and returns it."""
+"""Figures from DataFrames and arrays only: each `plot_*` draws on an Axes (or a figure of its
+own) and returns it. One look for all of them: the style below, labels and scales from the
+metric table (`moex.metrics.table`), colour-blind-safe colours, a symlog axis for Lyapunov
+exponents (their sign is what matters), integer ticks for counts."""
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import matplotlib
 
@@ -8,83 +12,126 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from moex.io import atomic_write  # noqa: E402
 from moex.metrics.switching import rle  # noqa: E402
+from moex.metrics.table import METRICS, label  # noqa: E402
+
+FORMATS = ("png", "pdf", "svg")
+STYLE = {"font.size": 9, "axes.titlesize": 9, "axes.labelsize": 9, "legend.fontsize": 8,
+         "xtick.labelsize": 8, "ytick.labelsize": 8, "axes.spines.top": False,
+         "axes.spines.right": False, "axes.formatter.useoffset": False, "legend.frameon": False}
+plt.rcParams.update(STYLE)
+OKABE_ITO = ["#0072B2", "#E69F00", "#009E73", "#D55E00", "#CC79A7", "#56B4E9", "#F0E442",
+             "#000000"]  # distinguishable with every common colour-vision deficiency
+LINTHRESH = 1e-4  # λ_max below this in size is drawn linearly around 0
+
+
+def palette(n: int) -> list:
+    """n distinct colours: Okabe-Ito up to 8, tab20 up to 20, evenly spaced on turbo beyond."""
+    if n <= len(OKABE_ITO):
+        return OKABE_ITO[:n]
+    if n <= 20:
+        return list(plt.get_cmap("tab20").colors[:n])
+    return [plt.get_cmap("turbo")(x) for x in np.linspace(0.05, 0.95, n)]
 
 
 @dataclass
 class PlotConfig:
     """Which run the single-run figures show: -1 picks the run with the highest λ_max (the most
-    chaotic; failed runs never), k picks run k."""
+    chaotic; failed runs never), k picks run k. `format`: png, pdf or svg (vector)."""
 
     run: int = -1
+    format: str = "png"
 
     def __post_init__(self):
-        if self.run < -1:
-            from moex.errors import ConfigError
+        from moex.errors import ConfigError
 
+        if self.run < -1:
             raise ConfigError(f"plot.run={self.run} must be -1 (the run with the highest "
                               f"λ_max) or a run index >= 0")
+        if self.format not in FORMATS:
+            raise ConfigError(f"plot.format={self.format!r}; choose png, pdf or svg")
 
 
-LEARNING_PANELS = [  # (phase, column, log scale, title)
-    ("experts", "E", True, "phase 1: mixture error E"),
-    ("experts", "log_likelihood", False, "phase 1: ln p(Y | X, θ)"),
-    ("gating", "E_g", True, "phase 2: gating error E^g"),
-    ("gating", "lr_scale", True, "phase 2: adaptive rate α / α̃"),
-    ("gating", "block_kl_train", False, "phase 2: block KL, training data"),
-    ("gating", "max_lyapunov", False, "phase 2: λ_max"),
+def scale_axis(ax, column: str, axis: str = "y") -> None:
+    """The metric table's scale for `column` on one axis: log, symlog (exponents) or linear."""
+    scale = METRICS[column].scale if column in METRICS else "linear"
+    setter = ax.set_yscale if axis == "y" else ax.set_xscale
+    if scale == "symlog":
+        setter("symlog", linthresh=LINTHRESH)
+        (ax.axhline if axis == "y" else ax.axvline)(0, color="0.5", lw=0.6, ls=":")
+    elif scale == "log":
+        setter("log")
+
+
+LEARNING_PANELS = [  # (phase, column, title)
+    ("experts", "E", "phase 1"),
+    ("experts", "log_likelihood", "phase 1"),
+    ("gating", "E_g", "phase 2"),
+    ("gating", "lr_scale", "phase 2"),
+    ("gating", "block_kl_train", "phase 2"),
+    ("gating", "max_lyapunov", "phase 2"),
 ]
 
 
-def plot_history(history: pd.DataFrame, column: str, ax=None, log_y: bool = False):
-    """`column` against the learning step: one labelled line per run for up to 6 runs; beyond,
-    every run thin and grey with the median over runs on top."""
+def plot_history(history: pd.DataFrame, column: str, ax=None):
+    """`column` against the learning step: one line per run (its own colour) for up to 8 runs;
+    beyond, every run thin and grey with the median over runs on top."""
     ax = ax or plt.figure().gca()
     data = history.dropna(subset=[column])
     runs = sorted(data["run"].unique())
-    for run, group in data.groupby("run"):
-        if len(runs) <= 6:
-            ax.plot(group["step"], group[column], lw=1, label=f"run {run}")
+    colours = palette(len(runs)) if len(runs) <= 8 else None
+    for i, (run, group) in enumerate(data.groupby("run")):
+        if colours:
+            ax.plot(group["step"], group[column], lw=1, color=colours[i], label=f"run {run}")
         else:
-            ax.plot(group["step"], group[column], lw=0.5, color="0.6",
+            ax.plot(group["step"], group[column], lw=0.5, color="0.65",
                     label=f"each of {len(runs)} runs" if run == runs[0] else None)
-    if len(runs) > 6:
+    if colours is None:
         median = data.groupby("step")[column].median()
-        ax.plot(median.index, median.to_numpy(), lw=2, color="tab:blue", label="median")
+        ax.plot(median.index, median.to_numpy(), lw=2, color=OKABE_ITO[0],
+                label="median over runs")
     ax.set_xlabel("learning step")
-    ax.set_ylabel(column)
-    if log_y:
-        ax.set_yscale("log")
-    if runs:
-        ax.legend(fontsize=7)
+    ax.set_ylabel(label(column))
+    scale_axis(ax, column)
     return ax
 
 
 def plot_learning_curves(history: pd.DataFrame):
     """E and the log-likelihood of phase 1; E^g, the adaptive rate and, when tracked, the block KL
-    and λ_max of phase 2 (paper Figs. 3, 6, 11)."""
+    and λ_max of phase 2 (paper Figs. 3, 6, 11), at most three panels a row, one legend."""
     panels = [p for p in LEARNING_PANELS if p[1] in history
               and history.loc[history["phase"] == p[0], p[1]].notna().any()]
-    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(4 * max(len(panels), 1), 3.4),
+    cols = min(max(len(panels), 1), 3)
+    rows = -(-max(len(panels), 1) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.8 * rows + 0.5),
                              constrained_layout=True, squeeze=False)
-    for ax, (phase, column, log_y, title) in zip(axes[0], panels, strict=False):
-        plot_history(history[history["phase"] == phase], column, ax=ax, log_y=log_y)
-        ax.set_title(title)
+    for ax, (phase, column, title) in zip(axes.flat, panels, strict=False):
+        plot_history(history[history["phase"] == phase], column, ax=ax)
+        ax.set_title(f"{title}: {label(column)}")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 8))
     return fig
 
 
-def save_figure(fig, path) -> None:
-    """Write a PNG atomically and close the figure."""
-    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
+def save_figure(fig, path, fmt: str = "png") -> Path:
+    """Write the figure atomically as `fmt` (png, pdf or svg; the suffix of `path` follows) and
+    close it."""
+    path = Path(path).with_suffix(f".{fmt}")
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=150, format=fmt, bbox_inches="tight"))
     plt.close(fig)
+    return path
 
 
 def _output_axes(ax, D: int) -> None:
     ax.set_aspect("equal")
-    ax.set_xlabel("y_1")
-    ax.set_ylabel("y_2" if D > 1 else "")
+    ax.set_xlabel("$y_1$")
+    ax.set_ylabel("$y_2$" if D > 1 else "")
 
 
 def plot_teaching_data(series: np.ndarray, ax=None, title: str = "teaching data"):
@@ -98,18 +145,19 @@ def plot_teaching_data(series: np.ndarray, ax=None, title: str = "teaching data"
 
 
 def plot_trajectory(points: np.ndarray, gates: np.ndarray, ax=None, title: str = ""):
-    """A closed-loop orbit (T, D >= 2), each step coloured by its winning expert (gates (T, K)),
-    with a legend of the experts that win somewhere."""
+    """A closed-loop orbit (T, D >= 2), each step coloured by its winning expert (gates (T, K),
+    K distinct colours), with a key of the experts that win somewhere below the plot."""
     ax = ax or plt.figure().gca()
     winners = gates.argmax(-1)
-    colors = plt.get_cmap("tab10")
+    colours = palette(gates.shape[-1])
     for k in np.unique(winners):
         mask = winners == k
-        ax.scatter(points[mask, 0], points[mask, 1], s=2, color=colors(k % 10), rasterized=True,
-                   label=f"expert {k} wins ({mask.mean():.0%})")
+        ax.scatter(points[mask, 0], points[mask, 1], s=2, color=colours[k], rasterized=True,
+                   label=f"expert {k} ({mask.mean():.0%})")
     _output_axes(ax, points.shape[-1])
     ax.set_title(title)
-    ax.legend(fontsize=7, markerscale=4, loc="upper right")
+    ax.legend(markerscale=4, loc="upper center", bbox_to_anchor=(0.5, -0.14),
+              ncol=min(len(np.unique(winners)), 4), title="winning expert (share of steps)")
     return ax
 
 
@@ -150,12 +198,25 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
 
 
 def plot_phase_portrait(gating_u: np.ndarray, ax=None, title: str = ""):
-    """Two gating potentials u^g_1 against u^g_2 (paper Figs. 4 and 15)."""
-    ax = ax or plt.figure().gca()
-    ax.plot(gating_u[:, 0], gating_u[:, 1], lw=0.3, rasterized=True)
-    ax.set_xlabel("u^g_1")
-    ax.set_ylabel("u^g_2")
-    ax.set_title(title)
+    """Two gating potentials u^g_1 against u^g_2 (paper Figs. 4 and 15), one dot per step; a
+    fixed point or a short cycle is said so in the title."""
+    ax = ax or plt.figure(figsize=(4.2, 4)).gca()
+    points = gating_u[:, :2]
+    span = np.ptp(points, axis=0).max() if len(points) else 0.0
+    distinct = len(np.unique(np.round(points, 6), axis=0)) if len(points) else 0
+    ax.scatter(points[:, 0], points[:, 1], s=0.5, color=OKABE_ITO[0], rasterized=True,
+               alpha=0.6 if len(points) > 2000 else 1.0, lw=0)
+    if span < 1e-9:
+        note = f"a fixed point at ({points[0, 0]:.4g}, {points[0, 1]:.4g})"
+        ax.set_xlim(points[0, 0] - 0.1, points[0, 0] + 0.1)
+        ax.set_ylim(points[0, 1] - 0.1, points[0, 1] + 0.1)
+    elif distinct <= 50:
+        note = f"{distinct} distinct points: a cycle"
+    else:
+        note = f"{len(points)} steps"
+    ax.set_xlabel("$u^g_1$")
+    ax.set_ylabel("$u^g_2$")
+    ax.set_title(f"{title}\n{note}".strip())
     return ax
 
 
@@ -166,86 +227,143 @@ def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = 
     law (1 - P)^(k-1) P of the task as a line when P is known (paper Fig. 9). Stays cut off by
     the end of a sample (`censored_hist`, their true length is at least the one shown) are
     stacked on top, hatched; the last bin holds every longer stay."""
-    ax = ax or plt.figure().gca()
+    ax = ax or plt.figure(figsize=(5, 3.6)).gca()
     cut = np.zeros_like(model_hist) if censored_hist is None else censored_hist
     total = max(model_hist.sum() + cut.sum(), 1)
     model, censored = model_hist.sum(0) / total, cut.sum(0) / total
     k = np.arange(len(model))
     both = model + censored
     top = max(int(np.flatnonzero(both).max()) + 2 if both.any() else 10, 10)
-    ax.bar(k[1:top], model[1:top], color="tab:blue", alpha=0.6, label="trained networks")
+    if both[1:top].any():
+        ax.bar(k[1:top], model[1:top], color=OKABE_ITO[0], alpha=0.6, label="trained networks")
     if censored.any():
         ax.bar(k[1:top], censored[1:top], bottom=model[1:top], color="none",
-               edgecolor="tab:blue", hatch="///", label="cut off by the sample's end (≥)")
+               edgecolor=OKABE_ITO[0], hatch="///", label="cut off by the sample's end (≥)")
     if switch_prob is not None:
         law = (1 - switch_prob) ** (k[1:top] - 1) * switch_prob
-        ax.plot(k[1:top], law, "k.-", label=f"data: geometric, P = {switch_prob:g}")
+        ax.plot(k[1:top], law, ".-", color="black", label=f"data: geometric, P = {switch_prob:g}")
+    if not both[1:top].any():
+        ax.text(0.5, 0.5, "no stay recorded: the closed loop never completed a curve",
+                ha="center", va="center", transform=ax.transAxes)
     ax.set_xlabel("repetitions of a curve")
     ax.set_ylabel("probability")
-    if both[1:top].any():
-        ax.set_yscale("log")  # down to a tenth of the rarest observed count (or 1e-3)
-        ax.set_ylim(min(both[both > 0].min() / 10, 1e-3), 1.5)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_yscale("log")  # always: panels compare; down to a tenth of the rarest count
+    floor = both[both > 0].min() / 10 if both.any() else 1e-3
+    ax.set_ylim(min(floor, 1e-3), 1.5)
     ax.set_title(title)
-    ax.legend(fontsize=8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend()
     return ax
 
 
-def plot_run_trajectories(outputs: np.ndarray, gates: np.ndarray, titles: list[str]):
-    """Small multiples: the closed-loop orbit of every run (R, T, D), coloured by the winning
-    expert, each titled (e.g. by its switching probability and λ_max)."""
-    R = len(outputs)
-    cols = min(R, 6)
+def plot_run_trajectories(outputs: np.ndarray, gates: np.ndarray, titles: list[str],
+                          title: str = ""):
+    """Small multiples: the closed-loop orbit of every run (R, T, D) on one common scale,
+    coloured by the winning expert (one key for all), each titled (e.g. by its λ_max and
+    switching probability); spare panels hidden."""
+    R, K = len(outputs), gates.shape[-1]
+    cols = min(R, 5)
     rows = -(-R // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(max(2.2 * cols, 5.0), 2.3 * rows + 0.4),
-                             constrained_layout=True, squeeze=False)
-    colors = plt.get_cmap("tab10")
+    fig, axes = plt.subplots(rows, cols, figsize=(max(2.3 * cols, 5.0), 2.6 * rows + 1.2),
+                             layout="constrained", squeeze=False, sharex=True, sharey=True)
+    if title:
+        fig.suptitle(title)
+    colours = np.array(palette(K), dtype=object)
+    reach = max(float(np.nanmax(np.abs(outputs[..., :2]))) if outputs.size else 1.0, 1e-6)
     for ax, points, gate, title in zip(axes.flat, outputs, gates, titles, strict=False):
-        winners = gate.argmax(-1)
-        ax.scatter(points[:, 0], points[:, 1], s=0.5, c=[colors(w % 10) for w in winners],
+        ax.scatter(points[:, 0], points[:, 1], s=0.5, c=list(colours[gate.argmax(-1)]),
                    rasterized=True)
         ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
+        ax.set_xlim(-1.05 * reach, 1.05 * reach)
+        ax.set_ylim(-1.05 * reach, 1.05 * reach)
         ax.set_title(title, fontsize=7)
     for ax in list(axes.flat)[R:]:
-        ax.axis("off")
+        ax.set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("$y_1$")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("$y_2$")
+    if K <= 12:
+        handles = [plt.Line2D([], [], ls="", marker="o", color=colours[k], label=f"expert {k}")
+                   for k in range(K)]
+        fig.legend(handles=handles, loc="outside lower center", ncol=min(K, 6),
+                   title="colour: the winning expert")
     return fig
 
 
-def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None):
-    """Output y_n where expert i wins (s_n = i), one panel per expert (paper Fig. 12b)."""
+def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None, title: str = ""):
+    """Output y_n where expert i wins (s_n = i), one panel per expert that wins somewhere, on one
+    common scale (paper Fig. 12b); the experts that never win are listed in the figure's
+    title."""
     K = gates.shape[1]
     winners = gates.argmax(1)
+    shown = [i for i in range(K) if (winners == i).any()]
     if axes is None:
-        cols = int(np.ceil(np.sqrt(K)))
-        _, axes = plt.subplots(int(np.ceil(K / cols)), cols, figsize=(2 * cols, 2 * cols),
-                               constrained_layout=True, squeeze=False)
-    for i, ax in enumerate(np.ravel(axes)):
+        cols = int(np.ceil(np.sqrt(len(shown))))
+        _, axes = plt.subplots(int(np.ceil(len(shown) / cols)), cols,
+                               figsize=(2 * cols, 2 * cols + 0.4), constrained_layout=True,
+                               squeeze=False)
+    colours = palette(K)
+    for j, ax in enumerate(np.ravel(axes)):
         ax.set_xticks([])
         ax.set_yticks([])
-        if i >= K:  # the grid's spare panels
-            ax.axis("off")
+        if j >= len(shown):  # the grid's spare panels
+            ax.set_visible(False)
             continue
-        if (winners == i).any():
-            ax.scatter(outputs[winners == i, 0], outputs[winners == i, 1], s=1)
-            ax.set_xlim(-1, 1)
-            ax.set_ylim(-1, 1)
-        ax.set_title(f"expert {i}", fontsize=7)
+        i = shown[j]
+        ax.scatter(outputs[winners == i, 0], outputs[winners == i, 1], s=1, color=colours[i])
+        ax.set_xlim(-1, 1)
+        ax.set_ylim(-1, 1)
+        ax.set_aspect("equal")
+        ax.set_title(f"expert {i} ({(winners == i).mean():.0%})", fontsize=7)
+    never = [i for i in range(K) if i not in shown]
+    lines = [title] if title else []
+    if never:
+        lines.append(f"{len(never)} of {K} experts never win: {', '.join(map(str, never))}")
+    if lines:
+        np.ravel(axes)[0].figure.suptitle("\n".join(lines), fontsize=8)
     return axes
 
 
-def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "", ax=None):
-    """NT × LT phase plot of one column (paper Figs. 14 and 16); missing cells stay blank."""
+HEAT_LABELS = {"positive_percent": r"share of networks with $\lambda_{\max} > 0$ (%)",
+               "num_series": "number of series NT", "length": "length of a series LT"}
+
+
+def _column_label(column: str) -> str:
+    """`E_closed_mean` -> the metric's label with "(mean over networks)"."""
+    if column in HEAT_LABELS:
+        return HEAT_LABELS[column]
+    base = column.removesuffix("_mean")
+    return f"{label(base)} (mean over networks)" if base != column else label(column)
+
+
+def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "", ax=None,
+                 limits: tuple[float, float] | None = None):
+    """NT × LT phase plot of one column (paper Figs. 14 and 16), the value written in each cell;
+    missing cells stay blank. `limits`: the colour range, shared by the panels compared."""
     grid = table.pivot_table(index=y, columns=x, values=value, aggfunc="mean")
     if ax is None:
-        fig, ax = plt.subplots(figsize=(4.5, 3.6), constrained_layout=True)
-    mesh = ax.imshow(grid.to_numpy(dtype=float), origin="lower", cmap="viridis", aspect="auto")
+        fig, ax = plt.subplots(figsize=(4.6, 3.6), constrained_layout=True)
+    values = grid.to_numpy(dtype=float)
+    log = value.removesuffix("_mean") in METRICS and METRICS[
+        value.removesuffix("_mean")].scale == "log" and np.nanmin(values, initial=1) > 0
+    norm = matplotlib.colors.LogNorm(*limits) if log and limits else None
+    mesh = ax.imshow(values, origin="lower", cmap="viridis", aspect="auto", norm=norm,
+                     vmin=None if norm else (limits or (None, None))[0],
+                     vmax=None if norm else (limits or (None, None))[1])
+    for (i, j), v in np.ndenumerate(values):
+        if np.isfinite(v):
+            shade = mesh.norm(v)
+            ax.text(j, i, f"{v:.3g}", ha="center", va="center", fontsize=8,
+                    color="black" if shade > 0.6 else "white")
     ax.set_xticks(range(grid.shape[1]), [f"{v:g}" for v in grid.columns])
     ax.set_yticks(range(grid.shape[0]), [f"{v:g}" for v in grid.index])
-    ax.set_xlabel(f"{x} (NT)" if x == "num_series" else x)
-    ax.set_ylabel(f"{y} (LT)" if y == "length" else y)
-    ax.set_title(f"{value} {title}".strip())
-    ax.figure.colorbar(mesh, ax=ax)
+    ax.set_xlabel(HEAT_LABELS.get(x, x))
+    ax.set_ylabel(HEAT_LABELS.get(y, y))
+    ax.spines[["top", "right"]].set_visible(True)
+    ax.set_title(title)
+    ax.figure.colorbar(mesh, ax=ax, label=_column_label(value))
     return ax.figure
 
 
@@ -267,11 +385,12 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     line at x = 0 (the sign of λ_max is what matters); `log_y` for values spanning decades."""
     fig, ax = plt.subplots(figsize=(7.5, 4.8), constrained_layout=True)
     names = list(dict.fromkeys(runs[group]))
-    colours, markers = plt.get_cmap("tab10").colors, "os^D"  # 40 distinct (colour, marker)
+    colours, markers = palette(min(len(names), 20)), "os^D"  # 80 distinct (colour, marker)
     for i, name in enumerate(names):
         part = runs[runs[group] == name]
-        ax.scatter(part[x], part[y], s=24, color=colours[i % 10], marker=markers[i // 10 % 4],
-                   label=str(name), alpha=0.85, edgecolors="none")
+        ax.scatter(part[x], part[y], s=24, color=colours[i % len(colours)],
+                   marker=markers[i // len(colours) % 4], label=str(name), alpha=0.85,
+                   edgecolors="none")
     if reference is not None and len(reference.dropna()):
         level = float(reference.mean())
         ax.axhline(level, color="black", lw=1, label=f"data ({level:.3f})")
@@ -279,15 +398,14 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
             ax.axhspan(level - band, level + band, color="grey", alpha=0.2, lw=0,
                        label=f"±{band:g}")
     ax.axvline(0, color="grey", lw=0.8, ls=":")
-    ax.set_xscale("symlog", linthresh=1e-4)
+    ax.set_xscale("symlog", linthresh=LINTHRESH)
     ax.margins(x=0.08)
     if log_y:
         ax.set_yscale("log")
-    label = {"max_lyapunov": "λ_max", "switch_prob": "switching probability",
-             "block_kl_test": "block KL, test data", "context_size": "NC"}
-    ax.set_xlabel(f"{label.get(x, x)} (symlog axis)")
-    ax.set_ylabel(label.get(y, y))
-    ax.set_title(f"{label.get(y, y)} against {label.get(x, x)}\n"
-                 f"one point per network, by {label.get(group, group)}")
-    ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    names_of = {"context_size": "NC (context units of the gating RNN)", "arm": "study arm"}
+    ax.set_xlabel(f"{label(x)} (linear within ±{LINTHRESH:g}, logarithmic beyond)")
+    ax.set_ylabel(label(y))
+    ax.set_title(f"{label(y)} against {label(x)}, one point per network")
+    ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5),
+              title=names_of.get(group, group))
     return fig

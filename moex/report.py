@@ -11,6 +11,7 @@ import yaml
 
 from moex import io, plotting
 from moex.errors import ConfigError, check
+from moex.metrics.table import REPORTED
 
 # the paper's numbers, for the adjacent columns
 PAPER_TABLE1 = pd.DataFrame({  # Reber, mean of 50 trials (Table 1)
@@ -27,9 +28,7 @@ PAPER_TABLE2 = pd.DataFrame({  # two Lissajous curves, mean of 30 trials (Table 
     "paper_max_lyapunov": [0.001076, 0.002080, 0.002829],
     "paper_positive_percent": [93, 96, 96],
 })
-METRICS = ["E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
-           "switch_prob", "switch_prob_gates", "data_switch_prob", "mean_residence",
-           "nonperiodic_fraction"]
+METRICS = REPORTED  # the metric table's columns of a report
 # settings the paper's tables and figures are keyed by, under short column names; every other
 # setting that varies between jobs becomes a column under its dotted config key
 SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
@@ -58,10 +57,12 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
     return out
 
 
-def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
-    """Every job folder below `sweep_dir` (one with .hydra/config.yaml), and every re-evaluation
-    `moex evaluate` wrote inside one (<job>/evaluate/<date>/, e.g. at another noise level): a
-    re-evaluation is a job of its own whose eval.* settings come from its eval_config.yaml.
+def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
+    """Every job folder below each of `folders` (a sweep, a run, or any parent of them: a job is
+    a folder with .hydra/config.yaml), and every re-evaluation `moex evaluate` wrote inside one
+    (<job>/evaluate/<date>/, e.g. at another noise level): a re-evaluation is a job of its own
+    whose eval.* settings come from its eval_config.yaml. Jobs are named by their path below
+    their folder, prefixed by the folder's name when there are several folders.
 
     Returns:
         runs: one row per (job, run) with the job's settings and its metrics.csv columns;
@@ -77,20 +78,26 @@ def gather(sweep_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
                          if not group.startswith("hydra/")})
         found.append((name, folder, settings, status))
 
-    for config_path in sorted(Path(sweep_dir).glob("**/.hydra/config.yaml"),  # job 2 before 10
-                              key=lambda p: (len(str(p)), str(p))):
-        job_dir = config_path.parent.parent
+    roots = [Path(f) for f in ([folders] if isinstance(folders, str | Path) else folders)]
+    found_configs = [(folder, path) for folder in roots for path in sorted(
+        folder.glob("**/.hydra/config.yaml"), key=lambda p: (len(str(p)), str(p)))]
+    for root, config_path in found_configs:
+        job_dir = config_path.parent.parent  # (sorted: job 2 before job 10)
+        inside = job_dir.relative_to(root).as_posix()
+        name = root.name if inside == "." else inside
+        if len(roots) > 1 and inside != ".":
+            name = f"{root.name}/{inside}"
         config = _flatten(_read(config_path, yaml.safe_load, dict))
         hydra_path = config_path.with_name("hydra.yaml")
         choices = (_read(hydra_path, lambda text: yaml.safe_load(text)["hydra"]["runtime"]
                          ["choices"], dict) if hydra_path.exists() else {})
         status_path = job_dir / "status.json"
-        add(job_dir.name, job_dir, config, choices,
+        add(name, job_dir, config, choices,
             _read(status_path, json.loads, dict) if status_path.exists() else {})
         for eval_config in sorted(job_dir.glob("evaluate/*/eval_config.yaml")):
             folder = eval_config.parent
             evaluated = _flatten({"eval": _read(eval_config, yaml.safe_load, dict)})
-            add(f"{job_dir.name}/evaluate/{folder.name}", folder, {**config, **evaluated},
+            add(f"{name}/evaluate/{folder.name}", folder, {**config, **evaluated},
                 choices, {"status": "done"} if (folder / io.METRICS).exists() else {})
     varying = varying_settings([settings for _, _, settings, _ in found])
     runs, jobs = [], []
@@ -235,10 +242,12 @@ def _others(keys: list[str], *shown: str) -> list[str]:
     return [k for k in keys if k not in shown]
 
 
-def report(sweep_dir: Path) -> dict[str, pd.DataFrame]:
-    """Write summary.csv, tables/*.csv|md and figures/*.png into `sweep_dir`; safe to re-run."""
-    sweep_dir = Path(sweep_dir)
-    runs, jobs, keys = gather(sweep_dir)
+def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, pd.DataFrame]:
+    """Write summary.csv, tables/*.csv|md and figures/* (as `fmt`) for the jobs of `folders`
+    (one folder or several) into `out_dir` (default: the one folder); safe to re-run."""
+    folders = [Path(folders)] if isinstance(folders, str | Path) else [Path(f) for f in folders]
+    sweep_dir = Path(out_dir) if out_dir is not None else folders[0]
+    runs, jobs, keys = gather(folders)
     out = {"jobs": jobs}
     if len(jobs):
         _write_table(sweep_dir, "jobs", jobs.drop(columns=["path"]))
@@ -257,11 +266,21 @@ def report(sweep_dir: Path) -> dict[str, pd.DataFrame]:
     for name, table in paper_tables(summary, keys).items():
         _write_table(sweep_dir, name, table)
         out[name] = table
-    _figures(sweep_dir, runs, summary, jobs, keys)
+    _figures(sweep_dir, runs, summary, jobs, keys, fmt)
     return out
 
 
-def _figures(sweep_dir: Path, runs, summary, jobs, keys) -> None:
+def _limits(values: pd.Series, column: str) -> tuple[float, float]:
+    """One colour range for every panel of a column: shares on their full scale."""
+    if column == "positive_percent":
+        return 0.0, 100.0
+    if column.startswith("nonperiodic_fraction"):
+        return 0.0, 1.0
+    finite = values[np.isfinite(values.astype(float))]
+    return (float(finite.min()), float(finite.max())) if len(finite) else (0.0, 1.0)
+
+
+def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> None:
     figures = sweep_dir / "figures"
     if {"num_series", "length"} <= set(summary) and summary["num_series"].nunique() > 1 \
             and summary["length"].nunique() > 1:
@@ -276,17 +295,18 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys) -> None:
                                   for k, v in named)
                 suffix = "".join(PANELS[k][1].format(v) if k in PANELS else f"_{k}{v}"
                                  for k, v in named)
-                fig = plotting.plot_heatmap(group, "num_series", "length", column, title=title)
-                plotting.save_figure(fig, figures / f"heatmap_{column}{suffix}.png")
+                fig = plotting.plot_heatmap(group, "num_series", "length", column, title=title,
+                                            limits=_limits(summary[column], column))
+                plotting.save_figure(fig, figures / f"heatmap_{column}{suffix}.png", fmt)
     if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "arm",
                                        reference=runs.get("data_switch_prob"), band=NEAR)
-        plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png")
+        plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png", fmt)
     reber = runs[runs["task"] == "reber"]
     if reber["context_size"].nunique() > 1 and {"max_lyapunov", "block_kl_test"} <= set(reber):
         fig = plotting.plot_scatter_by(reber, "max_lyapunov", "block_kl_test", "context_size",
                                        log_y=True)  # Table 1 per network: chaos and the test KL
-        plotting.save_figure(fig, figures / "table1_kl_vs_lyapunov.png")
+        plotting.save_figure(fig, figures / "table1_kl_vs_lyapunov.png", fmt)
     liss = jobs[(jobs["task"] == "lissajous2") & (jobs["status"] == "done")
                 & ~jobs["job"].str.contains("/evaluate/")]  # Fig. 9: the trained evaluation
     hists = {}
@@ -302,28 +322,38 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys) -> None:
         fig = plotting.plot_residence_panels(
             {p: tuple(np.concatenate(part) for part in zip(*h, strict=True))
              for p, h in hists.items()})
-        plotting.save_figure(fig, figures / "residence_times.png")
+        plotting.save_figure(fig, figures / "residence_times.png", fmt)
 
 
 def main(argv: list[str] | None = None) -> None:
     import argparse
 
     parser = argparse.ArgumentParser(prog="moex report", description=__doc__)
-    parser.add_argument("sweep_dir", type=Path, help="a multirun folder (or any parent of jobs)")
+    parser.add_argument("folders", type=Path, nargs="+",
+                        help="run or multirun folders (or any parents of jobs) to compare")
+    parser.add_argument("--out", type=Path, help="where to write the report (required with "
+                                                 "several folders; default: the one folder)")
+    parser.add_argument("--format", default="png", choices=plotting.FORMATS,
+                        help="of the figures (pdf and svg are vector graphics)")
     args = parser.parse_args(argv)
-    if not args.sweep_dir.is_dir():
-        parser.exit(2, f"moex: error: {args.sweep_dir} is not a folder\n")
+    for folder in args.folders:
+        if not folder.is_dir():
+            parser.exit(2, f"moex: error: {folder} is not a folder\n")
+    if len(args.folders) > 1 and args.out is None:
+        parser.exit(2, "moex: error: several folders: name the report's folder with --out DIR\n")
+    out_dir = args.out or args.folders[0]
     try:
-        out = report(args.sweep_dir)
+        out = report(args.folders, out_dir, args.format)
     except ConfigError as exc:
         parser.exit(2, f"moex: error: {exc}\n")
     jobs = out["jobs"]
     if jobs.empty:
-        parser.exit(2, f"moex: error: {args.sweep_dir} holds no job folder (.hydra/config.yaml)\n")
+        parser.exit(2, f"moex: error: {' '.join(map(str, args.folders))} holds no job folder "
+                       f"(.hydra/config.yaml)\n")
     for _, job in jobs[jobs["status"] != "done"].iterrows():
         print(f"job {job['job']}: {job['status']} {job['error']}".rstrip())
     for name in ("table1", "table2", "p05_study", "summary"):
         if name in out:
             print(to_markdown(out[name]))
-    print(f"moex: report written to {args.sweep_dir} ({(jobs['status'] == 'done').sum()} of "
+    print(f"moex: report written to {out_dir} ({(jobs['status'] == 'done').sum()} of "
           f"{len(jobs)} jobs done)")

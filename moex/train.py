@@ -7,6 +7,7 @@ and its gradients come from a backend (`moex.kernels`); the loop here is the sam
 """
 
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -121,85 +122,97 @@ class TrainingInterrupted(Interrupted):
 
 
 class _Flat:
-    """Named parameter groups of R runs side by side in one (R, P) array, so that a momentum
-    step is a few in-place passes over preallocated memory."""
+    """Named parameter groups of R runs side by side in one (R, P) tensor on the backend's
+    device, so that a momentum step is a few in-place passes over preallocated memory."""
 
-    def __init__(self, params: dict[str, np.ndarray]):
+    def __init__(self, params: dict[str, torch.Tensor], device: torch.device):
         self.shapes = {k: v.shape[1:] for k, v in params.items()}
         sizes = [int(np.prod(s)) for s in self.shapes.values()]
-        self.bounds = dict(zip(self.shapes, zip(np.cumsum([0] + sizes[:-1]), np.cumsum(sizes),
-                                                strict=True), strict=True))
+        self.bounds = dict(zip(self.shapes, zip(np.cumsum([0] + sizes[:-1]).tolist(),
+                                                np.cumsum(sizes).tolist(), strict=True),
+                               strict=True))
         first = next(iter(params.values()))
         self.num_runs, self.size, self.dtype = first.shape[0], sum(sizes), first.dtype
+        self.device = device
 
-    def zeros(self) -> np.ndarray:
-        return np.zeros((self.num_runs, self.size), self.dtype)
+    def zeros(self) -> torch.Tensor:
+        return torch.zeros((self.num_runs, self.size), dtype=self.dtype, device=self.device)
 
-    def views(self, flat: np.ndarray) -> dict[str, np.ndarray]:
-        return {k: flat[:, a:b].reshape((-1,) + self.shapes[k]) for k, (a, b) in
+    def views(self, flat: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {k: flat[:, a:b].view((-1,) + self.shapes[k]) for k, (a, b) in
                 self.bounds.items()}
 
-    def per_entry(self, values: dict[str, float]) -> np.ndarray:
+    def per_entry(self, values: dict[str, float]) -> torch.Tensor:
         """(P,): each group's value repeated over its entries."""
-        out = np.empty(self.size, self.dtype)
+        out = torch.empty(self.size, dtype=self.dtype, device=self.device)
         for k, (a, b) in self.bounds.items():
             out[a:b] = values[k]
         return out
 
 
-def _tensors(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-    return {k: torch.from_numpy(np.array(v)) for k, v in arrays.items()}
+def _host(arrays: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().cpu().clone() for k, v in arrays.items()}
 
 
-def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: dict[str, float],
-            problem, criterion: str, steps: int, momentum: float, adaptive: bool,
-            rule: TrainConfig, phase: str, log_every: int, hooks: Hooks | None = None,
-            error: str | None = None) -> tuple[dict[str, np.ndarray], list[dict]]:
+def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
+            rates: dict[str, float], problem, criterion: str, steps: int, momentum: float,
+            adaptive: bool, rule: TrainConfig, phase: str, log_every: int,
+            hooks: Hooks | None = None, error: str | None = None
+            ) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Momentum gradient ascent (Eqs. 17-18), optionally with the adaptive rate of Sec. 2.1.4.
 
     Parameters, gradients, momentum and the trial point of the adaptive retry live in
-    preallocated (R, P) arrays; a step is one `problem.value_and_grad` call, in-place updates,
-    and one `problem.value` call per adaptive trial. A run whose objective or gradient becomes
+    preallocated (R, P) tensors on the problem's device (`problem.device`); a step is one
+    `problem.value_and_grad` call, in-place updates, and one `problem.value` call per adaptive
+    trial. The host sees per-run statistics only. A run whose objective or gradient becomes
     non-finite is marked failed and frozen; the other runs go on untouched. Without the adaptive
     rate, a step that makes a run's parameters non-finite is rolled back and the run marked failed.
 
     Args:
         params: learned parameters (R, ...) per group; fixed: the others (e.g. τ).
         rates: the scaled learning rate of each group (C code).
-        problem: a backend's `ExpertProblem` or `GatingProblem`.
+        problem: a backend's `ExpertProblem` or `GatingProblem` (`moex.kernels.Problem`).
         criterion: statistic whose ratio r drives the adaptive rate (E or the KL).
         rule: supplies the adaptive thresholds and the momentum form.
         hooks: tracking, checkpointing and resuming (see `Hooks`).
         error: the statistic the progress lines of the log report (default: the criterion).
 
     Returns:
-        the trained parameters and history rows (one per run every `log_every` steps, and a
-        last one at step `steps` with the statistics of the trained parameters).
+        the trained parameters (on the host) and history rows (one per run every `log_every`
+        steps, and a last one at step `steps` with the statistics of the trained parameters).
     """
     hooks = hooks or Hooks()
-    layout = _Flat(params)
+    device = torch.device(problem.device)
+    layout = _Flat(params, device)
     R = layout.num_runs
-    theta, grad, velocity = layout.zeros(), layout.zeros(), layout.zeros()
-    delta, trial = layout.zeros(), layout.zeros()
+    theta, grad, velocity, delta, trial = (layout.zeros() for _ in range(5))
     views, grads, moments = layout.views(theta), layout.views(grad), layout.views(velocity)
+    fixed = {k: v.to(device) for k, v in fixed.items()}
     net, trial_net = {**views, **fixed}, {**layout.views(trial), **fixed}
     for k, v in params.items():
-        views[k][...] = v
-    lr_scale, failed, rows, start = np.ones(R), np.zeros(R, bool), [], 0
+        views[k].copy_(v)
+    lr_scale = torch.ones(R, dtype=torch.float64, device=device)
+    failed, rows, start = torch.zeros(R, dtype=torch.bool, device=device), [], 0
     if hooks.resume:
         state = hooks.resume
         for k in params:
-            views[k][...] = state["params"][k].numpy()
-            moments[k][...] = state["velocity"][k].numpy()
-        lr_scale, failed = state["lr_scale"].numpy().copy(), state["failed"].numpy().copy()
+            views[k].copy_(state["params"][k])
+            moments[k].copy_(state["velocity"][k])
+        lr_scale.copy_(state["lr_scale"])
+        failed.copy_(state["failed"])
         rows, start = state["rows"], state["step"]
     rate = layout.per_entry(rates)
     paper_form = rule.momentum_form == "paper"
 
     def save(step):
-        hooks.save({"step": step, "params": _tensors(views), "velocity": _tensors(moments),
-                    "lr_scale": torch.from_numpy(lr_scale.copy()),
-                    "failed": torch.from_numpy(failed.copy()), "rows": rows})
+        hooks.save({"step": step, "params": _host(views), "velocity": _host(moments),
+                    "lr_scale": lr_scale.cpu().clone(), "failed": failed.cpu().clone(),
+                    "rows": rows})
+
+    def statistics(values: dict) -> dict[str, torch.Tensor]:
+        return {k: torch.as_tensor(v, device=device) for k, v in values.items()}
+
+    started = time.perf_counter()
 
     for step in tqdm(range(start, steps), desc=phase, disable=None, mininterval=1.0,
                      leave=False, initial=start, total=steps):
@@ -208,32 +221,31 @@ def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: 
             raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
         # ---- gradient of ln L at the current parameters (a noisy objective draws its noise)
         problem.resample(step)
-        stats = problem.value_and_grad(net, grads, ~failed)
-        failed |= ~(np.isfinite(stats["objective"]) & np.isfinite(grad.sum(1)))
+        stats = statistics(problem.value_and_grad(net, grads, ~failed))
+        failed |= ~(torch.isfinite(stats["objective"]) & torch.isfinite(grad.sum(1)))
         grad[failed] = 0.0
         # ---- the step Δθ: Eq. 17 keeps Δθ in the buffer, the C code the sum of raw gradients
         if paper_form:
-            np.multiply(velocity, momentum, out=trial)
-            np.multiply(grad, rate, out=delta)
+            torch.mul(velocity, momentum, out=trial)
+            torch.mul(grad, rate, out=delta)
             delta *= lr_scale[:, None]
             delta += trial
         else:
             velocity *= momentum
             velocity += grad
-            np.multiply(velocity, rate, out=delta)
+            torch.mul(velocity, rate, out=delta)
             delta *= lr_scale[:, None]
-        retries = np.zeros(R, dtype=np.int64)
+        retries = torch.zeros(R, dtype=torch.int64, device=device)
         # ---- adaptive rate: each run shrinks its own step until r <= r_th (Sec. 2.1.4)
-        pending = ~failed if adaptive else np.zeros(R, bool)
+        pending = ~failed if adaptive else torch.zeros_like(failed)
         base = stats[criterion]
-        for _ in range(rule.adaptive.max_retries if pending.any() else 0):
-            np.add(theta, delta, out=trial)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                ratio = problem.value(trial_net, pending)[criterion] / base
+        for _ in range(rule.adaptive.max_retries if bool(pending.any()) else 0):
+            torch.add(theta, delta, out=trial)
+            ratio = statistics(problem.value(trial_net, pending))[criterion] / base
             rejected = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
             lr_scale[pending & (ratio < 1)] *= rule.adaptive.increase
             pending = rejected
-            if not pending.any():
+            if not bool(pending.any()):
                 break
             # a retry shrinks the whole step, momentum included: with the momentum term left
             # whole (a strict reading of Sec. 2.1.4) r can stay above r_th for every α, and the
@@ -243,43 +255,52 @@ def _ascend(params: dict[str, np.ndarray], fixed: dict[str, np.ndarray], rates: 
             retries += rejected
         # ---- update; give up the step of runs still rejected, roll back non-finite runs
         if not adaptive:
-            np.add(theta, delta, out=trial)
-            failed |= ~np.isfinite(trial.sum(1))
+            torch.add(theta, delta, out=trial)
+            failed |= ~torch.isfinite(trial.sum(1))
         frozen = pending | failed
         delta[frozen] = 0.0
         theta += delta
         if paper_form:
-            velocity[...] = delta
+            velocity.copy_(delta)
         else:
             velocity[frozen] = 0.0
         if "tau" in views:
-            np.maximum(views["tau"], 1.0, out=views["tau"])  # ε <= 1, as in the C code
+            views["tau"].clamp_(min=1.0)  # ε <= 1, as in the C code
         tracked = hooks.monitor_every > 0 and (step % hooks.monitor_every == 0
                                                or step == steps - 1)
         if tracked:
-            stats = {**stats, **{k: np.asarray(v) for k, v in
-                                 hooks.monitor({k: torch.from_numpy(v) for k, v in
-                                                net.items()}).items()}}
+            stats = {**stats, **statistics(hooks.monitor(_host(net)))}
         if tracked or step % log_every == 0 or step == steps - 1:
-            for r in range(R):
-                rows.append({"run": r, "phase": phase, "step": step,
-                             **{k: float(v[r]) for k, v in stats.items()},
-                             "lr_scale": float(lr_scale[r]), "retries": int(retries[r]),
-                             "failed": bool(failed[r])})
+            rows += _rows(phase, step, stats, lr_scale, retries, failed)
         if (step + 1) % max(steps // 10, 1) == 0:  # progress in the log (tqdm only on a tty)
-            log.info("%s: step %d/%d, %s mean %.4g over %d runs", phase, step + 1, steps,
-                     error or criterion, stats[error or criterion][~failed].mean(),
-                     int((~failed).sum()))
+            speed = (step + 1 - start) / (time.perf_counter() - started)  # steps per second
+            log.info("%s: step %d/%d, %s mean %.4g over %d runs; %.1f steps/s, %s left",
+                     phase, step + 1, steps, error or criterion,
+                     stats[error or criterion][~failed].mean().item(), int((~failed).sum()),
+                     speed, _duration((steps - step - 1) / speed))
         if hooks.save is not None and hooks.save_every and (step + 1) % hooks.save_every == 0:
             save(step + 1)
-    final = problem.value(net, ~failed)  # the trained parameters, as evaluation sees them
+    final = statistics(problem.value(net, ~failed))  # the trained parameters, as evaluation sees
     for values in final.values():
-        values[failed] = np.nan  # not computed for frozen runs
-    rows += [{"run": r, "phase": phase, "step": steps, **{k: float(v[r]) for k, v in
-                                                          final.items()},
-              "lr_scale": float(lr_scale[r]), "retries": 0, "failed": bool(failed[r])}
-             for r in range(R)]
-    return {k: v.copy() for k, v in views.items()}, rows
+        values[failed] = float("nan")  # not computed for frozen runs
+    rows += _rows(phase, steps, final, lr_scale, torch.zeros_like(lr_scale), failed)
+    return _host(views), rows
+
+
+def _duration(seconds: float) -> str:
+    """h:mm:ss."""
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def _rows(phase, step, stats, lr_scale, retries, failed) -> list[dict]:
+    """One history row per run, read from the device at once."""
+    values = {k: v.tolist() for k, v in stats.items()}
+    lr, tries, bad = lr_scale.tolist(), retries.tolist(), failed.tolist()
+    return [{"run": r, "phase": phase, "step": step, **{k: float(v[r]) for k, v in
+                                                        values.items()},
+             "lr_scale": float(lr[r]), "retries": int(tries[r]), "failed": bool(bad[r])}
+            for r in range(len(lr))]
 
 
 def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model: ModelConfig,
@@ -305,9 +326,9 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
     inputs, targets = data[:, : -model.delay], data[:, model.delay:]
     S, T, D = targets.shape
     R, K = experts["log_sigma"].shape
-    params = {k: v.detach().cpu().numpy() for k, v in experts.items()}
+    params = {k: v.detach().cpu() for k, v in experts.items()}
     fixed = {} if model.learn_time_constants else {"tau": params.pop("tau")}
-    params["beta"] = np.zeros((R, S, T, K), dtype=data.dtype)
+    params["beta"] = torch.zeros((R, S, T, K), dtype=series.dtype)
     # the C code's scaling: weights, biases, τ and σ at α̃/(T d), initial states at α̃/d, β at α̃
     alpha = cfg.learning_rate
     rates = {k: alpha / (S * T * D) for k in params}
@@ -315,8 +336,8 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
     problem = backend.expert_problem(inputs, targets, model, cfg, R)
     trained, rows = _ascend(params, fixed, rates, problem, "E", cfg.steps, cfg.momentum,
                             cfg.adaptive_lr, rule, "experts", cfg.log_every, hooks, "E")
-    beta = torch.from_numpy(trained.pop("beta"))
-    return _tensors({**trained, **fixed}), beta, rows
+    beta = trained.pop("beta")
+    return {**trained, **fixed}, beta, rows
 
 
 def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
@@ -340,7 +361,7 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     backend = backend or get_backend()
     R, S, T, K = gate_targets.shape
     T_g = T - model.delay
-    params = {k: v.detach().cpu().numpy() for k, v in gating.items()}
+    params = {k: v.detach().cpu() for k, v in gating.items()}
     fixed = {} if model.learn_time_constants else {"tau": params.pop("tau")}
     # the C code's scaling: weights at α̃/(T_g N), initial states at α̃/N
     rates = {k: cfg.learning_rate / (S * T_g * K) for k in params}
@@ -350,4 +371,4 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
                                      list(range(R)) if seeds is None else seeds)
     trained, rows = _ascend(params, fixed, rates, problem, "kl", cfg.steps, cfg.momentum,
                             cfg.adaptive_lr, rule, "gating", cfg.log_every, hooks, "E_g")
-    return _tensors({**trained, **fixed}), rows
+    return {**trained, **fixed}, rows

@@ -1,5 +1,12 @@
+import os
+
 import pytest
 import torch
+
+# Without CUDA the GPU backend's Triton kernels run in Triton's interpreter (read when the kernels
+# are defined, so before anything imports them): CI checks them on the CPU.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from moex.config import Config
 from moex.model import ExpertsConfig, GatingConfig, ModelConfig
@@ -24,3 +31,19 @@ def tiny_cfg() -> Config:
 
 def generators(seeds):
     return [torch.Generator().manual_seed(s) for s in seeds]
+
+
+FAST_BACKENDS = ("cpu", "gpu")  # every backend the law tests hold to the reference
+
+
+def fast_backend(name: str):
+    """The named backend on its device (gpu: CUDA, or Triton's interpreter on the CPU); skipped,
+    with the reason, where it cannot run."""
+    from moex.kernels import _gpu_module, get_backend
+
+    if name == "gpu":
+        gpu, why = _gpu_module()
+        if gpu is None:
+            pytest.skip(f"backend gpu: Triton is not installed ({why})")
+        return get_backend("gpu", "cuda" if torch.cuda.is_available() else "cpu")
+    return get_backend(name)

@@ -1,4 +1,5 @@
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -31,9 +32,16 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
     for name in ("checkpoint.pt", "history.csv", "train.log", ".hydra/config.yaml",
                  "metrics.csv", "samples.npz", "figures/learning_curves.png",
                  "figures/trajectory.png", "figures/gates.png", "figures/residence_times.png",
-                 "figures/runs.png", "figures/phase_portrait.png"):
+                 "figures/runs.png", "figures/phase_portrait.png", "report.md"):
         assert (run_dir / name).is_file(), name
+    page = (run_dir / "report.md").read_text()  # the run's page: metrics and every figure
+    assert "| run | E | E^g |" in page and "![learning curves](figures/learning_curves.png)" in page
+    assert all(f"(figures/{p.name})" in page for p in (run_dir / "figures").iterdir())
     assert list(work.iterdir()) == []  # nothing written to the working directory
+    progress = [line for line in (run_dir / "train.log").read_text().splitlines()
+                if "experts: step" in line]
+    assert len(progress) == 6 and all(re.search(r"[\d.]+ steps/s, \d+:\d\d:\d\d left", line)
+                                       for line in progress), progress  # rate and time left
     checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert checkpoint["gating"]["w_out"].shape == (2, 2, 5)
     history = pd.read_csv(run_dir / "history.csv")

@@ -1,5 +1,6 @@
-"""The compiled backend against the PyTorch reference: objectives, every gradient group, whole
-training trajectories, closed-loop samples and exponents."""
+"""The fast backends (cpu: numba; gpu: Triton, in its interpreter without CUDA) against the PyTorch
+reference: objectives, every gradient group, whole training trajectories, closed-loop samples and
+exponents. Each law test runs on every backend through the `backend` fixture."""
 
 import dataclasses
 
@@ -18,14 +19,22 @@ from moex.train import (
     train_experts,
     train_gating,
 )
-from tests.conftest import generators
+from tests.conftest import FAST_BACKENDS, fast_backend, generators
 
-kernels = pytest.importorskip("moex.kernels.cpu")
-REFERENCE, COMPILED = get_backend("reference"), get_backend("compiled")
+REFERENCE, COMPILED = get_backend("reference"), get_backend("cpu")
 TOLERANCE = {torch.float64: 1e-10, torch.float32: 1e-5}
 
 
-def _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype, seed=0):
+@pytest.fixture(params=FAST_BACKENDS)
+def backend(request):
+    return fast_backend(request.param)
+
+
+def _on(params: dict, device) -> dict:
+    return {k: v.to(device) for k, v in params.items()}
+
+
+def _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype, seed=0, fast=COMPILED):
     """Phase-1 and phase-2 problems of both backends on random parameters and data."""
     model = ModelConfig(num_experts=K, delay=delay, learn_time_constants=learn_tau)
     model.experts.context_size, model.gating.context_size = M, M + 1
@@ -41,12 +50,12 @@ def _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype, seed=0):
         attraction=attraction)
     x = series.numpy()
     out = []
-    for backend in (REFERENCE, COMPILED):
+    for backend in (REFERENCE, fast):
         problems = [(backend.gating_problem(ghat.numpy(), x[:, :T], model, phase2,
-                                            list(range(R))), gating)]
+                                            list(range(R))), _on(gating, backend.device))]
         if D:
             problems.append((backend.expert_problem(x[:, :-delay], x[:, delay:], model, phase1,
-                                                    R), experts))
+                                                    R), _on(experts, backend.device)))
         out.append(problems)
     return out
 
@@ -59,49 +68,73 @@ def _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype, seed=0):
     (2, 4, 13, 7, 0, 6, 1, False, True),  # symbolic (Reber-like): phase 2 only
 ])
 def test_objectives_and_every_gradient_group_match(R, S, T, K, D, M, delay, learn_tau,
-                                                   attraction, dtype):
+                                                   attraction, dtype, backend):
     tol = TOLERANCE[dtype]
-    for (ref, params), (fast, _) in zip(*_problems(R, S, T, K, D, M, delay, learn_tau,
-                                                   attraction, dtype), strict=True):
-        arrays = {k: v.numpy() for k, v in params.items()}
-        learned = [k for k in arrays if k != "tau" or learn_tau]
-        results = []
-        for problem in (ref, fast):
-            grads = {k: np.full_like(arrays[k], np.nan) for k in learned}
-            stats = problem.value_and_grad(arrays, grads, np.ones(R, bool))
-            results.append((stats, grads, problem.value(arrays, np.ones(R, bool))))
-        (ref_stats, ref_grads, ref_value), (stats, grads, value) = results
+    results = []
+    for problems in _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype,
+                              fast=backend):
+        results.append([])
+        for problem, params in problems:
+            learned = [k for k in params if k != "tau" or learn_tau]
+            grads = {k: torch.full_like(params[k], torch.nan) for k in learned}
+            active = torch.ones(R, dtype=torch.bool, device=params["w_in"].device)
+            stats = problem.value_and_grad(params, grads, active)
+            results[-1].append(tuple(_host(x) for x in (stats, grads,
+                                                         problem.value(params, active))))
+    for ((ref_stats, ref_grads, _), (stats, grads, value)) in zip(*results,
+                                                                         strict=True):
         for name in ref_stats:
             scale = max(1.0, np.abs(ref_stats[name]).max())
             np.testing.assert_allclose(stats[name], ref_stats[name], rtol=tol, atol=tol * scale,
                                        err_msg=name)
             np.testing.assert_allclose(value[name], stats[name], rtol=tol, atol=tol * scale)
-        for name in learned:
+        for name in ref_grads:
             scale = max(1.0, np.abs(ref_grads[name]).max())
             np.testing.assert_allclose(grads[name], ref_grads[name], rtol=tol, atol=tol * scale,
                                        err_msg=name)
 
 
-def test_inactive_runs_are_skipped_and_others_unchanged():
-    """Runs marked inactive (failed) are not computed; the active ones give the same values."""
-    (_, _), (problems, _) = _problems(3, 2, 9, 2, 2, 4, 1, False, False, torch.float64)
+def _host(values: dict) -> dict:
+    return {k: torch.as_tensor(v).detach().cpu().numpy() for k, v in values.items()}
+
+
+def test_inactive_runs_are_skipped_and_others_unchanged(backend):
+    """A run marked inactive (failed) keeps its gradients; the active ones give the same values
+    and gradients as with every run active."""
+    _, (problems, _) = _problems(3, 2, 9, 2, 2, 4, 1, False, False, torch.float64, fast=backend)
     problem, params = problems
-    arrays = {k: v.numpy() for k, v in params.items()}
-    grads = {k: np.zeros_like(v) for k, v in arrays.items() if k != "tau"}
-    full = problem.value_and_grad(arrays, grads, np.ones(3, bool))
-    kept = {k: v.copy() for k, v in grads.items()}
-    arrays["w_rec"][1] = np.nan  # a failed run's parameters
-    part = problem.value_and_grad(arrays, grads, np.array([True, False, True]))
+    grads = {k: torch.zeros_like(v) for k, v in params.items() if k != "tau"}
+    full = _host(problem.value_and_grad(params, grads, torch.ones(3, dtype=torch.bool)))
+    kept = _host(grads)
+    params["w_rec"][1] = torch.nan  # a failed run's parameters
+    part = _host(problem.value_and_grad(params, grads, torch.tensor([True, False, True])))
     for name in full:
         np.testing.assert_array_equal(part[name][[0, 2]], full[name][[0, 2]])
-    for name in grads:
-        np.testing.assert_array_equal(grads[name][[0, 2]], kept[name][[0, 2]])
+    for name, value in _host(grads).items():
+        np.testing.assert_array_equal(value[[0, 2]], kept[name][[0, 2]])
+        np.testing.assert_array_equal(value[1], kept[name][1])
 
 
-@pytest.mark.parametrize("adaptive", [False, True])
-@pytest.mark.parametrize("form", ["paper", "mregn"])
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_training_trajectories_of_both_phases_match(adaptive, form, dtype, steps=12):
+def _trajectory_cases():
+    """Every combination on the cpu backend; on the gpu backend (in Triton's interpreter without
+    CUDA, ~30-70 s a case) two in the default suite, covering both forms, both rates and both
+    precisions, the other six marked slow."""
+    cases = []
+    for name in FAST_BACKENDS:
+        for dtype in (torch.float64, torch.float32):
+            for form in ("paper", "mregn"):
+                for adaptive in (False, True):
+                    quick = name == "cpu" or (dtype, form, adaptive) in (
+                        (torch.float64, "paper", True), (torch.float32, "mregn", False))
+                    cases.append(pytest.param(name, dtype, form, adaptive,
+                                              marks=() if quick else pytest.mark.slow))
+    return cases
+
+
+@pytest.mark.parametrize("name, dtype, form, adaptive", _trajectory_cases())
+def test_training_trajectories_of_both_phases_match(name, dtype, form, adaptive):
+    backend = fast_backend(name)
+    steps = 12 if name == "cpu" else 6  # (Triton's interpreter is slow)
     task = make_task(TaskConfig(num_series=2, length=40), seed=0)
     series = torch.as_tensor(task.series, dtype=dtype)
     model = ModelConfig(learn_time_constants=True)
@@ -112,16 +145,16 @@ def test_training_trajectories_of_both_phases_match(adaptive, form, dtype, steps
     phase1 = ExpertPhaseConfig(steps=steps, adaptive_lr=adaptive, learning_rate=0.05,
                                log_every=1)
     phase2 = GatingPhaseConfig(steps=steps, adaptive_lr=adaptive, learning_rate=1.0, log_every=1)
-    out = {}
-    for backend in (REFERENCE, COMPILED):
+    out = []
+    for each in (REFERENCE, backend):
         experts, beta, rows1 = train_experts(
             init_experts(model, 2, 2, generators([0, 1]), dtype), series, model, phase1, rule,
-            backend=backend)
+            backend=each)
         gating, rows2 = train_gating(init_gating(model, 2, 2, generators([0, 1]), dtype),
                                      torch.softmax(beta, -1), series[:, :-1], model, phase2, rule,
-                                     backend=backend)
-        out[backend.name] = (experts, beta, gating, rows1 + rows2)
-    ref, fast = out["reference"], out["compiled"]
+                                     backend=each)
+        out.append((experts, beta, gating, rows1 + rows2))
+    ref, fast = out
     tol = TOLERANCE[dtype] * (100 if dtype == torch.float32 else 1)  # 24 steps of float32
     torch.testing.assert_close(fast[1], ref[1], rtol=tol, atol=tol)
     for a, b in ((ref[0], fast[0]), (ref[2], fast[2])):
@@ -132,7 +165,7 @@ def test_training_trajectories_of_both_phases_match(adaptive, form, dtype, steps
         assert any(r["lr_scale"] != 1.0 for r in fast[3])
 
 
-def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(steps=6):
+def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(backend, steps=6):
     """With input noise in phase 2, both backends draw the same noise; run r sees the noise of
     its own seed whether trained in a batch or alone."""
     task = make_task(TaskConfig(num_series=2, length=30), seed=0)
@@ -141,24 +174,22 @@ def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(steps=6):
     model.gating.context_size = 5
     phase2 = GatingPhaseConfig(steps=steps, input_noise_var=1e-2)
     ghat = torch.softmax(torch.randn(3, 2, 29, 2, generator=torch.Generator().manual_seed(1)), -1)
-    out = {}
-    for backend in (REFERENCE, COMPILED):
-        out[backend.name] = train_gating(init_gating(model, 2, 2, generators([4, 5, 6])), ghat,
-                                         series[:, :-1], model, phase2, TrainConfig(),
-                                         backend=backend, seeds=[7, 8, 9])[0]
+    out = []
+    for each in (REFERENCE, backend):
+        out.append(train_gating(init_gating(model, 2, 2, generators([4, 5, 6])), ghat,
+                                series[:, :-1], model, phase2, TrainConfig(), backend=each,
+                                seeds=[7, 8, 9])[0])
         alone = train_gating(init_gating(model, 2, 2, generators([5])), ghat[1:2],
-                             series[:, :-1], model, phase2, TrainConfig(), backend=backend,
+                             series[:, :-1], model, phase2, TrainConfig(), backend=each,
                              seeds=[8])[0]
         for k in alone:
-            torch.testing.assert_close(alone[k][0], out[backend.name][k][1], rtol=0,
-                                       atol=1e-12)
+            torch.testing.assert_close(alone[k][0], out[-1][k][1], rtol=0, atol=1e-12)
     clean = train_gating(init_gating(model, 2, 2, generators([4, 5, 6])), ghat, series[:, :-1],
                          model, dataclasses.replace(phase2, input_noise_var=0.0), TrainConfig(),
-                         backend=COMPILED, seeds=[7, 8, 9])[0]
+                         backend=backend, seeds=[7, 8, 9])[0]
     for k in clean:
-        torch.testing.assert_close(out["compiled"][k], out["reference"][k], rtol=1e-10,
-                                   atol=1e-10)
-    assert (clean["w_out"] - out["compiled"]["w_out"]).abs().max() > 1e-6  # noise did act
+        torch.testing.assert_close(out[1][k], out[0][k], rtol=1e-10, atol=1e-10)
+    assert (clean["w_out"] - out[1]["w_out"]).abs().max() > 1e-6  # noise did act
 
 
 def _closed_loop_model(K, D, delay, dtype):
@@ -174,49 +205,63 @@ def _closed_loop_model(K, D, delay, dtype):
     return experts, gating, state
 
 
-@pytest.mark.parametrize("K, D, delay, k, uniform", [(2, 2, 1, 1, False), (3, 2, 2, 3, False),
-                                                     (4, 0, 1, 2, False), (3, 2, 1, 2, True)])
-@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
-def test_closed_loop_kernel_matches_reference(K, D, delay, k, uniform, dtype, tol, steps=40):
+def _closed_loop_cases():
+    """(K, D, delay, k tangents, uniform gates): one tangent on both fast backends (the gpu
+    kernel carries one); several only on cpu, whose Gram-Schmidt the gpu backend calls for them."""
+    one = [(2, 2, 1, 1, False), (3, 2, 2, 1, False), (4, 0, 1, 1, False), (3, 2, 1, 1, True)]
+    several = [(3, 2, 2, 3, False), (4, 0, 1, 2, False), (3, 2, 1, 2, True)]
+    precisions = [(torch.float64, 1e-10), (torch.float32, 1e-4)]
+    return ([("cpu", *c, *p) for c in one + several for p in precisions]
+            + [("gpu", *c, *precisions[0]) for c in one + [(2, 2, 1, 0, False)]]
+            + [("gpu", *one[0], *precisions[1])])  # (float32 once: the interpreter is slow)
+
+
+@pytest.mark.parametrize("name, K, D, delay, k, uniform, dtype, tol", _closed_loop_cases())
+def test_closed_loop_kernel_matches_reference(name, K, D, delay, k, uniform, dtype, tol,
+                                              steps=40):
     """Outputs, gates, potentials, next state, tangents (up to the sign QR leaves free) and the
     log growth of the compiled closed loop equal the reference, with noise, without experts
-    (symbolic tasks) and with the C tool's uniform gates in the Jacobian."""
+    (symbolic tasks), with the C tool's uniform gates in the Jacobian, and without tangents."""
+    backend = fast_backend(name)
     experts, gating, state = _closed_loop_model(K, D, delay, dtype)
-    tangents = torch.linalg.qr(torch.randn(state.flat().shape + (k,), dtype=dtype))[0]
+    tangents = torch.linalg.qr(torch.randn(state.flat().shape + (k,), dtype=dtype))[0] if k \
+        else None
     noise = 0.1 * torch.randn(2, 3, steps, D, dtype=dtype)
     ref = reference.closed_loop(experts, gating, state, steps, noise, tangents, True, uniform)
-    fast = kernels.closed_loop(experts, gating, state, steps, noise, tangents, True, uniform)
+    fast = backend.closed_loop(experts, gating, state, steps, noise, tangents, True, uniform)
     for a, b in zip(vars(ref.state).values(), vars(fast.state).values(), strict=True):
         torch.testing.assert_close(b, a, rtol=tol, atol=tol)
     for name in ("outputs", "gates", "gating_u", "growth"):
         torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=tol, atol=tol)
-    signs = torch.sign((ref.tangents * fast.tangents).sum(-2, keepdim=True))
-    torch.testing.assert_close(fast.tangents * signs, ref.tangents, rtol=tol, atol=tol)
-    assert ref.growth.abs().max() > 0.1  # the growth is not trivially zero
+    if k:
+        signs = torch.sign((ref.tangents * fast.tangents).sum(-2, keepdim=True))
+        torch.testing.assert_close(fast.tangents * signs, ref.tangents, rtol=tol, atol=tol)
+        assert ref.growth.abs().max() > 0.1  # the growth is not trivially zero
 
 
-def test_closed_loop_kernel_leaves_its_input_state_alone():
+def test_closed_loop_kernel_leaves_its_input_state_alone(backend):
     experts, gating, state = _closed_loop_model(2, 2, 1, torch.float64)
     before = [x.clone() for x in vars(state).values()]
-    kernels.closed_loop(experts, gating, state, 5)
+    backend.closed_loop(experts, gating, state, 5,
+                        tangents=torch.linalg.qr(torch.randn(state.flat().shape + (1,)))[0])
     for a, b in zip(before, vars(state).values(), strict=True):
         assert torch.equal(a, b)
 
 
-def test_generation_and_exponents_equal_across_backends():
+@pytest.mark.parametrize("exponents", [1, 2])
+def test_generation_and_exponents_equal_across_backends(backend, exponents):
     """The whole evaluation path (chunked, noise from one generator) gives the same samples and
-    exponents on both backends."""
+    exponents on every backend."""
     experts, gating, state = _closed_loop_model(2, 2, 1, torch.float64)
-    out = {}
-    for backend in (REFERENCE, COMPILED):
+    out = []
+    for each in (REFERENCE, backend):
         chunks = []
         lam = closed_loop_lyapunov(experts, gating, state, 30, 7, torch.Generator().manual_seed(0),
-                                   num_exponents=2, noise_std=1e-2, on_chunk=chunks.append,
-                                   backend=backend)
-        gen = generate(experts, gating, state, 20, 0.01, torch.Generator().manual_seed(1),
-                       backend)
-        out[backend.name] = (lam, torch.cat([c.outputs for c in chunks], 2), gen["outputs"])
-    for a, b in zip(out["reference"], out["compiled"], strict=True):
+                                   num_exponents=exponents, noise_std=1e-2,
+                                   on_chunk=chunks.append, backend=each)
+        gen = generate(experts, gating, state, 20, 0.01, torch.Generator().manual_seed(1), each)
+        out.append((lam, torch.cat([c.outputs for c in chunks], 2), gen["outputs"]))
+    for a, b in zip(*out, strict=True):
         torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-10)
 
 
@@ -228,24 +273,38 @@ def test_nearest_symbols_match_reference():
                                   REFERENCE.nearest_symbols(points, prototypes, symbols))
 
 
-def test_backend_choice():
-    assert get_backend("auto", "cpu").name == "compiled"
+def test_backend_choice(monkeypatch):
+    assert get_backend("auto", "cpu").name == "cpu"
+    assert get_backend("compiled").name == "cpu"  # the old name
     assert get_backend("reference").name == "reference"
-    assert get_backend("auto", "cuda").name == "reference"
-    with pytest.raises(ValueError, match="backend=compiled runs on the CPU only"):
-        get_backend("compiled", "cuda")
+    assert get_backend("auto", "cuda").name == "gpu"  # Triton is a dev dependency
+    with pytest.raises(ValueError, match="backend=cpu runs on the CPU only"):
+        get_backend("cpu", "cuda")
+    with pytest.raises(ValueError, match="backend='numba'; choose one of auto, reference, cpu"):
+        get_backend("numba")
+    from moex.kernels import gpu
+
+    monkeypatch.setattr(gpu, "INTERPRET", False)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="backend=gpu needs device=cuda"):
+            get_backend("gpu", "cpu")
 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_reference_runs_on_cuda_and_matches_cpu():
-    (problems, _), _ = _problems(2, 2, 19, 2, 2, 4, 1, False, False, torch.float64)
-    for problem, params in problems:
-        arrays = {k: v.numpy() for k, v in params.items()}
-        on_gpu = dataclasses.replace(get_backend("reference", "cuda"))
-        assert on_gpu.device == "cuda"
-        cpu = problem.value(arrays, np.ones(2, bool))
-        problem.device = torch.device("cuda")
-        gpu = problem.value(arrays, np.ones(2, bool))
-        for name in cpu:
-            np.testing.assert_allclose(gpu[name], cpu[name], rtol=1e-10, atol=1e-10)
+@pytest.mark.parametrize("name", ["reference", "gpu"])
+def test_cuda_backends_match_cpu(name):
+    """On a real GPU: the reference and the Triton kernels (compiled, not interpreted) give the
+    cpu backend's statistics and gradients on both phases."""
+    cuda = get_backend(name, "cuda")
+    for ref_side, gpu_side in zip(*_problems(2, 3, 37, 2, 2, 10, 1, True, True, torch.float64,
+                                             fast=cuda), strict=True):
+        results = []
+        for problem, params in (ref_side, gpu_side):
+            grads = {k: torch.zeros_like(v) for k, v in params.items()}
+            active = torch.ones(2, dtype=torch.bool)
+            results.append((_host(problem.value_and_grad(params, grads, active)),
+                            _host(grads)))
+        for a, b in zip(*results, strict=True):
+            for k in a:
+                np.testing.assert_allclose(b[k], a[k], rtol=1e-10, atol=1e-10, err_msg=k)

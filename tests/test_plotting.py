@@ -1,5 +1,6 @@
 import matplotlib.pyplot as plt
 import numpy as np
+import pandas as pd
 
 from moex import plotting
 
@@ -8,18 +9,47 @@ def _one_hot(winners: np.ndarray, K: int) -> np.ndarray:
     return np.eye(K)[winners]
 
 
-def test_expert_panels_one_per_expert_and_spare_panels_blank():
-    K, T = 3, 60
-    winners = np.repeat([0, 2], T // 2)  # expert 1 never wins
+def test_expert_panels_one_per_winning_expert_and_the_others_named():
+    K, T = 4, 60
+    winners = np.repeat([0, 2, 3], T // 3)  # expert 1 never wins
     outputs = np.random.default_rng(0).uniform(-1, 1, (T, 2))
-    axes = plotting.plot_expert_panels(outputs, _one_hot(winners, K))
+    axes = plotting.plot_expert_panels(outputs, _one_hot(winners, K), title="run 0")
     panels = list(axes.flat)
-    assert len(panels) == 4  # a 2 x 2 grid for 3 experts
-    assert [ax.get_title() for ax in panels[:K]] == ["expert 0", "expert 1", "expert 2"]
-    assert [len(ax.collections) for ax in panels[:K]] == [1, 0, 1]
-    assert len(panels[0].collections[0].get_offsets()) == T // 2
-    assert not panels[K].axison and panels[K].get_title() == ""
+    assert len(panels) == 4  # a 2 x 2 grid for the 3 experts that win
+    assert [ax.get_title() for ax in panels[:3]] == ["expert 0 (33%)", "expert 2 (33%)",
+                                                     "expert 3 (33%)"]
+    assert [len(ax.collections[0].get_offsets()) for ax in panels[:3]] == [T // 3] * 3
+    assert not panels[3].get_visible()  # the spare panel is hidden
+    assert panels[0].figure._suptitle.get_text() == "run 0\n1 of 4 experts never win: 1"
     plt.close("all")
+
+
+def test_figures_state_facts_and_hide_what_is_empty():
+    """Learning curves: one legend, symlog λ_max, labels from the metric table; a residence plot
+    of a run that never switched says so; a fixed point is named in the phase portrait."""
+    history = pd.DataFrame([{"run": r, "phase": phase, "step": s, "E": 1.0 / (s + 1),
+                             "E_g": 0.1, "max_lyapunov": (-1) ** s * 1e-3}
+                            for r in range(2) for phase in ("experts", "gating")
+                            for s in range(5)])
+    fig = plotting.plot_learning_curves(history)
+    visible = [ax for ax in fig.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in visible] == [
+        "phase 1: mixture error $E$", "phase 2: gating error $E^g$",
+        r"phase 2: $\lambda_{\max}$"]
+    assert visible[2].get_yscale() == "symlog" and visible[0].get_yscale() == "log"
+    assert len(fig.legends) == 1 and all(ax.get_legend() is None for ax in visible)
+    ax = plotting.plot_residence(np.zeros((2, 20)))
+    assert "never completed" in ax.texts[0].get_text() and ax.get_legend() is None
+    ax = plotting.plot_phase_portrait(np.tile([[0.2, -0.3]], (100, 1)), title="run 0")
+    assert "a fixed point at (0.2, -0.3)" in ax.get_title()
+    plt.close("all")
+
+
+def test_every_format_is_written(tmp_path):
+    for fmt in plotting.FORMATS:
+        fig = plt.figure()
+        path = plotting.save_figure(fig, tmp_path / "x.png", fmt)
+        assert path == tmp_path / f"x.{fmt}" and path.stat().st_size > 0
 
 
 def test_gate_series_labels_every_step_of_a_short_window_and_each_run_of_a_long_one():

@@ -21,6 +21,9 @@ def test_tiny_paper_table2_sweep_and_report(launcher, tmp_path):
         (["hydra.launcher.n_jobs=2"] if launcher == "joblib" else []),
         cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr
+    last = result.stdout.strip().splitlines()[-1]  # the sweep's summary names what to run next
+    assert last.startswith(f"moex: sweep folder {sweep.resolve()}: 3 jobs (3 done"), last
+    assert last.endswith(f"compare them with: moex report {sweep.resolve()}"), last
     jobs = sorted((p for p in sweep.iterdir() if p.is_dir()),
                   key=lambda p: -float(p.joinpath(".hydra/config.yaml").read_text()
                                        .split("switch_prob: ")[1].split()[0]))
@@ -211,3 +214,25 @@ def test_a_sweep_over_a_config_group_names_the_choice_apart_from_the_setting(tmp
                   choices=f"      task: {task}\n")
     summary = report(tmp_path)["summary"]
     assert summary["task"].tolist() == summary["task_choice"].tolist() and len(summary) == 2
+
+
+def test_report_compares_runs_from_different_folders(tmp_path):
+    """Two single runs trained apart (another gating size each) compared in one report: one
+    row per setting, named by its config key; several folders need --out; svg on request."""
+    for size in (5, 6):
+        done = subprocess.run(MOEX + ["train", "task=lissajous2", *TINY,
+                                      f"model.gating.context_size={size}",
+                                      f"hydra.run.dir={tmp_path / f'nc{size}'}"],
+                              capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr
+    refused = subprocess.run(MOEX + ["report", str(tmp_path / "nc5"), str(tmp_path / "nc6")],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "--out" in refused.stderr
+    out = subprocess.run(MOEX + ["report", str(tmp_path / "nc5"), str(tmp_path / "nc6"),
+                                 "--out", str(tmp_path / "both"), "--format", "svg"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    summary = pd.read_csv(tmp_path / "both" / "tables" / "by_setting.csv")
+    assert summary["context_size"].tolist() == [5, 6]
+    assert set(pd.read_csv(tmp_path / "both" / "summary.csv")["job"]) == {"nc5", "nc6"}
+    assert not list((tmp_path / "both" / "figures").glob("*.png"))  # svg only, if any figure

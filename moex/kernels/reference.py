@@ -87,23 +87,23 @@ class _Problem:
         """Nothing to draw (see `GatingProblem`)."""
 
     def _tensors(self, params, grads):
-        return {k: torch.from_numpy(np.ascontiguousarray(v)).to(self.device).requires_grad_(
-            k in grads) for k, v in params.items()}
+        return {k: torch.as_tensor(v, device=self.device).detach().requires_grad_(k in grads)
+                for k, v in params.items()}
 
-    def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
+    def value_and_grad(self, params: dict, grads: dict, active) -> dict:
         """Objective statistics per run (R,); every gradient is written into `grads`."""
         leaves = self._tensors(params, grads)
         total, stats = self.objective(leaves)
         values = torch.autograd.grad(total.sum(), [leaves[k] for k in grads])
         for name, value in zip(grads, values, strict=True):
-            grads[name][...] = value.cpu().numpy()
-        return {n: v.detach().cpu().numpy() for n, v in {"objective": total, **stats}.items()}
+            grads[name].copy_(value)
+        return {n: v.detach() for n, v in {"objective": total, **stats}.items()}
 
-    def value(self, params: dict, active: np.ndarray) -> dict:
+    def value(self, params: dict, active) -> dict:
         """The same statistics without gradients (`active` is ignored: every run is computed)."""
         with torch.no_grad():
             total, stats = self.objective(self._tensors(params, {}))
-        return {n: v.cpu().numpy() for n, v in {"objective": total, **stats}.items()}
+        return {"objective": total, **stats}
 
 
 class ExpertProblem(_Problem):

@@ -1,0 +1,378 @@
+"""The closed loop (Sec. 2.2) with Lyapunov tangent vectors, compiled: one lane per (run, sample)
+trajectory, the same results as `moex.kernels.reference.closed_loop`."""
+
+import numpy as np
+import torch
+from numba import njit, prange
+
+from moex.kernels.cpu.lanes import _NET, _first_use, _in_lanes
+from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log, stack, tanh
+from moex.model import ClosedLoopRun
+
+
+@njit(**JIT)
+def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out_u,
+                  growth):  # pragma: no cover
+    """One block of trajectories for out_y.shape[0] steps (every array is the block's part).
+
+    E: expert weights (w_in (KE, M, D), w_rec (KE, M, M), w_out (KE, D, M), b_c, b_o, ε) per
+    lane; G: gating weights (w_in (H, K + D), w_rec, w_out (K, H), b_c, b_o, ε) per lane;
+    state: u of the experts (KE·M), u^g (H), the delay lines x (τ·D) and g (τ·K), updated in
+    place; V (k, dim): tangent vectors in the layout of `ClosedLoopState.flat`, propagated by the
+    exact Jacobian and re-orthonormalised (modified Gram-Schmidt) every step; growth (k) += ln of
+    the norms when `count`. Records y, the gates that mixed it and u^g (if out_u is not empty)."""
+    e_wi, e_wr, e_wo, e_bc, e_bo, e_eps = E
+    g_wi, g_wr, g_wo, g_bc, g_bo, g_eps = G
+    eu, gu, xl, gl = state
+    KE, M = e_wi.shape[0], e_wi.shape[1]
+    H, K = g_wr.shape[0], g_wo.shape[0]
+    TAU = gl.shape[0] // K
+    D = xl.shape[0] // TAU
+    NV, steps = V.shape[0], out_y.shape[0]
+    og, ox = KE * M, KE * M + H
+    ot = ox + TAU * D
+    dim = ot + TAU * K
+    has_noise, keep_u = noise.shape[0] > 0, out_u.shape[0] > 0
+    ue, ce, dce_prev, dce = stack(eu, KE * M), stack(eu, KE * M), stack(eu, KE * M), \
+        stack(eu, KE * M)
+    outs = stack(eu, KE * D)
+    dc = stack(eu, KE * M)  # a tangent's ∂c of the experts (and dcgv of the gating RNN)
+    ug, cg, dcg_prev, dcg = stack(eu, H), stack(eu, H), stack(eu, H), stack(eu, H)
+    dcgv = stack(eu, H)
+    x, y, dy = stack(eu, D), stack(eu, D), stack(eu, D)
+    g, ng, dl = stack(eu, K), stack(eu, K), stack(eu, K)
+    nv = stack(eu, dim)
+    acc, top, total = lanes(eu), lanes(eu), lanes(eu)
+    for q in range(KE * M):
+        for v in range(LB):
+            ue[q, v] = eu[q, v]
+            ce[q, v] = tanh(ue[q, v] + e_bc[q // M, q % M, v])
+    for h in range(H):
+        for v in range(LB):
+            ug[h, v] = gu[h, v]
+            cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
+    for t in range(steps):
+        for d in range(D):
+            for v in range(LB):
+                x[d, v] = xl[d, v] + (noise[t, d, v] if has_noise else 0.0)
+        for k in range(K):
+            for v in range(LB):
+                g[k, v] = gl[k, v]
+        # experts, Eqs. 1-3, all on the same input x_m
+        for e in range(KE):
+            for i in range(M):
+                for v in range(LB):
+                    dce_prev[e * M + i, v] = 1.0 - ce[e * M + i, v] * ce[e * M + i, v]
+            for i in range(M):
+                for v in range(LB):
+                    acc[v] = 0.0
+                for d in range(D):
+                    for v in range(LB):
+                        acc[v] = fma(e_wi[e, i, d, v], x[d, v], acc[v])
+                for j in range(M):
+                    for v in range(LB):
+                        acc[v] = fma(e_wr[e, i, j, v], ce[e * M + j, v], acc[v])
+                for v in range(LB):
+                    ue[e * M + i, v] = (1.0 - e_eps[e, i, v]) * ue[e * M + i, v] \
+                        + e_eps[e, i, v] * acc[v]
+            for i in range(M):
+                for v in range(LB):
+                    ce[e * M + i, v] = tanh(ue[e * M + i, v] + e_bc[e, i, v])
+                    dce[e * M + i, v] = 1.0 - ce[e * M + i, v] * ce[e * M + i, v]
+            for d in range(D):
+                for v in range(LB):
+                    acc[v] = e_bo[e, d, v]
+                for i in range(M):
+                    for v in range(LB):
+                        acc[v] = fma(e_wo[e, d, i, v], ce[e * M + i, v], acc[v])
+                for v in range(LB):
+                    outs[e * D + d, v] = tanh(acc[v])
+        for d in range(D):  # Eq. 4; without experts (symbolic tasks) D = 0
+            for v in range(LB):
+                y[d, v] = 0.0
+            for e in range(KE):
+                for v in range(LB):
+                    y[d, v] = fma(g[e, v], outs[e * D + d, v], y[d, v])
+        # gating RNN, Eqs. 5-8: reads (g_m, x_m), emits g_{m+τ}
+        for h in range(H):
+            for v in range(LB):
+                dcg_prev[h, v] = 1.0 - cg[h, v] * cg[h, v]
+        for h in range(H):
+            for v in range(LB):
+                acc[v] = 0.0
+            for k in range(K):
+                for v in range(LB):
+                    acc[v] = fma(g_wi[h, k, v], g[k, v], acc[v])
+            for d in range(D):
+                for v in range(LB):
+                    acc[v] = fma(g_wi[h, K + d, v], x[d, v], acc[v])
+            for j in range(H):
+                for v in range(LB):
+                    acc[v] = fma(g_wr[h, j, v], cg[j, v], acc[v])
+            for v in range(LB):
+                ug[h, v] = (1.0 - g_eps[h, v]) * ug[h, v] + g_eps[h, v] * acc[v]
+        for h in range(H):
+            for v in range(LB):
+                cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
+                dcg[h, v] = 1.0 - cg[h, v] * cg[h, v]
+        for k in range(K):
+            for v in range(LB):
+                acc[v] = g_bo[k, v]
+            for h in range(H):
+                for v in range(LB):
+                    acc[v] = fma(g_wo[k, h, v], cg[h, v], acc[v])
+            for v in range(LB):
+                ng[k, v] = acc[v]
+        for v in range(LB):
+            top[v] = ng[0, v]
+            total[v] = 0.0
+        for k in range(1, K):
+            for v in range(LB):
+                top[v] = ng[k, v] if ng[k, v] > top[v] else top[v]
+        for k in range(K):
+            for v in range(LB):
+                ng[k, v] = exp(ng[k, v] - top[v])
+                total[v] += ng[k, v]
+        for k in range(K):
+            for v in range(LB):
+                ng[k, v] /= total[v]
+        # tangents: the same step differentiated (the Jacobian of the whole closed loop)
+        for n in range(NV):
+            for q in range(KE * M):  # ∂c_{m-1} = (1 - c_{m-1}²) ∂u_{m-1}
+                for v in range(LB):
+                    dc[q, v] = dce_prev[q, v] * V[n, q, v]
+            for e in range(KE):
+                for i in range(M):
+                    for v in range(LB):
+                        acc[v] = 0.0
+                    for d in range(D):
+                        for v in range(LB):
+                            acc[v] = fma(e_wi[e, i, d, v], V[n, ox + d, v], acc[v])
+                    for j in range(M):
+                        for v in range(LB):
+                            acc[v] = fma(e_wr[e, i, j, v], dc[e * M + j, v], acc[v])
+                    for v in range(LB):
+                        nv[e * M + i, v] = (1.0 - e_eps[e, i, v]) * V[n, e * M + i, v] \
+                            + e_eps[e, i, v] * acc[v]
+            for q in range(KE * M):  # ∂c_m
+                for v in range(LB):
+                    dc[q, v] = dce[q, v] * nv[q, v]
+            for d in range(D):
+                for v in range(LB):
+                    dy[d, v] = 0.0
+                for e in range(KE):
+                    for v in range(LB):
+                        acc[v] = 0.0
+                    for i in range(M):
+                        for v in range(LB):
+                            acc[v] = fma(e_wo[e, d, i, v], dc[e * M + i, v], acc[v])
+                    for v in range(LB):
+                        weight = 1.0 / KE if uniform_gates else g[e, v]
+                        dy[d, v] += V[n, ot + e, v] * outs[e * D + d, v] + weight \
+                            * (1.0 - outs[e * D + d, v] * outs[e * D + d, v]) * acc[v]
+            for h in range(H):
+                for v in range(LB):
+                    dcgv[h, v] = dcg_prev[h, v] * V[n, og + h, v]
+            for h in range(H):
+                for v in range(LB):
+                    acc[v] = 0.0
+                for k in range(K):
+                    for v in range(LB):
+                        acc[v] = fma(g_wi[h, k, v], V[n, ot + k, v], acc[v])
+                for d in range(D):
+                    for v in range(LB):
+                        acc[v] = fma(g_wi[h, K + d, v], V[n, ox + d, v], acc[v])
+                for j in range(H):
+                    for v in range(LB):
+                        acc[v] = fma(g_wr[h, j, v], dcgv[j, v], acc[v])
+                for v in range(LB):
+                    nv[og + h, v] = (1.0 - g_eps[h, v]) * V[n, og + h, v] + g_eps[h, v] * acc[v]
+            for h in range(H):
+                for v in range(LB):
+                    dcgv[h, v] = dcg[h, v] * nv[og + h, v]
+            for v in range(LB):
+                total[v] = 0.0
+            for k in range(K):
+                for v in range(LB):
+                    acc[v] = 0.0
+                for h in range(H):
+                    for v in range(LB):
+                        acc[v] = fma(g_wo[k, h, v], dcgv[h, v], acc[v])
+                for v in range(LB):
+                    dl[k, v] = acc[v]
+                    total[v] = fma(ng[k, v], acc[v], total[v])
+            for q in range(TAU - 1):  # the delay lines shift by one
+                for d in range(D):
+                    for v in range(LB):
+                        nv[ox + q * D + d, v] = V[n, ox + (q + 1) * D + d, v]
+                for k in range(K):
+                    for v in range(LB):
+                        nv[ot + q * K + k, v] = V[n, ot + (q + 1) * K + k, v]
+            for d in range(D):
+                for v in range(LB):
+                    nv[ox + (TAU - 1) * D + d, v] = dy[d, v]
+            for k in range(K):
+                for v in range(LB):
+                    nv[ot + (TAU - 1) * K + k, v] = ng[k, v] * (dl[k, v] - total[v])
+            for q in range(dim):
+                for v in range(LB):
+                    V[n, q, v] = nv[q, v]
+        for n in range(NV):  # modified Gram-Schmidt = QR; the norms are |R_nn|
+            for w in range(n):
+                for v in range(LB):
+                    acc[v] = 0.0
+                for q in range(dim):
+                    for v in range(LB):
+                        acc[v] = fma(V[w, q, v], V[n, q, v], acc[v])
+                for q in range(dim):
+                    for v in range(LB):
+                        V[n, q, v] -= acc[v] * V[w, q, v]
+            for v in range(LB):
+                acc[v] = 0.0
+            for q in range(dim):
+                for v in range(LB):
+                    acc[v] = fma(V[n, q, v], V[n, q, v], acc[v])
+            for v in range(LB):
+                acc[v] = np.sqrt(acc[v])
+            for q in range(dim):
+                for v in range(LB):
+                    V[n, q, v] /= acc[v]
+            if count:
+                for v in range(LB):
+                    growth[n, v] += log(acc[v])
+        for q in range(TAU - 1):
+            for d in range(D):
+                for v in range(LB):
+                    xl[q * D + d, v] = xl[(q + 1) * D + d, v]
+            for k in range(K):
+                for v in range(LB):
+                    gl[q * K + k, v] = gl[(q + 1) * K + k, v]
+        for d in range(D):
+            for v in range(LB):
+                xl[(TAU - 1) * D + d, v] = y[d, v]
+                out_y[t, d, v] = y[d, v]
+        for k in range(K):
+            for v in range(LB):
+                gl[(TAU - 1) * K + k, v] = ng[k, v]
+                out_g[t, k, v] = g[k, v]
+        if keep_u:
+            for h in range(H):
+                for v in range(LB):
+                    out_u[t, h, v] = ug[h, v]
+    for q in range(KE * M):
+        for v in range(LB):
+            eu[q, v] = ue[q, v]
+    for h in range(H):
+        for v in range(LB):
+            gu[h, v] = ug[h, v]
+
+
+@njit(inline="always", **JIT)
+def _spread_run(lane, N, params, lane_params):  # pragma: no cover
+    """Copy the weights of run lane // N into `lane`: params (R, K', ...) -> (NB, K', ..., LB),
+    1/τ for the last entry; padding lanes copy the last run (they are discarded)."""
+    b, v = lane // LB, lane % LB
+    r = min(lane // N, params[0].shape[0] - 1)
+    w_in, w_rec, w_out, b_c, b_o, tau = params
+    wi, wr, wo, bc, bo, eps = lane_params
+    for k in range(w_in.shape[1]):
+        for i in range(w_rec.shape[2]):
+            bc[b, k, i, v] = b_c[r, k, i]
+            eps[b, k, i, v] = 1.0 / tau[r, k, i]
+            for d in range(w_in.shape[3]):
+                wi[b, k, i, d, v] = w_in[r, k, i, d]
+            for j in range(w_rec.shape[3]):
+                wr[b, k, i, j, v] = w_rec[r, k, i, j]
+        for o in range(w_out.shape[2]):
+            bo[b, k, o, v] = b_o[r, k, o]
+            for i in range(w_out.shape[3]):
+                wo[b, k, o, i, v] = w_out[r, k, o, i]
+
+
+@njit(parallel=True, **JIT)
+def _closed_loop(N, experts, gating, E, G, state, V, noise, count, uniform_gates, out_y, out_g,
+                 out_u, growth):  # pragma: no cover
+    eu, gu, xl, gl = state
+    NB = eu.shape[0]
+    for lane in prange(NB * LB):
+        _spread_run(lane, N, experts, E)
+        _spread_run(lane, N, gating, G)
+    e_wi, e_wr, e_wo, e_bc, e_bo, e_eps = E
+    g_wi, g_wr, g_wo, g_bc, g_bo, g_eps = G
+    for b in prange(NB):
+        _closed_block((e_wi[b], e_wr[b], e_wo[b], e_bc[b], e_bo[b], e_eps[b]),
+                      (g_wi[b, 0], g_wr[b, 0], g_wo[b, 0], g_bc[b, 0], g_bo[b, 0], g_eps[b, 0]),
+                      (eu[b], gu[b], xl[b], gl[b]), V[b], noise[b], count, uniform_gates,
+                      out_y[b], out_g[b], out_u[b], growth[b])
+
+
+def _check_shapes(experts, gating, state) -> None:
+    """The kernel reads without bounds checks: refuse parameters that do not fit the state."""
+    R, N, TAU, K = state.gates.shape
+    D, H = state.inputs.shape[-1], state.gating_u.shape[-1]
+    expected = {f"gating[{n!r}]": (tuple(gating[n].shape), shape) for n, shape in (
+        ("w_in", (R, H, K + D)), ("w_rec", (R, H, H)), ("w_out", (R, K, H)), ("b_c", (R, H)),
+        ("b_o", (R, K)), ("tau", (R, H)))}
+    if experts:
+        KE, M = state.experts_u.shape[2:]
+        expected.update({f"experts[{n!r}]": (tuple(experts[n].shape), shape) for n, shape in (
+            ("w_in", (R, KE, M, D)), ("w_rec", (R, KE, M, M)), ("w_out", (R, KE, D, M)),
+            ("b_c", (R, KE, M)), ("b_o", (R, KE, D)), ("tau", (R, KE, M)))})
+    for name, (shape, want) in expected.items():
+        if shape != want:
+            raise ValueError(f"{name} has shape {shape}; the closed-loop state needs {want}")
+
+
+def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
+                count: bool = False, uniform_gates: bool = False,
+                potentials: bool = True) -> ClosedLoopRun:
+    """`moex.kernels.reference.closed_loop` in one compiled call: same arguments and results.
+
+    Trajectory (r, n) is lane r·N + n; every lane carries its run's weights, so a block of
+    lanes advances LB trajectories with vector instructions, one thread per block.
+    """
+    R, N, K = state.gates.shape[0], state.gates.shape[1], state.gates.shape[-1]
+    TAU, D, H = state.inputs.shape[2], state.inputs.shape[-1], state.gating_u.shape[-1]
+    _check_shapes(experts, gating, state)
+    B = R * N
+    dtype = np.dtype(str(state.gates.dtype).removeprefix("torch."))
+
+    def lanes_of(x, per_trajectory_shape):  # (R, N, ...) -> (NB, ..., LB)
+        flat = np.asarray(x.detach().cpu().numpy(), dtype).reshape((B,) + per_trajectory_shape)
+        return _in_lanes(np.moveaxis(flat, 0, -1))
+
+    def params_of(net, per_run):
+        if not net:  # symbolic tasks: no experts
+            return tuple(np.zeros((R, 0, 1, 1), dtype) if n in ("w_in", "w_rec", "w_out") else
+                         np.ones((R, 0, 1), dtype) for n in _NET)
+        arrays = tuple(np.ascontiguousarray(net[n].detach().cpu().numpy(), dtype) for n in _NET)
+        return arrays if per_run else tuple(a[:, None] for a in arrays)
+
+    experts_p, gating_p = params_of(experts, True), params_of(gating, False)
+    eu = lanes_of(state.experts_u, (-1,))
+    NB = eu.shape[0]
+    E = tuple(np.zeros((NB,) + a.shape[1:] + (LB,), dtype) for a in experts_p)
+    G = tuple(np.zeros((NB,) + a.shape[1:] + (LB,), dtype) for a in gating_p)
+    gu, xl, gl = (lanes_of(x, (-1,)) for x in (state.gating_u, state.inputs, state.gates))
+    k = 0 if tangents is None else tangents.shape[-1]
+    V = (np.zeros((NB, 0, 0, LB), dtype) if tangents is None else
+         lanes_of(tangents.transpose(-1, -2), (k, -1)))
+    noise_l = (np.zeros((NB, 0, 0, LB), dtype) if noise is None else
+               lanes_of(noise, (steps, D)))
+    out_y, out_g = np.zeros((NB, steps, D, LB), dtype), np.zeros((NB, steps, K, LB), dtype)
+    out_u = np.zeros((NB, steps if potentials else 0, H, LB), dtype)
+    growth = np.zeros((NB, k, LB), dtype)
+    with _first_use(_closed_loop, "closed-loop kernel"):
+        _closed_loop(N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V, noise_l, count,
+                     uniform_gates, out_y, out_g, out_u, growth)
+
+    def back(x, shape):  # (NB, ..., LB) -> (R, N, ...)
+        flat = np.moveaxis(x, -1, 1).reshape((NB * LB,) + x.shape[1:-1])[:B]
+        return torch.from_numpy(np.ascontiguousarray(flat.reshape((R, N) + shape)))
+
+    nxt = type(state)(back(eu, state.experts_u.shape[2:]), back(gu, (H,)),
+                      back(xl, (TAU, D)), back(gl, (TAU, K)))
+    new_tangents = None if tangents is None else back(V, (k, -1)).transpose(-1, -2).contiguous()
+    return ClosedLoopRun(nxt, back(out_y, (steps, D)), back(out_g, (steps, K)),
+                         back(out_u, (steps, H)) if potentials else None, new_tangents,
+                         back(growth, (k,)))

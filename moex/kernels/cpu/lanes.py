@@ -1,0 +1,203 @@
+"""Parameters to lanes and back, and the work arrays of a phase (layout: `moex.kernels.cpu`).
+
+Lane l is entry l % LB of block l // LB; network g (an expert of a run, or a run's gating RNN)
+owns lanes g·S .. g·S + S - 1, one per series. Lanes past the last network are padding: zero
+weights, no data.
+"""
+
+import contextlib
+import logging
+import time
+
+import numpy as np
+import torch
+from numba import njit
+
+from moex.kernels.cpu.simd import JIT, LB, padded
+
+
+@njit(inline="always", **JIT)
+def _spread(lane, S, params, u0, net):  # pragma: no cover
+    """Copy the weights of the network that owns `lane` into it (zeros for padding lanes).
+    Network parameters are (R, K', ...) with K' experts per run (1 for the gating RNN); u0 is
+    (R, S, K', H)."""
+    w_in, w_rec, w_out, b_c, b_o, tau = params
+    wi, wr, wo, bc, bo, eps, u0_lane = net
+    R, KK = w_in.shape[0], w_in.shape[1]
+    b, v = lane // LB, lane % LB
+    g, s = lane // S, lane % S
+    r, k = min(g // KK, R - 1), g % KK
+    real = g < R * KK
+    H, NI, NO = w_rec.shape[2], w_in.shape[3], w_out.shape[2]
+    for i in range(H):
+        bc[b, i, v] = b_c[r, k, i] if real else 0.0
+        eps[b, i, v] = 1.0 / tau[r, k, i] if real else 1.0
+        u0_lane[b, i, v] = u0[r, s, k, i] if real else 0.0
+        for d in range(NI):
+            wi[b, i, d, v] = w_in[r, k, i, d] if real else 0.0
+        for j in range(H):
+            wr[b, i, j, v] = w_rec[r, k, i, j] if real else 0.0
+    for o in range(NO):
+        bo[b, o, v] = b_o[r, k, o] if real else 0.0
+        for i in range(H):
+            wo[b, o, i, v] = w_out[r, k, o, i] if real else 0.0
+
+
+@njit(inline="always", **JIT)
+def _lane_sum(x, lo, hi):  # pragma: no cover
+    """Σ over lanes lo..hi-1 of x (NB, LB)."""
+    total = 0.0
+    for lane in range(lo, hi):
+        total += x[lane // LB, lane % LB]
+    return total
+
+
+@njit(inline="always", **JIT)
+def _gather(g, S, tau, lane_grads, grads, learn_eps):  # pragma: no cover
+    """Sum the per-lane gradients of network g's S lanes into its parameter gradients
+    (∂/∂τ = -ε² ∂/∂ε); layouts as in `_spread`."""
+    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps = lane_grads
+    g_w_in, g_w_rec, g_w_out, g_b_c, g_b_o, g_tau = grads
+    KK = g_w_in.shape[1]
+    r, k = g // KK, g % KK
+    H, NI, NO = g_w_rec.shape[2], g_w_in.shape[3], g_w_out.shape[2]
+    lo, hi = g * S, g * S + S
+    for i in range(H):
+        g_b_c[r, k, i] = _lane_sum(l_bc[:, i], lo, hi)
+        if learn_eps:
+            g_tau[r, k, i] = -_lane_sum(l_eps[:, i], lo, hi) / (tau[r, k, i] * tau[r, k, i])
+        for d in range(NI):
+            g_w_in[r, k, i, d] = _lane_sum(l_wi[:, i, d], lo, hi)
+        for j in range(H):
+            g_w_rec[r, k, i, j] = _lane_sum(l_wr[:, i, j], lo, hi)
+    for o in range(NO):
+        g_b_o[r, k, o] = _lane_sum(l_bo[:, o], lo, hi)
+        for i in range(H):
+            g_w_out[r, k, o, i] = _lane_sum(l_wo[:, o, i], lo, hi)
+
+
+@njit(inline="always", **JIT)
+def _run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
+               g_u0):  # pragma: no cover
+    """After the backward pass, for the lanes of run r: the C code's attraction of u_0 to the
+    mean μ of its own trajectory {u_0..u_T} (not in the paper; value returned, gradient
+    (μ - u_0)/max(var, floor) added) and the u_0 gradients copied out to g_u0 (R, S, K', H)."""
+    value = 0.0
+    KK = g_u0.shape[2]
+    for lane in range(r * KK * S, (r + 1) * KK * S):
+        b, v = lane // LB, lane % LB
+        k, s = (lane // S) % KK, lane % S
+        for i in range(u0_lane.shape[1]):
+            if attraction:
+                mean = S1[b, i, v] / (T + 1)
+                var = max(S2[b, i, v] / (T + 1) - mean * mean, floor)
+                diff = u0_lane[b, i, v] - mean
+                value -= diff * diff / (2.0 * var)
+                l_u0[b, i, v] -= diff / var
+            if want_grad:
+                g_u0[r, s, k, i] = l_u0[b, i, v]
+    return value
+
+
+def _runs_of_blocks(num_blocks, lanes_per_run, num_runs):
+    """(NB, 2): the first and last run each block of lanes touches."""
+    starts = np.arange(num_blocks) * LB
+    first = np.minimum(starts // lanes_per_run, num_runs - 1)
+    last = np.minimum((starts + LB - 1) // lanes_per_run, num_runs - 1)
+    return np.stack([first, last], 1)
+
+
+@njit(inline="always", **JIT)
+def _block_active(b, block_runs, active):  # pragma: no cover
+    return active[block_runs[b, 0]:block_runs[b, 1] + 1].any()
+
+
+
+
+# ---------------------------------------------------------------------------------------------
+# the backend interface (the same classes as moex.kernels.reference)
+
+logger = logging.getLogger("moex.kernels.cpu")
+_ready: set = set()
+
+
+@contextlib.contextmanager
+def _first_use(kernel, what: str):
+    """Log lines around the first call of a kernel in this process: numba compiles it then
+    (tens of seconds) or loads it from its cache on disk (about a second)."""
+    if kernel in _ready:
+        yield
+        return
+    logger.info("preparing the compiled %s (compiled on first use, then cached on disk) ...",
+                what)
+    start = time.perf_counter()
+    yield
+    _ready.add(kernel)
+    logger.info("compiled %s ready in %.1f s", what, time.perf_counter() - start)
+
+
+_NET = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau")
+
+
+def _per_network(params: dict, experts: bool) -> tuple:
+    """The network parameters as (R, K', ...) views (K' = 1 for the gating RNN), never copies:
+    the kernels write gradients into them."""
+    return tuple(params[n] if experts else params[n][:, None] for n in _NET)
+
+
+def _in_lanes(per_lane: np.ndarray) -> np.ndarray:
+    """(..., NL) -> (NB, ..., LB), lanes padded with zeros to whole blocks."""
+    NL = per_lane.shape[-1]
+    padded_lanes = np.zeros(per_lane.shape[:-1] + (padded(NL),), per_lane.dtype)
+    padded_lanes[..., :NL] = per_lane
+    blocks = padded_lanes.reshape(per_lane.shape[:-1] + (padded(NL) // LB, LB))
+    return np.ascontiguousarray(np.moveaxis(blocks, -2, 0))
+
+
+class _Lanes:
+    """Work arrays of one phase, block-major (NB, ..., LB) so that a block's history is one
+    contiguous piece of memory: per-lane weights, histories and per-lane gradients."""
+
+    def __init__(self, T, H, NI, NO, num_lanes, lanes_per_run, num_runs, learn_tau, attraction,
+                 dtype):
+        NB = padded(num_lanes) // LB
+
+        def zeros(*shape):
+            return np.zeros((NB,) + shape + (LB,), dtype)
+
+        self.net = (zeros(H, NI), zeros(H, H), zeros(NO, H), zeros(H), zeros(NO), zeros(H),
+                    zeros(H))
+        sums = (NB, H if attraction else 0, LB)
+        self.work = [zeros(H), zeros(T, H), zeros(T, NO), zeros(*((T, H) if learn_tau else (0, 0))),
+                     np.zeros(sums), np.zeros(sums), zeros(T, NO)]
+        self.lane_grads = tuple(np.zeros_like(x) for x in self.net)
+        self.block_runs = _runs_of_blocks(NB, lanes_per_run, num_runs)
+        self.num_lanes = NB * LB
+        self.out = np.zeros((4, num_runs), dtype)
+
+    def stats(self, names) -> dict[str, np.ndarray]:
+        return {n: torch.from_numpy(self.out[i].copy()) for i, n in enumerate(names)}
+
+
+class _Staging:
+    """C-contiguous copies of a phase's parameters and gradients. The training loop hands views
+    of its (R, P) buffers, whose layout numba types differently for R = 1 and R > 1; copying
+    into these (a few percent of a step) lets every kernel compile once per dtype."""
+
+    def __init__(self, shapes: dict, dtype):
+        self.params = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
+        self.grads = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
+
+    def load(self, params: dict) -> dict:
+        for name, value in params.items():
+            np.copyto(self.params[name], _host(value))
+        return self.params
+
+    def store(self, grads: dict | None) -> None:
+        for name, value in (grads or {}).items():
+            np.copyto(_host(value), self.grads[name])
+
+
+def _host(x) -> np.ndarray:
+    """The numpy view of a CPU tensor (the training loop's buffers), or the array itself."""
+    return x.numpy() if isinstance(x, torch.Tensor) else x

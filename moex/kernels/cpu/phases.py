@@ -1,0 +1,420 @@
+"""Both training phases, one compiled call per training step for all R runs: phase 1 (the experts
+and β, Eqs. 9-13) and phase 2 (the gating RNN fitted to ĝ, Eqs. 14-16), and the problem classes
+the training loop calls (`moex.kernels.Problem`)."""
+
+import math
+
+import numpy as np
+import torch
+from numba import get_num_threads, njit, prange
+
+from moex.kernels import input_noise
+from moex.kernels.cpu.lanes import (
+    _block_active,
+    _first_use,
+    _gather,
+    _host,
+    _in_lanes,
+    _lane_sum,
+    _Lanes,
+    _per_network,
+    _run_lanes,
+    _spread,
+    _Staging,
+)
+from moex.kernels.cpu.rnn import _backward, _forward
+from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log
+
+# phase 1: the experts and β (Eqs. 9-13)
+
+
+@njit(**JIT)
+def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pragma: no cover
+    """Series s of run r: ln p(y | X, β, γ) in log space (Eqs. 10-12), the Brownian prior on β
+    (Eq. 13) and the E error; with want_grad ∂/∂o of every expert output and ∂/∂β (Eq. 19).
+    partial[r·S + s] gets (ln p, ln φ(β), Σ‖ŷ - y‖², then per expert ∂ ln p/∂s of
+    σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). Every loop runs over time, innermost;
+    the strided inputs are copied to contiguous arrays first."""
+    S, T, D = targets.shape
+    K = beta.shape[3]
+    prior_std = var[r, K]
+    y = np.empty((K, D, T))
+    target = np.empty((D, T))
+    log_ghat, z = np.empty((K, T)), np.empty((K, T))
+    top, total = np.empty(T), np.empty(T)
+    for k in range(K):
+        lane = (r * K + k) * S + s
+        for d in range(D):
+            for t in range(T):
+                y[k, d, t] = Y[lane // LB, t, d, lane % LB]
+    for d in range(D):
+        for t in range(T):
+            target[d, t] = targets[s, t, d]
+    # ln ĝ = β - ln Σ exp β (Eq. 9)
+    for t in range(T):
+        top[t] = beta[r, s, t, 0]
+        total[t] = 0.0
+    for k in range(1, K):
+        for t in range(T):
+            top[t] = max(top[t], beta[r, s, t, k])
+    for k in range(K):
+        for t in range(T):
+            total[t] += exp(beta[r, s, t, k] - top[t])
+    for t in range(T):
+        top[t] += log(total[t])
+    for k in range(K):
+        for t in range(T):
+            log_ghat[k, t] = beta[r, s, t, k] - top[t]
+    # z_k = ln ĝ_k + ln N(y; y^k, σ_k² NI); ln p = ln Σ_k exp z_k
+    for k in range(K):
+        norm = -0.5 * D * log(2.0 * math.pi * var[r, k])
+        for t in range(T):
+            z[k, t] = 0.0
+        for d in range(D):
+            for t in range(T):
+                diff = y[k, d, t] - target[d, t]
+                z[k, t] = fma(diff, diff, z[k, t])
+        for t in range(T):
+            z[k, t] = log_ghat[k, t] + norm - z[k, t] / (2.0 * var[r, k])
+    for t in range(T):
+        top[t] = z[0, t]
+        total[t] = 0.0
+    for k in range(1, K):
+        for t in range(T):
+            top[t] = max(top[t], z[k, t])
+    for k in range(K):
+        for t in range(T):
+            total[t] += exp(z[k, t] - top[t])
+    log_lik = 0.0
+    for t in range(T):
+        top[t] += log(total[t])
+        log_lik += top[t]
+    error = 0.0  # E: the mixture Σ_k ĝ_k y^k against the target
+    for d in range(D):
+        for t in range(T):
+            total[t] = -target[d, t]
+        for k in range(K):
+            for t in range(T):
+                total[t] = fma(exp(log_ghat[k, t]), y[k, d, t], total[t])
+        for t in range(T):
+            error = fma(total[t], total[t], error)
+    prior = 0.0
+    inv = 1.0 / (prior_std * prior_std)
+    log_norm = 0.5 * log(2.0 * math.pi * prior_std * prior_std)
+    for k in range(K):
+        for t in range(T - 1):
+            diff = beta[r, s, t + 1, k] - beta[r, s, t, k]
+            prior -= 0.5 * diff * diff * inv + log_norm
+    partial[r * S + s, 0] = log_lik
+    partial[r * S + s, 1] = prior
+    partial[r * S + s, 2] = error
+    if not want_grad:
+        return
+    resp, sq = total, np.empty(T)
+    for k in range(K):
+        lane = (r * K + k) * S + s
+        for t in range(T):  # exp(z_k - ln p): the posterior responsibility of expert k
+            resp[t] = exp(z[k, t] - top[t])
+        for t in range(T):  # with G_n / ς² of Eq. 19
+            g_beta[r, s, t, k] = resp[t] - exp(log_ghat[k, t]) + inv * (
+                beta[r, s, min(t + 1, T - 1), k] - 2.0 * beta[r, s, t, k]
+                + beta[r, s, max(t - 1, 0), k])
+        for t in range(T):
+            sq[t] = 0.0
+        for d in range(D):
+            for t in range(T):
+                diff = y[k, d, t] - target[d, t]
+                sq[t] = fma(diff, diff, sq[t])
+        sigma_term = 0.0
+        for t in range(T):
+            sigma_term += resp[t] * (sq[t] / var[r, k] - D)
+        partial[r * S + s, 3 + k] = sigma_term
+        for d in range(D):
+            for t in range(T):
+                out = y[k, d, t]
+                DY[lane // LB, t, d, lane % LB] = resp[t] * (target[d, t] - out) / var[r, k] \
+                    * fma(-out, out, 1.0)
+
+
+@njit(**JIT)
+def _expert_runs(first, last, S, work, net, lane_grads, X, targets, beta, var, want_grad,
+                 g_beta, active, block_runs):  # pragma: no cover
+    """Runs first..last-1, whose lanes fill whole blocks: forward, mixture and backward."""
+    C0, C, Y, U, S1, S2, DY, partial, _ = work
+    wi, wr, wo, bc, bo, eps, u0_lane = net
+    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
+    K = beta.shape[3]
+    lo, hi = first * K * S // LB, min(-(-last * K * S // LB), wi.shape[0])
+    for b in range(lo, hi):
+        if _block_active(b, block_runs, active):
+            _forward(X[b], wi[b], wr[b], wo[b], bc[b], bo[b], eps[b], u0_lane[b], True, C0[b],
+                     C[b], Y[b], U[b], S1[b], S2[b])
+    for q in range(first * S, last * S):
+        if active[q // S]:
+            _mixture(q // S, q % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
+    if want_grad:
+        for b in range(lo, hi):
+            if _block_active(b, block_runs, active):
+                _backward(DY[b], X[b], C0[b], C[b], U[b], u0_lane[b], wr[b], wo[b], eps[b],
+                          l_wi[b], l_wr[b], l_wo[b], l_bc[b], l_bo[b], l_eps[b], l_u0[b])
+
+
+@njit(parallel=True, **JIT)
+def _expert_step(params, u0, log_sigma, beta, net, work, lane_grads, grads, g_u0, g_log_sigma,
+                 g_beta, X, targets, sigma_min, prior_std, attraction, want_grad, active,
+                 block_runs, chunk, threads, out):  # pragma: no cover
+    """Phase 1 of every active run in one call: forward, objective and every gradient.
+    out (4, R): objective, ln p(Y | X, θ), ln φ(β), E.
+
+    With at least as many chunks of `chunk` runs (whole blocks of lanes) as `threads`, each thread
+    takes whole chunks through forward, mixture and backward while their histories are still in
+    its cache; with fewer, each pass runs over all blocks, in parallel."""
+    C0, C, Y, U, S1, S2, DY, partial, var = work
+    R, S, T, K = beta.shape
+    NB = net[0].shape[0]
+    floor = sigma_min * sigma_min
+    for r in range(R):  # σ_k² = e^{2 s_k} + σ̄², and ς beside them for _mixture
+        for k in range(K):
+            var[r, k] = exp(2.0 * log_sigma[r, k]) + floor
+        var[r, K] = prior_std
+    for lane in prange(NB * LB):
+        _spread(lane, S, params, u0, net)
+    chunks = -(-R // chunk)
+    if chunks >= threads:
+        for c in prange(chunks):
+            _expert_runs(c * chunk, min((c + 1) * chunk, R), S, work, net, lane_grads, X,
+                         targets, beta, var, want_grad, g_beta, active, block_runs)
+    else:
+        wi, wr, wo, bc, bo, eps, u0_lane = net
+        l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
+        for b in prange(NB):
+            if _block_active(b, block_runs, active):
+                _forward(X[b], wi[b], wr[b], wo[b], bc[b], bo[b], eps[b], u0_lane[b], True,
+                         C0[b], C[b], Y[b], U[b], S1[b], S2[b])
+        for q in prange(R * S):
+            if active[q // S]:
+                _mixture(q // S, q % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
+        if want_grad:
+            for b in prange(NB):
+                if _block_active(b, block_runs, active):
+                    _backward(DY[b], X[b], C0[b], C[b], U[b], u0_lane[b], wr[b], wo[b],
+                              eps[b], l_wi[b], l_wr[b], l_wo[b], l_bc[b], l_bo[b], l_eps[b],
+                              l_u0[b])
+    if want_grad:
+        for g in prange(R * K):
+            if active[g // K]:
+                _gather(g, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
+    for r in prange(R):
+        if not active[r]:
+            continue
+        log_lik = partial[r * S:(r + 1) * S, 0].sum()
+        prior = partial[r * S:(r + 1) * S, 1].sum()
+        error = partial[r * S:(r + 1) * S, 2].sum()
+        out[0, r] = log_lik + prior + _run_lanes(r, S, T, net[6], S1, S2, floor, attraction,
+                                                 want_grad, lane_grads[6], g_u0)
+        out[1, r], out[2, r] = log_lik, prior
+        out[3, r] = 0.5 * error / (S * T * targets.shape[2])
+        if want_grad:
+            for k in range(K):
+                g_log_sigma[r, k] = partial[r * S:(r + 1) * S, 3 + k].sum() \
+                    * (var[r, k] - floor) / var[r, k]
+
+
+# ---------------------------------------------------------------------------------------------
+# phase 2: the gating RNN fitted to ĝ (Eqs. 14-16)
+
+
+@njit(**JIT)
+def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
+    """One block: log_lik (LB,) = Σ_t Σ_k ĝ_k ln softmax(o_t)_k (Eq. 15 without ln Z) and, with
+    want_grad, DY (T, K, LB) = ∂/∂o_t = ĝ - g Σ_k ĝ_k."""
+    T, K = Y.shape[0], Y.shape[1]
+    total, top, norm, mass = lanes(Y), lanes(Y), lanes(Y), lanes(Y)
+    for v in range(LB):
+        total[v] = 0.0
+    for t in range(T):
+        for v in range(LB):
+            top[v] = Y[t, 0, v]
+            norm[v] = 0.0
+            mass[v] = 0.0
+        for k in range(1, K):
+            for v in range(LB):
+                top[v] = Y[t, k, v] if Y[t, k, v] > top[v] else top[v]
+        for k in range(K):
+            for v in range(LB):
+                norm[v] += exp(Y[t, k, v] - top[v])
+                mass[v] += targets[t, k, v]
+        for v in range(LB):
+            norm[v] = top[v] + log(norm[v])
+        for k in range(K):
+            for v in range(LB):
+                total[v] += targets[t, k, v] * (Y[t, k, v] - norm[v])
+        if want_grad:
+            for k in range(K):
+                for v in range(LB):
+                    DY[t, k, v] = targets[t, k, v] - exp(Y[t, k, v] - norm[v]) * mass[v]
+    for v in range(LB):
+        log_lik[v] = total[v]
+
+
+@njit(parallel=True, **JIT)
+def _gating_step(params, u0, net, work, lane_grads, grads, g_u0, X, targets, entropy,
+                 sigma_min, attraction, want_grad, active, block_runs, out):  # pragma: no cover
+    """Phase 2 of every active run in one call. out (4, R): objective, Σ ĝ ln g, KL, E^g."""
+    C0, C, Y, U, S1, S2, DY, log_lik = work
+    wi, wr, wo, bc, bo, eps, u0_lane = net
+    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
+    R, S, NB = u0.shape[0], u0.shape[1], wi.shape[0]
+    T, K = targets.shape[1], targets.shape[2]
+    for lane in prange(NB * LB):
+        _spread(lane, S, params, u0, net)
+    for b in prange(NB):
+        if _block_active(b, block_runs, active):
+            _forward(X[b], wi[b], wr[b], wo[b], bc[b], bo[b], eps[b], u0_lane[b], False, C0[b],
+                     C[b], Y[b], U[b], S1[b], S2[b])
+            _softmax_objective(Y[b], targets[b], want_grad, DY[b], log_lik[b])
+            if want_grad:
+                _backward(DY[b], X[b], C0[b], C[b], U[b], u0_lane[b], wr[b], wo[b], eps[b],
+                          l_wi[b], l_wr[b], l_wo[b], l_bc[b], l_bo[b], l_eps[b], l_u0[b])
+    for r in prange(R):
+        if not active[r]:
+            continue
+        total = _lane_sum(log_lik, r * S, (r + 1) * S)
+        out[1, r] = total
+        out[2, r] = entropy[r] - total
+        out[3, r] = out[2, r] / (S * T * K)
+        out[0, r] = total + _run_lanes(r, S, T, u0_lane, S1, S2, sigma_min * sigma_min,
+                                       attraction, want_grad, l_u0, g_u0)
+        if want_grad:
+            _gather(r, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
+
+
+
+
+class ExpertProblem:
+    """Phase 1 of R runs (Sec. 2.1.2, Eqs. 9-13): `value_and_grad` and `value` of ln L(D, θ)
+    for all runs, one compiled call each (`resample` has nothing to draw).
+
+    Args:
+        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
+        model: the `ModelConfig`; phase: the `ExpertPhaseConfig`; num_runs: R.
+    """
+
+    STATS = ("objective", "log_likelihood", "log_prior", "E")
+    device = torch.device("cpu")
+
+    def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
+        S, T, D = targets.shape
+        R, K, M = num_runs, model.num_experts, model.experts.context_size
+        dtype = np.dtype(inputs.dtype)
+        self.shape, self.model, self.phase = (R, S, T, K), model, phase
+        self.lanes = _Lanes(T, M, D, D, R * K * S, K * S, R, model.learn_time_constants,
+                            phase.attraction, dtype)
+        # lane (r·K + k)·S + s reads series s
+        self.inputs = _in_lanes(np.tile(np.asarray(inputs).transpose(1, 2, 0), R * K))
+        self.targets = np.ascontiguousarray(targets)
+        self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype)]
+        self.chunk = LB // math.gcd(K * S, LB)  # the fewest runs whose lanes fill whole blocks
+        self.staging = _Staging({
+            "w_in": (R, K, M, D), "w_rec": (R, K, M, M), "w_out": (R, K, D, M), "b_c": (R, K, M),
+            "b_o": (R, K, D), "tau": (R, K, M), "log_sigma": (R, K), "u0": (R, S, K, M),
+            "beta": (R, S, T, K)}, dtype)
+
+    def _call(self, params, grads, active, want_grad):
+        p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
+        with _first_use(_expert_step, "phase-1 kernel"):
+            self._step(p, g, lanes, active, want_grad)
+        self.staging.store(grads)
+        return lanes.stats(self.STATS)
+
+    def _step(self, p, g, lanes, active, want_grad):
+        _expert_step(_per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
+                     tuple(lanes.work), lanes.lane_grads, _per_network(g, True), g["u0"],
+                     g["log_sigma"], g["beta"], self.inputs, self.targets,
+                     float(self.model.sigma_min), float(self.phase.gate_prior_std),
+                     bool(self.phase.attraction), want_grad,
+                     np.ascontiguousarray(_host(active)),
+                     lanes.block_runs, self.chunk, get_num_threads(), lanes.out)
+
+    def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
+        """Objective statistics per run (R,); every gradient is written into `grads`."""
+        return self._call(params, grads, active, True)
+
+    def value(self, params: dict, active: np.ndarray) -> dict:
+        """The same statistics without gradients (the adaptive-rate retry)."""
+        return self._call(params, None, active, False)
+
+    def resample(self, step: int) -> None:
+        pass
+
+
+class GatingProblem:
+    """Phase 2 of R runs (Sec. 2.1.2, Eqs. 14-16): ln L(D^g, θ^g) up to ln Z for all runs, one
+    compiled call each.
+
+    Args:
+        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n (D may be 0).
+        model: the `ModelConfig`; phase: the `GatingPhaseConfig`.
+        seeds: one per run, for the input noise that `resample(step)` draws when
+            `phase.input_noise_var` > 0 (`moex.kernels.input_noise`).
+    """
+
+    STATS = ("objective", "log_likelihood", "kl", "E_g")
+    device = torch.device("cpu")
+
+    def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
+        R, S, T, K = gate_targets.shape
+        D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
+        T_g = T - delay
+        dtype = np.dtype(gate_targets.dtype)
+        self.shape, self.model, self.phase = (R, S, T_g, K), model, phase
+        self.lanes = _Lanes(T_g, H, K + D, K, R * S, S, R, model.learn_time_constants,
+                            phase.attraction, dtype)
+        ghat = np.asarray(gate_targets)
+        x = np.broadcast_to(np.asarray(inputs)[None], (R, S, T, D))
+        # lane r·S + s reads [ĝ_n, x_n] of run r, series s and is fitted to ĝ_{n+τ} (Eq. 5)
+        feed = np.concatenate([ghat[:, :, :T_g], x[:, :, :T_g]], -1)  # (R, S, T_g, K + D)
+        self.inputs = _in_lanes(feed.transpose(2, 3, 0, 1).reshape(T_g, K + D, R * S))
+        self.clean, self.seeds = self.inputs.copy(), seeds
+        targets = ghat[:, :, delay:]
+        self.targets = _in_lanes(targets.transpose(2, 3, 0, 1).reshape(T_g, K, R * S))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.entropy = np.where(targets > 0, targets * np.log(targets), 0.0).sum((1, 2, 3))
+        self.lanes.work.append(np.zeros((self.lanes.num_lanes // LB, LB), dtype))
+        self.staging = _Staging({
+            "w_in": (R, H, K + D), "w_rec": (R, H, H), "w_out": (R, K, H), "b_c": (R, H),
+            "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
+
+    def _call(self, params, grads, active, want_grad):
+        p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
+        with _first_use(_gating_step, "phase-2 kernel"):
+            self._step(p, g, lanes, active, want_grad)
+        self.staging.store(grads)
+        return lanes.stats(self.STATS)
+
+    def _step(self, p, g, lanes, active, want_grad):
+        _gating_step(_per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
+                     lanes.lane_grads, _per_network(g, False), g["u0"][:, :, None],
+                     self.inputs, self.targets, self.entropy, float(self.model.sigma_min),
+                     bool(self.phase.attraction), want_grad,
+                     np.ascontiguousarray(_host(active)),
+                     lanes.block_runs, lanes.out)
+
+    def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
+        """Objective statistics per run (R,); every gradient is written into `grads`."""
+        return self._call(params, grads, active, True)
+
+    def value(self, params: dict, active: np.ndarray) -> dict:
+        """The same statistics without gradients (the adaptive-rate retry)."""
+        return self._call(params, None, active, False)
+
+    def resample(self, step: int) -> None:
+        """Fresh input noise on x_n for this training step (nothing without noise)."""
+        if self.phase.input_noise_var <= 0:
+            return
+        R, S, T_g, K = self.shape
+        D = self.inputs.shape[2] - K
+        noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),  # all of x_n
+                            self.phase.input_noise_var, self.inputs.dtype)[:, :, :T_g]
+        self.inputs[:, :, K:] = self.clean[:, :, K:] + _in_lanes(
+            noise.transpose(2, 3, 0, 1).reshape(T_g, D, R * S))

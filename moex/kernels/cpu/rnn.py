@@ -1,0 +1,173 @@
+"""The leaky RNN of Eqs. 1-3 / 5-8 over one block of lanes, teacher forced: the forward pass and its
+backward pass (BPTT), compiled with numba. Every array is the block's (..., LB) part.
+
+Forward, per lane (T steps, H units, NI inputs, NO outputs):
+    c_{-1} = tanh(u_0 + b_c),  u_t = (1-ε) u_{t-1} + ε (W_in x_t + W_rec c_{t-1}),
+    c_t = tanh(u_t + b_c),     o_t = W_out c_t + b_o   (y_t = tanh(o_t) for the experts).
+
+Backward, given δo_t = ∂L/∂o_t. With a_t = ∂L/∂u_t (a_T = 0) and back_t = W_recᵀ (ε ⊙ a_{t+1}),
+the part of ∂L/∂c_t that flows through the next step:
+    dq_t = (1 - c_t²) ⊙ (W_outᵀ δo_t + back_t)            (∂L/∂(u_t + b_c))
+    a_t  = dq_t + (1 - ε) ⊙ a_{t+1}
+    ∂W_out += δo_t c_tᵀ,  ∂b_o += δo_t,  ∂b_c += dq_t,
+    ∂W_in += (ε ⊙ a_t) x_tᵀ,  ∂W_rec += (ε ⊙ a_t) c_{t-1}ᵀ,
+    ∂ε += a_t ⊙ (W_in x_t + W_rec c_{t-1} - u_{t-1}) = a_t ⊙ (u_t - u_{t-1}) / ε,
+and at the start, where c_{-1} = tanh(u_0 + b_c) feeds step 0:
+    ∂u_0 = (1 - ε) ⊙ a_0 + (1 - c_{-1}²) ⊙ back_{-1},  ∂b_c += (1 - c_{-1}²) ⊙ back_{-1}.
+"""
+
+from numba import njit
+
+from moex.kernels.cpu.simd import JIT, LB, fma, lanes, stack, tanh
+
+
+@njit(**JIT)
+def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pragma: no cover
+    """One block of lanes (every array is that block's (..., LB) part): Y (T, NO, LB) = tanh(o_t)
+    if `squash` else o_t; C (T, H, LB), U (T, H, LB) and the sums S1, S2 (H, LB) of u and u²
+    over {u_0..u_T} are filled where their arrays are not empty."""
+    T, NI = X.shape[0], X.shape[1]
+    H, NO = wr.shape[0], wo.shape[0]
+    keep_c, keep_u, keep_sums = C.shape[0] > 0, U.shape[0] > 0, S1.shape[0] > 0
+    u, c = stack(X, H), stack(X, H)
+    s1, s2 = stack(S1, H), stack(S1, H)  # float64 sums: the variance is taken by difference
+    acc = lanes(X)
+    for i in range(H):
+        for v in range(LB):
+            u[i, v] = u0[i, v]
+            c[i, v] = tanh(u[i, v] + bc[i, v])
+            s1[i, v] = u[i, v]
+            s2[i, v] = u[i, v] * u[i, v]
+        for v in range(LB):
+            C0[i, v] = c[i, v]
+    for t in range(T):
+        for i in range(H):
+            for v in range(LB):
+                acc[v] = 0.0
+            for d in range(NI):
+                for v in range(LB):
+                    acc[v] = fma(wi[i, d, v], X[t, d, v], acc[v])
+            for j in range(H):
+                for v in range(LB):
+                    acc[v] = fma(wr[i, j, v], c[j, v], acc[v])
+            for v in range(LB):
+                u[i, v] = fma(eps[i, v], acc[v] - u[i, v], u[i, v])  # (1 - ε) u + ε acc
+        for i in range(H):
+            for v in range(LB):
+                c[i, v] = tanh(u[i, v] + bc[i, v])
+                s1[i, v] += u[i, v]
+                s2[i, v] = fma(u[i, v], u[i, v], s2[i, v])
+        if keep_c:
+            for i in range(H):
+                for v in range(LB):
+                    C[t, i, v] = c[i, v]
+        if keep_u:
+            for i in range(H):
+                for v in range(LB):
+                    U[t, i, v] = u[i, v]
+        for o in range(NO):
+            for v in range(LB):
+                acc[v] = bo[o, v]
+            for i in range(H):
+                for v in range(LB):
+                    acc[v] = fma(wo[o, i, v], c[i, v], acc[v])
+            if squash:
+                for v in range(LB):
+                    Y[t, o, v] = tanh(acc[v])
+            else:
+                for v in range(LB):
+                    Y[t, o, v] = acc[v]
+    if keep_sums:
+        for i in range(H):
+            for v in range(LB):
+                S1[i, v] = s1[i, v]
+                S2[i, v] = s2[i, v]
+
+
+@njit(**JIT)
+def _backward(DY, X, C0, C, U, u0, wr, wo, eps, g_wi, g_wr, g_wo, g_bc, g_bo, g_eps,
+              g_u0):  # pragma: no cover
+    """One block of lanes, given DY (T, NO, LB) = ∂L/∂o_t: every per-lane gradient (BPTT). g_eps
+    is filled when U holds the potentials (learned time constants). Gradients are summed in
+    stack arrays (they cannot alias the histories they read) and written once."""
+    T, NI = X.shape[0], X.shape[1]
+    H, NO = wr.shape[0], wo.shape[0]
+    learn_eps = U.shape[0] > 0
+    a, ea, back = stack(X, H), stack(X, H), stack(X, H)  # ∂L/∂u_t, ε ⊙ a_t, W_recᵀ(ε ⊙ a_{t+1})
+    gbc, geps = stack(X, H), stack(X, H)
+    gwr, gwi, gwo = stack(X, H * H), stack(X, H * NI), stack(X, NO * H)
+    gbo = stack(X, NO)
+    acc = lanes(X)
+    for i in range(H):
+        for v in range(LB):
+            a[i, v] = back[i, v] = gbc[i, v] = geps[i, v] = 0.0
+    for q in range(H * H):
+        for v in range(LB):
+            gwr[q, v] = 0.0
+    for q in range(H * NI):
+        for v in range(LB):
+            gwi[q, v] = 0.0
+    for q in range(NO * H):
+        for v in range(LB):
+            gwo[q, v] = 0.0
+    for o in range(NO):
+        for v in range(LB):
+            gbo[o, v] = 0.0
+    for t in range(T - 1, -1, -1):
+        prev = C[t - 1] if t > 0 else C0
+        for i in range(H):  # a_t = (1 - c_t²)(W_outᵀ δo_t + back) + (1 - ε) a_{t+1}
+            for v in range(LB):
+                acc[v] = back[i, v]
+            for o in range(NO):
+                for v in range(LB):
+                    acc[v] = fma(wo[o, i, v], DY[t, o, v], acc[v])
+            for v in range(LB):
+                dq = fma(-C[t, i, v], C[t, i, v], 1.0) * acc[v]
+                gbc[i, v] += dq
+                a[i, v] = fma(1.0 - eps[i, v], a[i, v], dq)
+                ea[i, v] = eps[i, v] * a[i, v]
+        for o in range(NO):
+            for v in range(LB):
+                gbo[o, v] += DY[t, o, v]
+            for i in range(H):
+                for v in range(LB):
+                    gwo[o * H + i, v] = fma(DY[t, o, v], C[t, i, v], gwo[o * H + i, v])
+        for i in range(H):
+            for d in range(NI):
+                for v in range(LB):
+                    gwi[i * NI + d, v] = fma(ea[i, v], X[t, d, v], gwi[i * NI + d, v])
+            for j in range(H):
+                for v in range(LB):
+                    gwr[i * H + j, v] = fma(ea[i, v], prev[j, v], gwr[i * H + j, v])
+        if learn_eps:  # ∂u_t/∂ε = s_t - u_{t-1} = (u_t - u_{t-1}) / ε
+            u_prev = U[t - 1] if t > 0 else u0
+            for i in range(H):
+                for v in range(LB):
+                    geps[i, v] += a[i, v] * (U[t, i, v] - u_prev[i, v]) \
+                        / eps[i, v]
+        for j in range(H):
+            for v in range(LB):
+                acc[v] = 0.0
+            for i in range(H):
+                for v in range(LB):
+                    acc[v] = fma(wr[i, j, v], ea[i, v], acc[v])
+            for v in range(LB):
+                back[j, v] = acc[v]
+    for i in range(H):  # c_{-1} = tanh(u_0 + b_c) feeds step 0
+        for v in range(LB):
+            dq = (1.0 - C0[i, v] * C0[i, v]) * back[i, v]
+            g_bc[i, v] = gbc[i, v] + dq
+            g_u0[i, v] = (1.0 - eps[i, v]) * a[i, v] + dq
+            g_eps[i, v] = geps[i, v]
+        for d in range(NI):
+            for v in range(LB):
+                g_wi[i, d, v] = gwi[i * NI + d, v]
+        for j in range(H):
+            for v in range(LB):
+                g_wr[i, j, v] = gwr[i * H + j, v]
+    for o in range(NO):
+        for v in range(LB):
+            g_bo[o, v] = gbo[o, v]
+        for i in range(H):
+            for v in range(LB):
+                g_wo[o, i, v] = gwo[o * H + i, v]

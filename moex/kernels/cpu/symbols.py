@@ -1,0 +1,46 @@
+"""The symbol of each generated point: the symbol of its nearest prototype, compiled."""
+
+import numpy as np
+from numba import njit, prange
+
+from moex.kernels.cpu.lanes import _first_use
+from moex.kernels.cpu.simd import JIT, LB, fma, lanes, padded
+
+
+@njit(parallel=True, **JIT)
+def _nearest(points, prototypes, symbols, out):  # pragma: no cover
+    """out[n] = symbols[argmin_p ‖points[:, n] - prototypes[p]‖²] for points (D, n), LB points
+    at a time."""
+    P, D = prototypes.shape
+    for b in prange(points.shape[1] // LB):
+        best, index, dist = lanes(points), lanes(points), lanes(points)
+        for v in range(LB):
+            best[v] = np.inf
+            index[v] = 0.0
+        for p in range(P):
+            for v in range(LB):
+                dist[v] = 0.0
+            for d in range(D):
+                for v in range(LB):
+                    diff = points[d, b * LB + v] - prototypes[p, d]
+                    dist[v] = fma(diff, diff, dist[v])
+            for v in range(LB):
+                closer = dist[v] < best[v]
+                best[v] = dist[v] if closer else best[v]
+                index[v] = p if closer else index[v]
+        for v in range(LB):
+            out[b * LB + v] = symbols[int(index[v])]
+
+
+def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
+                    prototype_symbols: np.ndarray) -> np.ndarray:
+    """`moex.metrics.symbols.symbolize_nearest` compiled: (..., T, D) -> (..., T) symbols."""
+    D = points.shape[-1]
+    flat = np.asarray(points, np.float64).reshape(-1, D)
+    by_coordinate = np.zeros((D, padded(len(flat))))
+    by_coordinate[:, :len(flat)] = flat.T
+    out = np.empty(by_coordinate.shape[1], np.int64)
+    with _first_use(_nearest, "symbol kernel"):
+        _nearest(by_coordinate, np.ascontiguousarray(prototypes, np.float64),
+                 np.ascontiguousarray(prototype_symbols, np.int64), out)
+    return out[:len(flat)].reshape(points.shape[:-1])

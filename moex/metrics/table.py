@@ -1,0 +1,69 @@
+"""Every metric moex reports, in one table: its column name in metrics.csv / history.csv, the
+paper's symbol as a matplotlib mathtext label, the words the log uses, how figures scale it and
+how runs aggregate. The evaluation, the log, the report and the figures read their names and
+labels from here; adding a metric touches its function and one row."""
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Metric:
+    name: str  # column name
+    label: str  # for figures (mathtext), e.g. r"$E^g$"
+    text: str  # for the log and Markdown, e.g. "E^g"
+    meaning: str
+    scale: str = "linear"  # linear | log | symlog (an exponent: its sign matters)
+    aggregate: str = "mean"  # mean over runs | share (a fraction of runs, in percent)
+    logged: bool = False  # in the per-run summary line of the log
+    reported: bool = False  # a column of `moex report`'s tables
+
+
+METRICS = {m.name: m for m in [
+    Metric("E", r"mixture error $E$", "E", "½‖y − Σ g^k y^k‖² per step and feature, teacher "
+           "forced (Sec. 3)", "log", logged=True, reported=True),
+    Metric("E_g", r"gating error $E^g$", "E^g", "KL from ĝ to the gating RNN's g per step and "
+           "gate (Eq. 16)", "log", logged=True, reported=True),
+    Metric("E_closed", r"closed-loop error $E^{\mathrm{closed}}$", "E^closed",
+           "E of the closed loop from the trained initial states", "log", logged=True,
+           reported=True),
+    Metric("block_kl_train", r"block KL $D^{(m)}_{\mathrm{KL}}$, training data",
+           "block KL train", "KL of symbol blocks, data against the closed loop (Eq. 21)",
+           logged=True, reported=True),
+    Metric("block_kl_test", r"block KL $D^{(m)}_{\mathrm{KL}}$, test data", "test",
+           "the same against held-out series", logged=True, reported=True),
+    Metric("max_lyapunov", r"$\lambda_{\max}$", "λ_max", "largest Lyapunov exponent of the "
+           "closed loop, per step (Sec. 4)", "symlog", logged=True, reported=True),
+    Metric("max_lyapunov_noisy", r"$\lambda_{\max}$ with noise", "λ_max with noise",
+           "the same with input noise of eval.noise_var", "symlog"),
+    Metric("lyapunov_positive", r"share with $\lambda_{\max} > 0$", "λ_max > 0",
+           "whether λ_max > 0", aggregate="share"),
+    Metric("switch_prob", "switching probability", "switching prob.", "probability of "
+           "changing primitive at a primitive's end", logged=True, reported=True),
+    Metric("switch_prob_gates", "switching probability (gates)", "switching prob. (gates)",
+           "the same read off the winning gate", reported=True),
+    Metric("data_switch_prob", "switching probability of the data", "data",
+           "the same in the training data", logged=True, reported=True),
+    Metric("mean_residence", "mean residence (repetitions)", "mean residence",
+           "repetitions of a primitive before a switch", reported=True),
+    Metric("nonperiodic_fraction", "share of nonperiodic samples", "nonperiodic",
+           "samples whose symbol sequence has no period up to eval.max_period", logged=True,
+           reported=True),
+    Metric("log_likelihood", r"$\ln p(Y \mid X, \theta)$", "ln L",
+           "phase-1 log-likelihood (Eqs. 10-12)"),
+    Metric("kl", r"$D_{\mathrm{KL}}(\hat g \,\|\, g)$", "KL", "phase-2 KL summed over the data"),
+    Metric("lr_scale", r"adaptive rate $\alpha / \tilde\alpha$", "α/α̃",
+           "the adaptive learning rate's factor (Sec. 2.1.4)", "log"),
+]}
+
+
+def label(name: str) -> str:
+    """The figure label of a column (the column name itself if it is not a metric)."""
+    return METRICS[name].label if name in METRICS else name
+
+
+def text(name: str) -> str:
+    return METRICS[name].text if name in METRICS else name
+
+
+LOGGED = [m.name for m in METRICS.values() if m.logged]
+REPORTED = [m.name for m in METRICS.values() if m.reported]
