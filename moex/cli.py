@@ -329,6 +329,9 @@ def main(argv: list[str] | None = None) -> None:
     if verb in ("--version", "-V"):
         print(f"moex {metadata.version('moex')}")
         return
+    if verb in ("--shell-completion", "-sc"):
+        _shell_completion(args)
+        return
     if verb == "report":  # a folder in, tables out: plain argparse, no Hydra
         report.main(args)
         return
@@ -367,6 +370,33 @@ def main(argv: list[str] | None = None) -> None:
         _sweeps.add(sweep.resolve())
     for folder in sorted(_sweeps):
         print(_sweep_summary(folder, verb))
+
+
+COMPLETION = ("install=bash", "install=zsh", "install=fish", "uninstall=bash", "uninstall=zsh",
+              "uninstall=fish")
+
+
+def _shell_completion(args: list[str]) -> None:
+    """`moex -sc install=bash` prints Hydra's tab completion for the config keys of every verb
+    (`eval "$(moex -sc install=bash)"`); the shell then asks `moex -sc query=bash` with the line
+    typed so far, from which the verb is taken out before Hydra sees it."""
+    if len(args) == 1 and args[0].startswith("query="):
+        words = os.environ.get("COMP_LINE", "").split(" ")
+        verb = words[1] if len(words) > 1 and words[1] in VERBS else "train"
+        if len(words) > 1 and words[1] in VERBS:  # "moex train ta" -> "moex ta"
+            cut = len(words[1]) + 1
+            os.environ["COMP_LINE"] = " ".join(words[:1] + words[2:])
+            os.environ["COMP_POINT"] = str(max(int(os.environ.get("COMP_POINT", 0)) - cut, 0))
+    elif len(args) == 1 and args[0] in COMPLETION:
+        verb = "train"
+    else:
+        print(f"moex: error: --shell-completion takes one of {', '.join(COMPLETION)}; e.g. "
+              f'eval "$(moex -sc install=bash)"', file=sys.stderr)
+        sys.exit(2)
+    register_configs()
+    sys.argv = ["moex", "-sc", args[0]]
+    hydra.main(version_base="1.3", config_path=CONF_DIR,
+               config_name=VERBS[verb][0])(VERBS[verb][1])()
 
 
 def _named_folder(args: list[str], key: str) -> Path | None:

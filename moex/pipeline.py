@@ -200,6 +200,10 @@ def run_train(cfg: Config, out_dir: Path,
             done = torch.load(cached, map_location="cpu", weights_only=True)
             experts, beta, record.experts_rows = done["experts"], done["beta"], done["rows"]
         else:
+            if backend.name == "cpu":  # a first run: compile phase 2 etc. beside phase 1
+                from moex.kernels.cpu import warm
+
+                warm.start(cfg.precision)
             experts, beta, record.experts_rows = train_experts(
                 experts, series, cfg.model, cfg.train.experts, cfg.train, hooks("experts"),
                 backend)

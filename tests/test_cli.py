@@ -303,3 +303,16 @@ model: {num_experts: 3}
     assert result.returncode == 2
     assert "model.num_experts=2 is fewer than the 3 primitives" in result.stderr
     assert not (tmp_path / "no").exists()
+
+
+def test_shell_completion_installs_and_completes_the_keys_of_each_verb(tmp_path):
+    script = _moex(["-sc", "install=bash"], tmp_path)
+    assert script.returncode == 0 and "complete -o nospace" in script.stdout, script.stderr
+    for line, expected in (("moex train task.na", "task.name="),
+                           ("moex evaluate eval.nois", "eval.noise_var=")):
+        env = {**os.environ, "COMP_LINE": line, "COMP_POINT": str(len(line))}
+        done = subprocess.run(MOEX + ["-sc", "query=bash"], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0 and expected in done.stdout.split(), done.stderr
+    bad = _moex(["-sc"], tmp_path)
+    assert bad.returncode == 2 and "install=bash" in bad.stderr and "Traceback" not in bad.stderr
