@@ -162,6 +162,10 @@ def run_train(cfg: Config, out_dir: Path,
     series = torch.as_tensor(dataset.series, dtype=dtype)
     S, L, D = series.shape
     delay = cfg.model.delay
+    if backend.name == "cpu" and D > 0 and saved is None:
+        from moex.kernels.cpu import warm  # a first run compiles phase 2 etc. beside phase 1
+
+        warm.start(cfg.precision)
     if saved is not None and saved.phase == "done":
         if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
             evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
@@ -200,10 +204,6 @@ def run_train(cfg: Config, out_dir: Path,
             done = torch.load(cached, map_location="cpu", weights_only=True)
             experts, beta, record.experts_rows = done["experts"], done["beta"], done["rows"]
         else:
-            if backend.name == "cpu":  # a first run: compile phase 2 etc. beside phase 1
-                from moex.kernels.cpu import warm
-
-                warm.start(cfg.precision)
             experts, beta, record.experts_rows = train_experts(
                 experts, series, cfg.model, cfg.train.experts, cfg.train, hooks("experts"),
                 backend)

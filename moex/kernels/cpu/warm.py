@@ -15,9 +15,12 @@ from moex.kernels.cpu import phases
 
 
 def cached() -> bool:
-    """Whether the phase-2 kernel has a cache index (numba's internals; False when unsure)."""
+    """Whether the closed-loop kernel has a cache index (numba's internals; False when
+    unsure)."""
+    from moex.kernels.cpu.closed_loop import _closed_loop
+
     try:
-        return Path(phases._gating_step._cache._cache_file._index_path).exists()
+        return Path(_closed_loop._cache._cache_file._index_path).exists()
     except AttributeError:
         return False
 
@@ -42,17 +45,19 @@ def compile_later_phases(dtype: str) -> None:
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 2, 3
     generators = [torch.Generator().manual_seed(0)]
-    ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype).numpy()
-    problem = phases.GatingProblem(ghat, np.zeros((1, 4, 2), dtype), model, GatingPhaseConfig(),
-                                   [0])
     gating = init_gating(model, 1, 2, generators, torch_dtype)
-    grads = {k: torch.zeros_like(v) for k, v in gating.items()}
-    problem.value_and_grad(gating, grads, torch.ones(1, dtype=torch.bool))
     experts = init_experts(model, 1, 2, generators, torch_dtype)
+    # the longest compilation first (the closed loop, 15-23 s on a 2-core VM): of the three it
+    # saves the run the most when the helper does not finish before the run needs them all
     state = random_state(experts, gating, 1, 2, 1, generators[0])
     tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
     tangents[..., 0, 0] = 1.0
     closed_loop(experts, gating, state, 2, None, tangents, True)
+    ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype).numpy()
+    problem = phases.GatingProblem(ghat, np.zeros((1, 4, 2), dtype), model, GatingPhaseConfig(),
+                                   [0])
+    grads = {k: torch.zeros_like(v) for k, v in gating.items()}
+    problem.value_and_grad(gating, grads, torch.ones(1, dtype=torch.bool))
     nearest_symbols(np.zeros((1, 2, 2)), np.zeros((2, 2)), np.arange(2))
 
 
