@@ -55,6 +55,9 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
         assert metrics[column].notna().all(), column
     for column in ("num_samples", "lyapunov_steps", "block_length", "censored_stays"):
         assert metrics[column].dtype == "int64", column  # counts are written as integers
+    from moex.metrics.table import is_known
+
+    assert [c for c in metrics if not is_known(c)] == []  # every metric is in the one table
     # 200 steps hold at most 8 laps, too few to test periods up to 100: no sample is judged
     assert (metrics["periodicity_samples"] == 0).all()
     assert metrics["nonperiodic_fraction"].isna().all()

@@ -7,9 +7,10 @@ each network's lanes. Parameters, gradients and the optimiser state stay on the 
 per-run statistics (R values) reach the host.
 
 The closed loop with one Lyapunov tangent (generation, λ_max) is one Triton kernel per chunk of
-steps (`moex.kernels.gpu_closed`); with several exponents (Gram-Schmidt among the tangents) and
-for the symbol readout it falls back to the CPU backend. With `TRITON_INTERPRET=1` Triton runs
-the kernels on the CPU (slowly), which is how the tests check them without a GPU.
+steps (`moex.kernels.gpu_closed`), as is the symbol readout (nearest prototype); with several
+exponents (Gram-Schmidt among the tangents) the closed loop falls back to the CPU backend. With
+`TRITON_INTERPRET=1` Triton runs the kernels on the CPU (slowly), which is how the tests check
+them without a GPU.
 """
 
 import os
@@ -20,7 +21,7 @@ import triton
 
 from moex import objectives
 from moex.kernels import cpu, input_noise
-from moex.kernels.gpu_closed import closed_loop_kernel, grid
+from moex.kernels.gpu_closed import closed_loop_kernel, grid, nearest_kernel
 from moex.kernels.gpu_rnn import rnn_backward, rnn_forward
 from moex.model import ClosedLoopRun
 
@@ -335,4 +336,16 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
                          else torch.zeros((R, N, 0), dtype=dtype))
 
 
-nearest_symbols = cpu.nearest_symbols
+def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
+                    prototype_symbols: np.ndarray) -> np.ndarray:
+    """`moex.metrics.symbols.symbolize_nearest` as one kernel: (..., T, D) -> (..., T)."""
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    D = points.shape[-1]
+    flat = torch.as_tensor(np.ascontiguousarray(points, np.float64).reshape(-1, D), device=device)
+    proto = torch.as_tensor(np.ascontiguousarray(prototypes, np.float64), device=device)
+    symbols = torch.as_tensor(np.asarray(prototype_symbols, np.int64), device=device)
+    out = torch.empty(len(flat), dtype=torch.int64, device=device)
+    P, block = len(proto), 128
+    nearest_kernel[(triton.cdiv(len(flat), block),)](flat, proto, symbols, out, len(flat), P=P,
+                                                     D=D, PP=_pow2(P), DP=_pow2(D), BLOCK=block)
+    return out.cpu().numpy().reshape(points.shape[:-1])

@@ -171,5 +171,23 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
             tl.store(GROWTH + row, tl.load(GROWTH + row, mask=ok, other=0.0) + growth, mask=ok)
 
 
+@triton.jit
+def nearest_kernel(X, PROTO, SYM, OUT, n, P: tl.constexpr, D: tl.constexpr, PP: tl.constexpr,
+                   DP: tl.constexpr, BLOCK: tl.constexpr):
+    """OUT[i] = SYM[argmin_p ‖X[i] - PROTO[p]‖²] for a block of points X (n, D); ties go to the
+    first prototype, as on the CPU."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    ok = i < n
+    p, d = tl.arange(0, PP), tl.arange(0, DP)
+    x = tl.load(X + i[:, None].to(tl.int64) * D + d[None, :], mask=ok[:, None] & (d < D)[None, :],
+                other=0.0)
+    proto = tl.load(PROTO + p[:, None] * D + d[None, :], mask=(p < P)[:, None] & (d < D)[None, :],
+                    other=0.0)
+    diff = x[:, None, :] - proto[None, :, :]
+    dist = tl.where((p < P)[None, :], tl.sum(diff * diff, axis=2), float("inf"))
+    best = tl.argmin(dist, axis=1, tie_break_left=True)
+    tl.store(OUT + i, tl.load(SYM + best, mask=ok, other=0), mask=ok)
+
+
 def grid(num_runs: int, num_samples: int, block: int) -> tuple[int, int]:
     return num_runs, triton.cdiv(num_samples, block)

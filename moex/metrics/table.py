@@ -37,6 +37,14 @@ METRICS = {m.name: m for m in [
            "the same with input noise of eval.noise_var", "symlog"),
     Metric("lyapunov_positive", r"share with $\lambda_{\max} > 0$", "λ_max > 0",
            "whether λ_max > 0", aggregate="share"),
+    Metric("positive_sample_fraction", r"share of samples with $\lambda > 0$",
+           "samples with λ > 0", "share of initial states whose own exponent is positive"),
+    Metric("switch_rate", "switches per step", "switch rate",
+           "changes of primitive per closed-loop step"),
+    Metric("censored_stays", "stays cut off by a sample's end", "cut-off stays",
+           "stays at the end of a sample, counted at their observed length"),
+    Metric("periodicity_samples", "samples judged for periodicity", "judged samples",
+           "samples long enough to test every period up to eval.max_period"),
     Metric("switch_prob", "switching probability", "switching prob.", "probability of "
            "changing primitive at a primitive's end", logged=True, reported=True),
     Metric("switch_prob_gates", "switching probability (gates)", "switching prob. (gates)",
@@ -63,6 +71,18 @@ def label(name: str) -> str:
 
 def text(name: str) -> str:
     return METRICS[name].text if name in METRICS else name
+
+
+# metrics.csv columns that are settings or bookkeeping, not measurements; lyapunov_k (k >= 2,
+# with eval.num_exponents > 1) are the further exponents
+NOT_METRICS = ("run", "failed", "block_length", "noise_var", "num_samples", "lyapunov_steps",
+               "noise_enters")
+
+
+def is_known(column: str) -> bool:
+    """Whether a metrics.csv column is in the table (or a setting it records)."""
+    return column in METRICS or column in NOT_METRICS or (
+        column.startswith("lyapunov_") and column.removeprefix("lyapunov_").isdigit())
 
 
 LOGGED = [m.name for m in METRICS.values() if m.logged]
