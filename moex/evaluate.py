@@ -24,9 +24,11 @@ from moex.errors import check, check_positive
 from moex.kernels import Backend, get_backend
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse
-from moex.metrics.symbols import block_kl, symbolize_argmax
+from moex.metrics.symbols import block_kl, symbolize_argmax, symbolize_threshold
 from moex.model import expert_forward, gate_estimates, gating_forward
 from moex.tasks import Dataset
+
+SYMBOL_RULES = {"argmax": symbolize_argmax, "threshold": symbolize_threshold}
 
 
 @dataclass
@@ -48,6 +50,9 @@ class EvalConfig:
     max_period: int = 100  # periodicity test of the symbol sequence (Sec. 4.3)
     plot_steps: int = 2000  # closed-loop steps of the first sample kept for figures
     every: int = 0  # track block KL and λ_max every N gating-phase steps (0 = off)
+    # tasks whose symbols are the gates (Reber): `argmax` (Eq. 22), or `threshold` as the
+    # authors' C code (a gate above 0.5 names the symbol; a step with none is a symbol of its own)
+    symbol_rule: str = "argmax"
     track_samples: int = 4  # random initial states per network when tracking
     track_steps: int = 5000  # Lyapunov steps per sample when tracking
 
@@ -60,6 +65,8 @@ class EvalConfig:
         check(self.jacobian_gates in ("real", "uniform"),
               f"eval.jacobian_gates={self.jacobian_gates!r}; choose real or uniform")
         check(self.noise_var >= 0, f"eval.noise_var={self.noise_var} must be >= 0")
+        check(self.symbol_rule in SYMBOL_RULES,
+              f"eval.symbol_rule={self.symbol_rule!r}; choose argmax or threshold")
         check_positive("eval.kl_floor", self.kl_floor)
 
 
@@ -91,7 +98,8 @@ def phase2_targets(beta: torch.Tensor | None, dataset: Dataset, num_runs: int,
 def _train_block_kl(targets, closed_gates, cfg: EvalConfig) -> np.ndarray:
     """D_KL^(m)(ŝ ‖ s) per run, ŝ = argmax ĝ and s = argmax g of the closed loop from the
     trained initial states, averaged over series (Sec. 3)."""
-    data, model = targets.argmax(-1).cpu().numpy(), closed_gates.argmax(-1).cpu().numpy()
+    rule = SYMBOL_RULES[cfg.symbol_rule]
+    data, model = rule(targets.cpu().numpy()), rule(closed_gates.cpu().numpy())
     return np.array([np.mean([block_kl(d, m, cfg.block_length, cfg.kl_floor)
                               for d, m in zip(data[r], model[r], strict=True)])
                      for r in range(len(data))])
@@ -183,8 +191,10 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
     kept = collections.deque(maxlen=-(-cfg.plot_steps // CHUNK) + 1)
 
     def on_chunk(run):
-        recorded.append(dataset.symbolize(run.outputs.numpy(), run.gates.numpy(),
-                                          backend.nearest_symbols).astype(np.int16))
+        recorded.append((dataset.symbolize(run.outputs.numpy(), run.gates.numpy(),
+                                           backend.nearest_symbols)
+                         if dataset.prototypes is not None else SYMBOL_RULES[cfg.symbol_rule](
+                             run.gates.numpy())).astype(np.int16))
         winners.append(symbolize_argmax(run.gates.numpy()).astype(np.int16))
         if run.gating_u is not None:  # the first sample's last steps, for the figures
             kept.append(tuple(a[:, 0].clone() for a in (run.outputs, run.gates, run.gating_u)))

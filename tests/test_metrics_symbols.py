@@ -59,3 +59,22 @@ def test_nearest_prototype_equals_brute_force():
     labels = rng.integers(0, 5, 40)
     brute = labels[((points[..., None, :] - protos) ** 2).sum(-1).argmin(-1)]
     assert np.array_equal(symbolize_nearest(points, protos, labels), brute)
+
+
+def test_threshold_rule_is_argmax_where_a_gate_exceeds_one_half_else_a_symbol_of_its_own():
+    from moex.metrics.symbols import symbolize_threshold
+
+    gates = np.array([[0.9, 0.05, 0.05], [0.4, 0.35, 0.25], [0.2, 0.7, 0.1], [0.5, 0.5, 0.0]])
+    np.testing.assert_array_equal(symbolize_threshold(gates), [0, 3, 1, 3])
+    confident = np.eye(3)[[2, 0, 1]] * 0.98 + 0.01
+    np.testing.assert_array_equal(symbolize_threshold(confident), confident.argmax(-1))
+
+
+def test_bad_symbol_rule_is_refused():
+    import pytest
+
+    from moex.errors import ConfigError
+    from moex.evaluate import EvalConfig
+
+    with pytest.raises(ConfigError, match="eval.symbol_rule='vote'; choose argmax or threshold"):
+        EvalConfig(symbol_rule="vote")

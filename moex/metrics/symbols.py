@@ -8,6 +8,14 @@ def symbolize_argmax(gates: np.ndarray) -> np.ndarray:
     return np.asarray(gates).argmax(-1)
 
 
+def symbolize_threshold(gates: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+    """The authors' C rule (gn-learn's `f2symbol` with two bins): each gate is 1 above
+    `threshold`; with gates on the simplex at most one is, so the symbol is that gate's index,
+    and a step with none above it is a symbol of its own, K: (..., T, K) -> (..., T)."""
+    gates = np.asarray(gates)
+    return np.where(gates.max(-1) > threshold, gates.argmax(-1), gates.shape[-1])
+
+
 def symbolize_nearest(points: np.ndarray, prototypes: np.ndarray,
                       prototype_symbols: np.ndarray) -> np.ndarray:
     """Symbol of the nearest prototype point: (..., T, D) -> (..., T)."""
