@@ -217,7 +217,9 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
     test = _test_symbols(dataset, backend)
     truth = _true_symbols(dataset)
     rows, hist, censored_hist, transitions = [], [], [], []
-    V = max(len(dataset.symbol_names), K)
+    # (the threshold rule's symbol K: no gate above 0.5)
+    V = max(len(dataset.symbol_names), K) + (cfg.symbol_rule == "threshold"
+                                             and dataset.prototypes is None)
     for r in range(R):
         lam = exponents[r]
         columns, segments, reps, cut = _switching_columns(sampled[r], gate_winners[r], dataset,

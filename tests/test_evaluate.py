@@ -78,6 +78,13 @@ def test_metrics_a_task_cannot_have_are_left_out():
     rows = evaluate(experts, beta, gating, data, 1, dataclasses.replace(QUICK, block_length=3),
                     torch.Generator().manual_seed(0)).rows
     assert not {"E", "E_closed"} & set(rows[0]) and "block_kl_test" in rows[0]
+    # the C code's symbol rule on the same closed loop: a step with no gate above 0.5 becomes a
+    # symbol of its own, so the KLs may differ; λ_max and E^g are untouched
+    threshold = evaluate(experts, beta, gating, data, 1, dataclasses.replace(
+        QUICK, block_length=3, symbol_rule="threshold"), torch.Generator().manual_seed(0))
+    for key in ("max_lyapunov", "E_g"):
+        assert threshold.rows[0][key] == rows[0][key]
+    assert threshold.samples["transition"].shape[-1] == 8  # 7 gates and "none"
     # a user's series: no held-out data, no true labels
     lissajous = make_task(TaskConfig(num_series=2, length=40, num_test_series=0), 0)
     mine = Dataset(lissajous.series, -np.ones((2, 40), int), [], np.zeros(0, int))
