@@ -24,7 +24,12 @@ from moex.errors import check, check_positive
 from moex.kernels import Backend, get_backend
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse
-from moex.metrics.symbols import block_kl, symbolize_argmax, symbolize_threshold
+from moex.metrics.symbols import (
+    block_kl,
+    block_kl_mregn,
+    symbolize_argmax,
+    symbolize_threshold,
+)
 from moex.model import expert_forward, gate_estimates, gating_forward
 from moex.tasks import Dataset
 
@@ -53,6 +58,9 @@ class EvalConfig:
     # tasks whose symbols are the gates (Reber): `argmax` (Eq. 22), or `threshold` as the
     # authors' C code (a gate above 0.5 names the symbol; a step with none is a symbol of its own)
     symbol_rule: str = "argmax"
+    # the block KL: `paper` (Eq. 21, model probability kl_floor for a block it lacks) or `mregn`,
+    # the authors' C formula (a count of 0.001 for a missing block, plus their second sum)
+    kl_form: str = "paper"
     track_samples: int = 4  # random initial states per network when tracking
     track_steps: int = 5000  # Lyapunov steps per sample when tracking
 
@@ -67,6 +75,14 @@ class EvalConfig:
         check(self.noise_var >= 0, f"eval.noise_var={self.noise_var} must be >= 0")
         check(self.symbol_rule in SYMBOL_RULES,
               f"eval.symbol_rule={self.symbol_rule!r}; choose argmax or threshold")
+        check(self.kl_form in ("paper", "mregn"),
+              f"eval.kl_form={self.kl_form!r}; choose paper or mregn")
+
+    def block_kl(self, data, model) -> float:
+        """D_KL^(m) of this evaluation's form and block length, data first."""
+        if self.kl_form == "mregn":
+            return block_kl_mregn(data, model, self.block_length)
+        return block_kl(data, model, self.block_length, self.kl_floor)
         check_positive("eval.kl_floor", self.kl_floor)
 
 
@@ -100,8 +116,8 @@ def _train_block_kl(targets, closed_gates, cfg: EvalConfig) -> np.ndarray:
     trained initial states, averaged over series (Sec. 3)."""
     rule = SYMBOL_RULES[cfg.symbol_rule]
     data, model = rule(targets.cpu().numpy()), rule(closed_gates.cpu().numpy())
-    return np.array([np.mean([block_kl(d, m, cfg.block_length, cfg.kl_floor)
-                              for d, m in zip(data[r], model[r], strict=True)])
+    return np.array([np.mean([cfg.block_kl(d, m) for d, m in zip(data[r], model[r],
+                                                                  strict=True)])
                      for r in range(len(data))])
 
 
@@ -236,7 +252,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
                                                     series[:, delay:].numpy()))
         row.update(block_length=cfg.block_length, block_kl_train=float(kl_train[r]))
         if test is not None:
-            row["block_kl_test"] = block_kl(test, sampled[r], cfg.block_length, cfg.kl_floor)
+            row["block_kl_test"] = cfg.block_kl(test, sampled[r])
         row.update({
             "max_lyapunov": float(lam[:, 0].mean()),
             "lyapunov_positive": bool(lam[:, 0].mean() > 0),

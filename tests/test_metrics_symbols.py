@@ -78,3 +78,18 @@ def test_bad_symbol_rule_is_refused():
 
     with pytest.raises(ConfigError, match="eval.symbol_rule='vote'; choose argmax or threshold"):
         EvalConfig(symbol_rule="vote")
+
+
+def test_mregn_kl_is_zero_for_the_same_distribution_and_charges_missing_blocks_per_count():
+    """The authors' C formula: 0 for a sequence against itself or against itself repeated (the
+    ln(L_y/L_x) term); a block the model lacks costs ln(p/(0.001/L_y)) in place of ln(p/floor)."""
+    from moex.metrics.symbols import block_kl_mregn
+
+    data = np.random.default_rng(0).integers(0, 3, 400)
+    assert block_kl_mregn(data, data, 2) == 0.0
+    assert abs(block_kl_mregn(data, [data, data], 2)) < 1e-12
+    data, model = np.array([0, 1, 0, 1, 0]), np.array([0, 0, 0, 0, 0])  # blocks 01, 10 missing
+    x, y = 4, 4  # blocks of length 2
+    expected = 2 * 2 * (np.log(2 / 1e-3) + np.log(y / x)) / x + 1e-3 * (
+        np.log(1e-3 / 4) + np.log(y / x)) / x
+    assert math.isclose(block_kl_mregn(data, model, 2), expected, rel_tol=1e-12)
