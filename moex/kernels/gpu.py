@@ -196,15 +196,9 @@ class ExpertProblem(_Problem):
 
 
 class GatingProblem(_Problem):
-    """Phase 2 of R runs (Eqs. 14-16). Lane r·S + s runs the gating RNN of run r on series s,
-    reading [ĝ_n, x_n] and fitted to ĝ_{n+τ}.
-
-    Args:
-        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n (D may be 0).
-        model: the `ModelConfig`; phase: the `GatingPhaseConfig`.
-        seeds: one per run, for the input noise that `resample(step)` draws when
-            `phase.input_noise_var` > 0 (`moex.kernels.input_noise`).
-    """
+    """Phase 2 of R runs (Eqs. 14-16), the arguments of the CPU backend's `GatingProblem`.
+    Lane r·S + s runs the gating RNN of run r on series s, reading [ĝ_n, x_n] and fitted to
+    ĝ_{n+τ}; `resample(step)` draws the input noise of `phase.input_noise_var` per run seed."""
 
     STATS = ("objective", "log_likelihood", "kl", "E_g")
 
