@@ -145,7 +145,8 @@ def rnn_backward(DO, X, XROW, NET, U0ROW, WI, WR, WO, BC, EPS, U0, C, U,
         t = T - 1 - step
         c = _row(C, lane * T + t, ok, h, H)
         first = t == 0
-        prev = tl.where(first, c0, _row(C, lane * T + t - 1, ok & (t > 0), h, H))
+        before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
+        prev = tl.where(first, c0, _row(C, lane * T + t - 1, before, h, H))
         do = _row(DO, lane * T + t, ok, o, NO)
         dq = (1.0 - c * c) * (_matvec_t(wo, do) + back)
         gbc += dq
@@ -157,7 +158,7 @@ def rnn_backward(DO, X, XROW, NET, U0ROW, WI, WR, WO, BC, EPS, U0, C, U,
         gwr += ea[:, :, None] * prev[:, None, :]
         if LEARN_EPS:
             u = _row(U, lane * T + t, ok, h, H)
-            u_prev = tl.where(first, u0, _row(U, lane * T + t - 1, ok & (t > 0), h, H))
+            u_prev = tl.where(first, u0, _row(U, lane * T + t - 1, before, h, H))
             geps += a * (u - u_prev) / tl.where(eps != 0.0, eps, 1.0)  # padding: ε = 0
         back = _matvec_t(wr, ea)
     dq = (1.0 - c0 * c0) * back
