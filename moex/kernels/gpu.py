@@ -6,9 +6,8 @@ autograd, with no time loop — then the backward kernel and a sum of the per-la
 each network's lanes. Parameters, gradients and the optimiser state stay on the device; only the
 per-run statistics (R values) reach the host.
 
-The closed loop with one Lyapunov tangent (generation, λ_max) is one Triton kernel per chunk of
-steps (`moex.kernels.gpu_closed`), as is the symbol readout (nearest prototype); with several
-exponents (Gram-Schmidt among the tangents) the closed loop falls back to the CPU backend. With
+The closed loop with its Lyapunov tangents (generation, λ_max or a spectrum) is one Triton kernel
+per chunk of steps (`moex.kernels.gpu_closed`), as is the symbol readout (nearest prototype). With
 `TRITON_INTERPRET=1` Triton runs the kernels on the CPU (slowly), which is how the tests check
 them without a GPU.
 """
@@ -20,7 +19,7 @@ import torch
 import triton
 
 from moex import objectives
-from moex.kernels import cpu, input_noise
+from moex.kernels import input_noise
 from moex.kernels.gpu_closed import closed_loop_kernel, grid, nearest_kernel
 from moex.kernels.gpu_rnn import rnn_backward, rnn_forward
 from moex.model import ClosedLoopRun
@@ -271,11 +270,8 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
                 count: bool = False, uniform_gates: bool = False,
                 potentials: bool = True) -> ClosedLoopRun:
     """`moex.kernels.reference.closed_loop` as one kernel launch: same arguments and results (on
-    the device of `state`). More than one tangent vector: the CPU backend's closed loop."""
+    the device of `state`)."""
     num_tangents = 0 if tangents is None else tangents.shape[-1]
-    if num_tangents > 1:
-        return cpu.closed_loop(experts, gating, state, steps, noise, tangents, count,
-                               uniform_gates, potentials)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     home, dtype = state.gates.device, state.gates.dtype
     R, N, TAU, K = state.gates.shape
@@ -294,24 +290,23 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
 
     parts = [put(x) for x in (state.experts_u, state.gating_u, state.inputs, state.gates)]
     sizes = [K * M, H, TAU * D, TAU * K]
-    if num_tangents:
-        pieces = tangents[..., 0].split(sizes, dim=-1)
-        vec = [put(p) for p in pieces]
-    else:
-        vec = [dummy] * 4
+    # tangents (R, N, dim, KT) -> per piece (R, N, KT, size): one vector's piece is contiguous
+    vec = ([put(p.transpose(-1, -2)) for p in tangents.split(sizes, dim=-2)] if num_tangents
+           else [dummy] * 4)
     out_y = torch.zeros((R, N, steps, D), dtype=dtype, device=device)
     out_g = torch.zeros((R, N, steps, K), dtype=dtype, device=device)
     out_u = torch.zeros((R, N, steps, H), dtype=dtype, device=device) if potentials else dummy
-    growth = torch.zeros((R, N), dtype=dtype, device=device)
+    growth = torch.zeros((R, N, num_tangents), dtype=dtype, device=device)
     pad = {name: _pow2(size) for name, size in (("KP", K), ("MP", M), ("DP", D), ("HP", H),
-                                                 ("TP", TAU))}
-    per_sample = max(pad["KP"] * pad["MP"] * max(pad["MP"], pad["DP"]), pad["HP"] ** 2)
-    block = max(1, min(16, 8192 // per_sample))
-    closed_loop_kernel[grid(R, N, block)](
+                                                 ("TP", TAU), ("KTP", num_tangents))}
+    per_lane = max(pad["KP"] * pad["MP"] * max(pad["MP"], pad["DP"]), pad["HP"] ** 2)
+    samples = max(1, min(16, 8192 // (per_lane * pad["KTP"])))  # per program (a power of 2)
+    closed_loop_kernel[grid(R, N, samples)](
         *weights(experts), *weights(gating), *parts, *vec,
         put(noise) if noise is not None else dummy, out_y, out_g, out_u, growth, N,
-        STEPS=steps, K=K, M=M, D=D, H=H, TAU=TAU, BN=block, EXPERTS=bool(experts),
-        TANGENT=bool(num_tangents), NOISY=noise is not None, COUNT=bool(count and num_tangents),
+        STEPS=steps, K=K, M=M, D=D, H=H, TAU=TAU, BN=samples * pad["KTP"],
+        KT=max(num_tangents, 1), EXPERTS=bool(experts), TANGENT=bool(num_tangents),
+        NOISY=noise is not None, COUNT=bool(count and num_tangents),
         UNIFORM=bool(uniform_gates), KEEP_U=bool(potentials), **pad)
 
     def back(x, shape):
@@ -321,13 +316,11 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
                       back(parts[2], (R, N, TAU, D)), back(parts[3], (R, N, TAU, K)))
     new_tangents = None
     if num_tangents:
-        new_tangents = torch.cat([back(v, (R, N, size)) for v, size in zip(vec, sizes,
-                                                                            strict=True)],
-                                 -1)[..., None]
+        new_tangents = torch.cat([back(v, (R, N, num_tangents, size)).transpose(-1, -2)
+                                  for v, size in zip(vec, sizes, strict=True)], -2)
     return ClosedLoopRun(nxt, back(out_y, (R, N, steps, D)), back(out_g, (R, N, steps, K)),
                          back(out_u, (R, N, steps, H)) if potentials else None, new_tangents,
-                         back(growth, (R, N))[..., None] if num_tangents
-                         else torch.zeros((R, N, 0), dtype=dtype))
+                         growth.to(home))
 
 
 def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,

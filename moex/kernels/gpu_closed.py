@@ -1,10 +1,13 @@
-"""The closed loop of the whole mixture (Sec. 2.2) with one Lyapunov tangent vector, as one Triton
+"""The closed loop of the whole mixture (Sec. 2.2) with KT Lyapunov tangent vectors, as one Triton
 kernel: `moex.model.closed_loop_step` and its tangent map, repeated for a chunk of steps.
 
-A program runs one run's network for a block of BN samples through every step of the chunk, so
-the weights are one copy per program (no lane axis) and the samples are the lanes. Shapes inside:
-experts (BN, K, M), gating (BN, H), delay lines x (BN, τ, D) and g (BN, τ, K); sizes padded to
-powers of two (masked: padded units stay 0, padded gates get logit -inf).
+A program runs one run's network for a block of samples through every step of the chunk, so the
+weights are one copy per program (no lane axis). A lane is one (sample, tangent) pair: BN lanes =
+BN / KTP samples × KTP tangent slots, each lane carrying its sample's state (computed once per
+slot, so the state's arithmetic repeats KTP times: the price of keeping the tangent map the
+one-vector code) and one tangent. Shapes inside: experts (BN, K, M), gating (BN, H), delay lines
+x (BN, τ, D) and g (BN, τ, K); sizes padded to powers of two (masked: padded units stay 0, padded
+gates get logit -inf, padded tangent slots stay 0).
 
 One step (m is the gating RNN's time), with x_m = x-line[0] (+ noise) and g_m = g-line[0]:
     experts:  u_k ← u_k + ε (W_in x_m + W_rec tanh(u_k + b) - u_k),  y^k = tanh(W_out c_k + b_o),
@@ -12,8 +15,9 @@ One step (m is the gating RNN's time), with x_m = x-line[0] (+ noise) and g_m = 
     gating:   u^g ← u^g + ε^g (W^g_1 g_m + W^g_2 x_m + W^g_3 tanh(u^g + v^g_1) - u^g),
               g_{m+τ} = softmax(W^g_4 c^g + v^g_2)                              (Eqs. 5-8)
     delay lines shift by one; y_m and g_{m+τ} enter at the end.
-The tangent follows the exact Jacobian of the same map (written out as in `closed_loop_step`) and
-is normalised after every step; ln of its norm is the step's growth (Benettin et al. 1980).
+The tangents follow the exact Jacobian of the same map (written out as in `closed_loop_step`) and
+are re-orthonormalised after every step by modified Gram-Schmidt among the slots of a sample (a
+QR decomposition); ln |R_ii| is tangent i's growth (Benettin et al. 1980).
 """
 
 import triton
@@ -37,6 +41,49 @@ def _shift(line, new, tt, TAU: tl.constexpr):
 
 
 @triton.jit
+def _orthonormalise(veu, vgu, vxl, vgl, growth, SB: tl.constexpr, KT: tl.constexpr,
+                    KTP: tl.constexpr, KP: tl.constexpr, MP: tl.constexpr, HP: tl.constexpr,
+                    TP: tl.constexpr, DP: tl.constexpr, COUNT: tl.constexpr):
+    """Modified Gram-Schmidt among the KT tangent slots of each sample (the pieces of one
+    vector: veu (BN, KP, MP), vgu (BN, HP), vxl (BN, TP, DP), vgl (BN, TP, KP) with BN = SB·KTP
+    lanes); growth (SB, KTP) += ln of each vector's norm after the earlier ones were removed
+    (|R_ii| of the QR decomposition). A zero vector (a padded lane) is left zero."""
+    e = tl.reshape(veu, (SB, KTP, KP, MP))
+    g = tl.reshape(vgu, (SB, KTP, HP))
+    x = tl.reshape(vxl, (SB, KTP, TP, DP))
+    q = tl.reshape(vgl, (SB, KTP, TP, KP))
+    slot = tl.arange(0, KTP)
+    for i in tl.static_range(KT):
+        this = (slot == i)[None, :]  # (1, KTP)
+        this3, this4 = this[:, :, None], this[:, :, None, None]
+        e_i = tl.sum(tl.where(this4, e, 0.0), axis=1)  # vector i, (SB, ...)
+        g_i = tl.sum(tl.where(this3, g, 0.0), axis=1)
+        x_i = tl.sum(tl.where(this4, x, 0.0), axis=1)
+        q_i = tl.sum(tl.where(this4, q, 0.0), axis=1)
+        norm = tl.sqrt(tl.sum(tl.sum(e_i * e_i, axis=2), axis=1) + tl.sum(g_i * g_i, axis=1)
+                       + tl.sum(tl.sum(x_i * x_i, axis=2), axis=1)
+                       + tl.sum(tl.sum(q_i * q_i, axis=2), axis=1))
+        safe = tl.where(norm > 0, norm, 1.0)
+        if COUNT:
+            growth += tl.where(this, tl.log(safe)[:, None], 0.0)
+        scale = 1.0 / safe
+        e_i, g_i = e_i * scale[:, None, None], g_i * scale[:, None]
+        x_i, q_i = x_i * scale[:, None, None], q_i * scale[:, None, None]
+        # every later vector loses its component along vector i; vector i is replaced by its unit
+        dot = (tl.sum(tl.sum(e * e_i[:, None], axis=3), axis=2) + tl.sum(g * g_i[:, None], axis=2)
+               + tl.sum(tl.sum(x * x_i[:, None], axis=3), axis=2)
+               + tl.sum(tl.sum(q * q_i[:, None], axis=3), axis=2))  # (SB, KTP)
+        dot = tl.where((slot > i)[None, :], dot, 0.0)
+        e = tl.where(this4, e_i[:, None], e - dot[:, :, None, None] * e_i[:, None])
+        g = tl.where(this3, g_i[:, None], g - dot[:, :, None] * g_i[:, None])
+        x = tl.where(this4, x_i[:, None], x - dot[:, :, None, None] * x_i[:, None])
+        q = tl.where(this4, q_i[:, None], q - dot[:, :, None, None] * q_i[:, None])
+    BN: tl.constexpr = SB * KTP
+    return (tl.reshape(e, (BN, KP, MP)), tl.reshape(g, (BN, HP)), tl.reshape(x, (BN, TP, DP)),
+            tl.reshape(q, (BN, TP, KP)), growth)
+
+
+@triton.jit
 def _load(ptr, offs, mask):
     return tl.load(ptr + offs, mask=mask, other=0.0)
 
@@ -47,16 +94,23 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
                        STEPS: tl.constexpr, K: tl.constexpr, M: tl.constexpr, D: tl.constexpr,
                        H: tl.constexpr, TAU: tl.constexpr, KP: tl.constexpr, MP: tl.constexpr,
                        DP: tl.constexpr, HP: tl.constexpr, TP: tl.constexpr, BN: tl.constexpr,
+                       KT: tl.constexpr, KTP: tl.constexpr,
                        EXPERTS: tl.constexpr, TANGENT: tl.constexpr, NOISY: tl.constexpr,
                        COUNT: tl.constexpr, UNIFORM: tl.constexpr, KEEP_U: tl.constexpr):
-    """STEPS steps of BN trajectories of run program_id(0); the state (EU (R, N, K, M), GU
-    (R, N, H), XL (R, N, τ, D), GL (R, N, τ, K)) and the tangent (VEU, VGU, VXL, VGL, the same
-    layout) are read and written back; records OUT_Y (R, N, STEPS, D), OUT_G (R, N, STEPS, K),
-    OUT_U (R, N, STEPS, H) when KEEP_U; GROWTH (R, N) += Σ ln ‖v‖ when COUNT."""
+    """STEPS steps of BN / KTP trajectories of run program_id(0); the state (EU (R, N, K, M), GU
+    (R, N, H), XL (R, N, τ, D), GL (R, N, τ, K)) and the KT tangents (VEU (R, N, KT, K, M), VGU
+    (R, N, KT, H), VXL (R, N, KT, τ, D), VGL (R, N, KT, τ, K)) are read and written back; records
+    OUT_Y (R, N, STEPS, D), OUT_G (R, N, STEPS, K), OUT_U (R, N, STEPS, H) when KEEP_U; GROWTH
+    (R, N, KT) += Σ ln |R_ii| when COUNT."""
+    SB: tl.constexpr = BN // KTP  # samples per program
     r = tl.program_id(0).to(tl.int64)
-    n = tl.program_id(1) * BN + tl.arange(0, BN)
+    lane = tl.arange(0, BN)
+    n, j = tl.program_id(1) * SB + lane // KTP, lane % KTP  # sample, tangent slot
     ok = n < N
+    first = ok & (j == 0)  # the lane that writes its sample's state and records
     row = r * N + n  # (BN,) trajectory index
+    trow = row * KT + j  # (BN,) tangent index
+    tok = ok & (j < KT)
     k, m, d = tl.arange(0, KP), tl.arange(0, MP), tl.arange(0, DP)
     h, tt = tl.arange(0, HP), tl.arange(0, TP)
     km, dm, hm, tm = k < K, d < D, h < H, tt < TAU
@@ -91,15 +145,24 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
     l_mask = ok3 & tm[None, :, None] & km[None, None, :]
     eu, gu = _load(EU, e_off, e_mask), _load(GU, g_off, g_mask)
     xl, gl = _load(XL, x_off, x_mask), _load(GL, l_off, l_mask)
-    if TANGENT:
-        veu, vgu = _load(VEU, e_off, e_mask), _load(VGU, g_off, g_mask)
-        vxl, vgl = _load(VXL, x_off, x_mask), _load(VGL, l_off, l_mask)
-        growth = tl.zeros((BN,), dtype=gbc.dtype)
-    rec_d, rec_k = ok[:, None] & dm[None, :], ok[:, None] & km[None, :]
+    if TANGENT:  # the same layouts with the tangent index for the trajectory's
+        tok3 = tok[:, None, None]
+        v_e = trow[:, None, None] * K * M + k[None, :, None] * M + m[None, None, :]
+        v_x = trow[:, None, None] * TAU * D + tt[None, :, None] * D + d[None, None, :]
+        v_l = trow[:, None, None] * TAU * K + tt[None, :, None] * K + k[None, None, :]
+        v_em, v_g = tok3 & e_km[None], trow[:, None] * H + h[None, :]
+        v_gm = tok[:, None] & hm[None, :]
+        v_xm = tok3 & tm[None, :, None] & dm[None, None, :]
+        v_lm = tok3 & tm[None, :, None] & km[None, None, :]
+        veu, vgu = _load(VEU, v_e, v_em), _load(VGU, v_g, v_gm)
+        vxl, vgl = _load(VXL, v_x, v_xm), _load(VGL, v_l, v_lm)
+        growth = tl.zeros((SB, KTP), dtype=gbc.dtype)
+    rec_d, rec_k = first[:, None] & dm[None, :], first[:, None] & km[None, :]
     for t in range(STEPS):
         x, g = _first(xl, tt), _first(gl, tt)
         if NOISY:
-            x += _load(NOISE, (row[:, None] * STEPS + t) * D + d[None, :], rec_d)
+            x += _load(NOISE, (row[:, None] * STEPS + t) * D + d[None, :],
+                       ok[:, None] & dm[None, :])
         y = x
         if EXPERTS:  # Eqs. 1-4, every expert on the same input
             c_old = _tanh(eu + ebc[None])
@@ -123,7 +186,8 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
         tl.store(OUT_Y + (row[:, None] * STEPS + t) * D + d[None, :], y, mask=rec_d)
         tl.store(OUT_G + (row[:, None] * STEPS + t) * K + k[None, :], g, mask=rec_k)
         if KEEP_U:
-            tl.store(OUT_U + (row[:, None] * STEPS + t) * H + h[None, :], gu_new, mask=g_mask)
+            tl.store(OUT_U + (row[:, None] * STEPS + t) * H + h[None, :], gu_new,
+                     mask=first[:, None] & hm[None, :])
         if TANGENT:  # the exact Jacobian of the same step applied to v
             dx, dg = _first(vxl, tt), _first(vgl, tt)
             dy = dx
@@ -145,30 +209,25 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
             d_logits = tl.sum(gwo[None] * ((1.0 - cg * cg) * vgu)[:, None, :], axis=2)
             d_g = new_g * (d_logits - tl.sum(new_g * d_logits, axis=1)[:, None])
             vxl, vgl = _shift(vxl, dy, tt, TAU), _shift(vgl, d_g, tt, TAU)
-            norm = tl.sqrt(tl.sum(tl.sum(veu * veu, axis=2), axis=1) + tl.sum(vgu * vgu, axis=1)
-                           + tl.sum(tl.sum(vxl * vxl, axis=2), axis=1)
-                           + tl.sum(tl.sum(vgl * vgl, axis=2), axis=1))
-            safe = tl.where(norm > 0, norm, 1.0)  # (padding lanes have no tangent)
-            if COUNT:
-                growth += tl.log(safe)
-            scale = 1.0 / safe
-            veu, vgu = veu * scale[:, None, None], vgu * scale[:, None]
-            vxl, vgl = vxl * scale[:, None, None], vgl * scale[:, None, None]
+            veu, vgu, vxl, vgl, growth = _orthonormalise(veu, vgu, vxl, vgl, growth, SB, KT,
+                                                         KTP, KP, MP, HP, TP, DP, COUNT)
         if EXPERTS:
             eu = eu_new
         gu = gu_new
         xl, gl = _shift(xl, y, tt, TAU), _shift(gl, new_g, tt, TAU)
-    tl.store(EU + e_off, eu, mask=e_mask)
-    tl.store(GU + g_off, gu, mask=g_mask)
-    tl.store(XL + x_off, xl, mask=x_mask)
-    tl.store(GL + l_off, gl, mask=l_mask)
+    first3 = first[:, None, None]
+    tl.store(EU + e_off, eu, mask=e_mask & first3)
+    tl.store(GU + g_off, gu, mask=g_mask & first[:, None])
+    tl.store(XL + x_off, xl, mask=x_mask & first3)
+    tl.store(GL + l_off, gl, mask=l_mask & first3)
     if TANGENT:
-        tl.store(VEU + e_off, veu, mask=e_mask)
-        tl.store(VGU + g_off, vgu, mask=g_mask)
-        tl.store(VXL + x_off, vxl, mask=x_mask)
-        tl.store(VGL + l_off, vgl, mask=l_mask)
+        tl.store(VEU + v_e, veu, mask=v_em)
+        tl.store(VGU + v_g, vgu, mask=v_gm)
+        tl.store(VXL + v_x, vxl, mask=v_xm)
+        tl.store(VGL + v_l, vgl, mask=v_lm)
         if COUNT:
-            tl.store(GROWTH + row, tl.load(GROWTH + row, mask=ok, other=0.0) + growth, mask=ok)
+            grown = tl.load(GROWTH + trow, mask=tok, other=0.0) + tl.reshape(growth, (BN,))
+            tl.store(GROWTH + trow, grown, mask=tok)
 
 
 @triton.jit
