@@ -80,16 +80,23 @@ def _put_tile(ptr, lane, lane_ok, rows, cols, value, NR: tl.constexpr, NC: tl.co
 
 
 @triton.jit
+def _lanes(NET, XROW, num_lanes, BL: tl.constexpr):
+    """This program's BL lanes (int64: offsets past 2³¹), which exist, and each lane's network and
+    input row."""
+    lane = (tl.program_id(0) * BL + tl.arange(0, BL)).to(tl.int64)
+    ok = lane < num_lanes
+    return (lane, ok, tl.load(NET + lane, mask=ok, other=0),
+            tl.load(XROW + lane, mask=ok, other=0))
+
+
+@triton.jit
 def rnn_forward(X, XROW, NET, U0ROW, WI, WR, WO, BC, BO, EPS, U0, OUT, C, U, SUMS, num_lanes,
                 T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
                 NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
                 KEEP_C: tl.constexpr, KEEP_U: tl.constexpr, KEEP_SUMS: tl.constexpr):
     """Forward pass of BL lanes: OUT (L, T, NO) always; C, U (L, T, H) and SUMS (L, 2, H) when
     KEEP_C, KEEP_U, KEEP_SUMS."""
-    lane = (tl.program_id(0) * BL + tl.arange(0, BL)).to(tl.int64)  # offsets past 2³¹
-    ok = lane < num_lanes
-    net = tl.load(NET + lane, mask=ok, other=0)
-    xrow = tl.load(XROW + lane, mask=ok, other=0)
+    lane, ok, net, xrow = _lanes(NET, XROW, num_lanes, BL)
     h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
     wi = _tile(WI, net, ok, h, i, H, NI)
     wr = _tile(WR, net, ok, h, h, H, H)
@@ -125,10 +132,7 @@ def rnn_backward(DO, X, XROW, NET, U0ROW, WI, WR, WO, BC, EPS, U0, C, U,
     """Backward pass of BL lanes given DO (L, T, NO) = ∂L/∂o_t: every per-lane gradient,
     G_WI (L, H, NI), G_WR (L, H, H), G_WO (L, NO, H), G_BC, G_EPS, G_U0 (L, H), G_BO (L, NO)
     (G_EPS only when LEARN_EPS; it then reads U)."""
-    lane = (tl.program_id(0) * BL + tl.arange(0, BL)).to(tl.int64)  # offsets past 2³¹
-    ok = lane < num_lanes
-    net = tl.load(NET + lane, mask=ok, other=0)
-    xrow = tl.load(XROW + lane, mask=ok, other=0)
+    lane, ok, net, xrow = _lanes(NET, XROW, num_lanes, BL)
     h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
     wr = _tile(WR, net, ok, h, h, H, H)
     wo = _tile(WO, net, ok, o, h, NO, H)
