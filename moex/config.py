@@ -118,4 +118,11 @@ def config_from_dict(data: dict) -> Config:
     """Rebuild (and re-validate) a `Config` from the plain dict stored in a checkpoint."""
     if "dtype" in data:  # checkpoints written before `dtype` was renamed `precision`
         data = {**{k: v for k, v in data.items() if k != "dtype"}, "precision": data["dtype"]}
+    model = data.get("model", {})
+    if any("time_constant" in model.get(net, {}) for net in ("experts", "gating")):
+        # written before `time_constant` (which held ε, not τ) was renamed `epsilon`
+        model = {**model, **{net: {("epsilon" if k == "time_constant" else k): v
+                                   for k, v in model[net].items()}
+                             for net in ("experts", "gating") if net in model}}
+        data = {**data, "model": model}
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), data))

@@ -36,13 +36,13 @@ INIT_SCHEMES = ("paper", "mregn")
 @dataclass
 class ExpertsConfig:
     context_size: int = 10  # M
-    time_constant: float = 0.2  # ε
+    epsilon: float = 0.2  # ε of Eq. 1, the paper's "time constant" (τ = 1/ε in the C code)
 
 
 @dataclass
 class GatingConfig:
     context_size: int = 15  # H (the paper's M_g, NC)
-    time_constant: float = 0.04  # ε^g
+    epsilon: float = 0.04  # ε^g of Eq. 5
 
 
 @dataclass
@@ -70,7 +70,7 @@ class ModelConfig:
         check(self.init in INIT_SCHEMES, f"model.init={self.init!r}; choose paper or mregn")
         for key, sub in (("model.experts", self.experts), ("model.gating", self.gating)):
             check(sub.context_size >= 1, f"{key}.context_size={sub.context_size} must be >= 1")
-            check_range(f"{key}.time_constant", sub.time_constant, 0.0, 1.0, low_open=True)
+            check_range(f"{key}.epsilon", sub.epsilon, 0.0, 1.0, low_open=True)
 
 
 def leaky_scan(drive: torch.Tensor, w_rec: torch.Tensor, eps: torch.Tensor, bias: torch.Tensor,
@@ -108,7 +108,7 @@ def _uniform(generator, shape, bound, dtype):
 
 
 def _init_rnn(generator, *, inputs: int, hidden: int, outputs: int, num_series: int,
-              time_constant: float, scheme: str, dtype) -> dict[str, torch.Tensor]:
+              epsilon: float, scheme: str, dtype) -> dict[str, torch.Tensor]:
     """One run's leaky RNN: w_in (H, inputs), w_rec (H, H), w_out (outputs, H), biases, τ, u_0."""
     paper = scheme == "paper"
     w_bound = 1 / hidden
@@ -120,7 +120,7 @@ def _init_rnn(generator, *, inputs: int, hidden: int, outputs: int, num_series: 
         "w_out": _uniform(generator, (outputs, hidden), w_bound, dtype),
         "b_c": _uniform(generator, (hidden,), bias_bound, dtype),
         "b_o": _uniform(generator, (outputs,), bias_bound, dtype),
-        "tau": torch.full((hidden,), 1 / time_constant, dtype=dtype),
+        "tau": torch.full((hidden,), 1 / epsilon, dtype=dtype),
         "u0": _uniform(generator, (num_series, hidden), 1.0, dtype) if paper
         else torch.zeros((num_series, hidden), dtype=dtype),
     }
@@ -144,7 +144,7 @@ def init_experts(cfg: ModelConfig, num_series: int, num_features: int,
         experts = _stack([
             _init_rnn(gen, inputs=num_features, hidden=cfg.experts.context_size,
                       outputs=num_features, num_series=num_series,
-                      time_constant=cfg.experts.time_constant, scheme=cfg.init, dtype=dtype)
+                      epsilon=cfg.experts.epsilon, scheme=cfg.init, dtype=dtype)
             for _ in range(cfg.num_experts)])
         experts["u0"] = experts["u0"].transpose(0, 1)  # (K, S, M) -> (S, K, M)
         experts["log_sigma"] = torch.zeros(cfg.num_experts, dtype=dtype)
@@ -163,7 +163,7 @@ def init_gating(cfg: ModelConfig, num_series: int, num_features: int,
     return _stack([
         _init_rnn(gen, inputs=cfg.num_experts + num_features, hidden=cfg.gating.context_size,
                   outputs=cfg.num_experts, num_series=num_series,
-                  time_constant=cfg.gating.time_constant, scheme=cfg.init, dtype=dtype)
+                  epsilon=cfg.gating.epsilon, scheme=cfg.init, dtype=dtype)
         for gen in generators])
 
 

@@ -6,7 +6,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from moex.cli import CONF_DIR, _override_variants
-from moex.config import Config, register_configs
+from moex.config import Config, config_from_dict, register_configs
 from moex.pipeline import _phase1_cache, load_task
 
 TASKS = sorted(p.stem for p in (Path(CONF_DIR) / "task").glob("*.yaml"))
@@ -38,9 +38,18 @@ def test_paper_settings_of_lissajous2():
         cfg = OmegaConf.to_object(compose("config", overrides=["task=lissajous2"]))
     assert (cfg.model.num_experts, cfg.model.delay, cfg.model.sigma_min) == (2, 1, 0.05)
     assert (cfg.model.experts.context_size, cfg.model.gating.context_size) == (10, 15)
-    assert (cfg.model.experts.time_constant, cfg.model.gating.time_constant) == (0.2, 0.04)
+    assert (cfg.model.experts.epsilon, cfg.model.gating.epsilon) == (0.2, 0.04)
     assert (cfg.train.experts.steps, cfg.train.gating.steps) == (30000, 10000)
     assert cfg.train.experts.gate_prior_std == 10.0 and cfg.train.gating.adaptive_lr
+
+
+def test_checkpoint_configs_with_old_key_names_still_load():
+    """Run folders written before `time_constant` became `epsilon` (and `dtype` `precision`)."""
+    old = {"dtype": "float32", "model": {"experts": {"context_size": 7, "time_constant": 0.3},
+                                         "gating": {"time_constant": 0.05}}}
+    cfg = config_from_dict(old)
+    assert (cfg.model.experts.epsilon, cfg.model.gating.epsilon) == (0.3, 0.05)
+    assert cfg.model.experts.context_size == 7 and cfg.precision == "float32"
 
 
 def test_sweep_overrides_are_validated_value_by_value():

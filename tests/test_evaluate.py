@@ -131,7 +131,7 @@ def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backen
     outputs and gates are constant: the largest exponent is ln(1 - min ε) exactly, here that of
     the gating RNN, ln(1 - ε^g)."""
     model = ModelConfig()
-    model.gating.time_constant = 0.07
+    model.gating.epsilon = 0.07
     cfg = Config(model=model, num_runs=2)
     experts, gating = initial_parameters(cfg, 2, 2, torch.float64)
     for params in (experts, gating):
