@@ -6,11 +6,13 @@ and its twin is round-off amplified by 40 000 training steps and by the closed l
 
     python docs/roundoff.py      # writes docs/roundoff_pairs.csv, prints the summary table
 
-| pair | A | B | differs in |
-|---|---|---|---|
-| soft, P = 0.5 | Table 2, networks 0-9 (R = 30, AMD EPYC) | the P = 0.5 study's `baseline` arm (R = 10, AMD EPYC) | R |
-| soft, P = 0.25 | Table 2, networks 0-4 (R = 30, AMD EPYC) | data seeds, data set 0 (R = 5, Intel Xeon) | R and CPU |
-| one-hot, P = 0.5 | Table 2 one-hot, networks 0-9 (R = 30, Intel Xeon) | the study's `targets_onehot` arm (R = 10, AMD EPYC) | R and CPU |
+The pairs (A against B; what differs):
+    soft, P = 0.5: Table 2's networks 0-9 (R = 30, AMD EPYC) against the P = 0.5 study's
+        `baseline` arm (R = 10, AMD EPYC); R.
+    soft, P = 0.25: Table 2's networks 0-4 (R = 30, AMD EPYC) against the data-seed
+        experiment's data set 0 (R = 5, Intel Xeon); R and CPU.
+    one-hot, P = 0.5: Table 2 one-hot's networks 0-9 (R = 30, Intel Xeon) against the study's
+        `targets_onehot` arm (R = 10, AMD EPYC); R and CPU.
 """
 
 from pathlib import Path
