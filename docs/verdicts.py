@@ -17,10 +17,32 @@ import pandas as pd
 from moex.report import PAPER_TABLE1, PAPER_TABLE2, wilson_interval
 
 DOCS = Path(__file__).resolve().parent
+def _distance(values: pd.Series, paper: float) -> str:
+    values = values.dropna()
+    return (f"{values.mean():.3f} ± {values.std():.3f} ({len(values)}), "
+            f"{(values.mean() - paper) / (values.std() / np.sqrt(len(values))):+.1f} SE")
+
+
+def _targets_cause() -> str:
+    onehot = pd.read_csv(DOCS / "table2_onehot30_summary.csv")
+    return ("differs, cause found: the soft phase-2 targets (networks stay on one curve or "
+            "alternate); one-hot targets on the same seeds (another CPU): "
+            + _distance(onehot.switch_prob, 0.451))
+
+
+def _protocol_cause() -> str:
+    runs = pd.read_csv(DOCS / "table1_nc20_protocol.csv")
+    return ("differs, cause found: protocol; with the C code's symbol rule and KL formula "
+            "(50 networks retrained): " + _distance(runs.block_kl_train_threshold_10000_mregnkl,
+                                                   0.258))
+
+
 # (table, setting, metric) -> what a controlled comparison found; rows not named: cause open
 CAUSES = {
-    ("Table 1", 10, "E_g"): "reproduced in the mean only through one saturated network "
-                            "(median 0.076)",
+    ("Table 1", 10, "E_g"): lambda: "reproduced in the mean only through one saturated network "
+                                    "(median 0.076)",
+    ("Table 1", 20, "block_kl_train"): _protocol_cause,
+    ("Table 2", "P = 0.5", "switch_prob"): _targets_cause,
 }
 METRICS = {"E_g": "E^g", "block_kl_train": "KL train", "block_kl_test": "KL test",
            "max_lyapunov": "λ_max", "switch_prob": "switching prob."}
@@ -34,7 +56,8 @@ def _row(table, setting, metric, paper, values) -> dict:
     return {"result": f"{table}, {setting}", "quantity": METRICS[metric],
             "paper": f"{paper:.4g}", "moex mean ± sd (n)": f"{mean:.4g} ± {sd:.2g} ({n})",
             "distance": f"{distance:+.1f} SE",
-            "verdict": CAUSES.get((table, setting, metric), verdict)}
+            "verdict": CAUSES[(table, setting, metric)]() if (table, setting, metric) in CAUSES
+            else verdict}
 
 
 def _share(table, setting, paper_percent, lyapunov) -> dict:
