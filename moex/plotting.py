@@ -68,7 +68,6 @@ def scale_axis(ax, column: str, axis: str = "y") -> None:
 
 LEARNING_PANELS = [  # (phase, column, title)
     ("experts", "E", "phase 1"),
-    ("experts", "log_likelihood", "phase 1"),
     ("gating", "E_g", "phase 2"),
     ("gating", "lr_scale", "phase 2"),
     ("gating", "block_kl_train", "phase 2"),
@@ -100,11 +99,11 @@ def plot_history(history: pd.DataFrame, column: str, ax=None):
 
 
 def plot_learning_curves(history: pd.DataFrame):
-    """E and the log-likelihood of phase 1; E^g, the adaptive rate and, when tracked, the block KL
-    and λ_max of phase 2 (paper Figs. 3, 6, 11), at most three panels a row, one legend."""
+    """E of phase 1; E^g, the adaptive rate and, when tracked, the block KL and λ_max of phase 2
+    (paper Figs. 3, 6, 11), at most three panels a row (four as 2 × 2), one legend."""
     panels = [p for p in LEARNING_PANELS if p[1] in history
               and history.loc[history["phase"] == p[0], p[1]].notna().any()]
-    cols = min(max(len(panels), 1), 3)
+    cols = 2 if len(panels) == 4 else min(max(len(panels), 1), 3)
     rows = -(-max(len(panels), 1) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.8 * rows + 0.5),
                              constrained_layout=True, squeeze=False)
@@ -172,10 +171,10 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
                                  constrained_layout=True, squeeze=False)
         axes = list(axes[:, 0]) if rows == 2 else [axes[0, 0], axes[0, 0]]
     for d in range(outputs.shape[1]):
-        axes[0].plot(outputs[:, d], lw=1, label=f"y_{d + 1}")
-    if outputs.shape[1]:
+        axes[0].plot(outputs[:, d], lw=1, label=f"$y_{{{d + 1}}}$")
+    if outputs.shape[1]:  # the legend beside the panel, never over the signal
         axes[0].set_ylabel("output")
-        axes[0].legend(fontsize=7, loc="upper right")
+        axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
     K = gates.shape[1]
     image = axes[1].imshow(gates.T, aspect="auto", origin="lower", cmap="Greys", vmin=0, vmax=1,
                            interpolation="nearest", extent=(-0.5, len(gates) - 0.5, -0.5, K - 0.5))
