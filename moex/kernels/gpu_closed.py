@@ -78,9 +78,8 @@ def _orthonormalise(veu, vgu, vxl, vgl, growth, SB: tl.constexpr, KT: tl.constex
         g = tl.where(this3, g_i[:, None], g - dot[:, :, None] * g_i[:, None])
         x = tl.where(this4, x_i[:, None], x - dot[:, :, None, None] * x_i[:, None])
         q = tl.where(this4, q_i[:, None], q - dot[:, :, None, None] * q_i[:, None])
-    BN: tl.constexpr = SB * KTP
-    return (tl.reshape(e, (BN, KP, MP)), tl.reshape(g, (BN, HP)), tl.reshape(x, (BN, TP, DP)),
-            tl.reshape(q, (BN, TP, KP)), growth)
+    return (tl.reshape(e, (SB * KTP, KP, MP)), tl.reshape(g, (SB * KTP, HP)),
+            tl.reshape(x, (SB * KTP, TP, DP)), tl.reshape(q, (SB * KTP, TP, KP)), growth)
 
 
 @triton.jit
@@ -102,10 +101,9 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
     (R, N, KT, H), VXL (R, N, KT, τ, D), VGL (R, N, KT, τ, K)) are read and written back; records
     OUT_Y (R, N, STEPS, D), OUT_G (R, N, STEPS, K), OUT_U (R, N, STEPS, H) when KEEP_U; GROWTH
     (R, N, KT) += Σ ln |R_ii| when COUNT."""
-    SB: tl.constexpr = BN // KTP  # samples per program
     r = tl.program_id(0).to(tl.int64)
     lane = tl.arange(0, BN)
-    n, j = tl.program_id(1) * SB + lane // KTP, lane % KTP  # sample, tangent slot
+    n, j = tl.program_id(1) * (BN // KTP) + lane // KTP, lane % KTP  # sample, tangent slot
     ok = n < N
     first = ok & (j == 0)  # the lane that writes its sample's state and records
     row = r * N + n  # (BN,) trajectory index
@@ -156,7 +154,7 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
         v_lm = tok3 & tm[None, :, None] & km[None, None, :]
         veu, vgu = _load(VEU, v_e, v_em), _load(VGU, v_g, v_gm)
         vxl, vgl = _load(VXL, v_x, v_xm), _load(VGL, v_l, v_lm)
-        growth = tl.zeros((SB, KTP), dtype=gbc.dtype)
+        growth = tl.zeros((BN // KTP, KTP), dtype=gbc.dtype)
     rec_d, rec_k = first[:, None] & dm[None, :], first[:, None] & km[None, :]
     for t in range(STEPS):
         x, g = _first(xl, tt), _first(gl, tt)
@@ -209,7 +207,7 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
             d_logits = tl.sum(gwo[None] * ((1.0 - cg * cg) * vgu)[:, None, :], axis=2)
             d_g = new_g * (d_logits - tl.sum(new_g * d_logits, axis=1)[:, None])
             vxl, vgl = _shift(vxl, dy, tt, TAU), _shift(vgl, d_g, tt, TAU)
-            veu, vgu, vxl, vgl, growth = _orthonormalise(veu, vgu, vxl, vgl, growth, SB, KT,
+            veu, vgu, vxl, vgl, growth = _orthonormalise(veu, vgu, vxl, vgl, growth, BN // KTP, KT,
                                                          KTP, KP, MP, HP, TP, DP, COUNT)
         if EXPERTS:
             eu = eu_new
