@@ -255,6 +255,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
             row["block_kl_test"] = cfg.block_kl(test, sampled[r])
         row.update({
             "max_lyapunov": float(lam[:, 0].mean()),
+            "max_lyapunov_se": (float(lam[:, 0].std(ddof=1) / len(lam) ** 0.5)
+                                if len(lam) > 1 else float("nan")),
             "lyapunov_positive": bool(lam[:, 0].mean() > 0),
             "positive_sample_fraction": float((lam[:, 0] > 0).mean()),
             **{f"lyapunov_{i + 1}": float(lam[:, i].mean()) for i in range(1, lam.shape[1])},

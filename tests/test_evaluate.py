@@ -62,6 +62,7 @@ def test_the_metric_table_of_a_lissajous_task():
     np.testing.assert_allclose(rows["E_g"], kl)
     assert (rows["lyapunov_positive"] == (rows["max_lyapunov"] > 0)).all()
     assert rows["positive_sample_fraction"].between(0, 1).all()
+    assert (np.isfinite(rows["max_lyapunov_se"]) & (rows["max_lyapunov_se"] > 0)).all()
     for column in ("switch_prob", "switch_prob_gates", "nonperiodic_fraction"):
         assert rows[column].dropna().between(0, 1).all(), column
     truth = [segment_symbols(data.symbol_of[labels], data.period) for labels in data.labels]

@@ -37,6 +37,9 @@ METRICS = {m.name: m for m in [
            "the same with input noise of eval.noise_var", "symlog"),
     Metric("lyapunov_positive", r"share with $\lambda_{\max} > 0$", "λ_max > 0",
            "whether λ_max > 0", aggregate="share"),
+    Metric("max_lyapunov_se", r"standard error of $\lambda_{\max}$", "λ_max s.e.",
+           "sd of the samples' own exponents / √samples: |λ_max| below about twice it is not "
+           "told apart from 0", "log"),
     Metric("positive_sample_fraction", r"share of samples with $\lambda > 0$",
            "samples with λ > 0", "share of initial states whose own exponent is positive"),
     Metric("switch_rate", "switches per step", "switch rate",
