@@ -28,5 +28,5 @@ def test_contracting_rnn_is_negative(M=6):
     g = torch.Generator().manual_seed(1)
     W = torch.randn(M, M, generator=g) * 0.3 / math.sqrt(M)
     lam = max_lyapunov_exponent(lambda u: 0.8 * u + 0.2 * torch.tanh(u) @ W.T,
-                                torch.randn(4, M, generator=g), 2000, transient=100)
+                                torch.randn(4, M, generator=g), 500, transient=100)
     assert (lam < 0).all()
