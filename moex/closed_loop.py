@@ -3,8 +3,8 @@ generation and Lyapunov exponents averaged over samples, on any backend, in chun
 memory. The dynamics themselves are `moex.model.closed_loop_step` and a backend's `closed_loop`."""
 
 import torch
-from tqdm.auto import tqdm
 
+from moex import progress
 from moex.errors import Interrupted
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import initial_tangents
@@ -116,8 +116,7 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
     backend = backend or get_backend()
     tangents = initial_tangents(state.flat(), num_exponents, generator)
     growth = 0
-    with tqdm(total=transient + steps, desc="lyapunov", disable=None, mininterval=1.0,
-              leave=False) as bar:
+    with progress.bar(total=transient + steps, desc="lyapunov") as bar:
         for counted, total in ((False, transient), (True, steps)):
             done = 0
             for size in _chunks(total):

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
+from moex import progress
 from moex.errors import Interrupted, check, check_positive, check_range
 from moex.kernels import Backend, get_backend
 from moex.model import ModelConfig
@@ -214,8 +214,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
 
     started = time.perf_counter()
 
-    for step in tqdm(range(start, steps), desc=phase, disable=None, mininterval=1.0,
-                     leave=False, initial=start, total=steps):
+    for step in progress.bar(range(start, steps), desc=phase, initial=start, total=steps):
         if hooks.should_stop() and hooks.save is not None:
             save(step)
             raise TrainingInterrupted(f"{phase} phase stopped at step {step}")

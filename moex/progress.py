@@ -1,0 +1,18 @@
+"""Progress bars on a terminal (tqdm), none in log files.
+
+A pseudo-terminal can report a size of 0 × 0 (a session recorded with `script` without a window,
+some CI runners): tqdm then draws an empty bar. `bar` asks `shutil.get_terminal_size`, which falls
+back to $COLUMNS × $LINES or 80 × 24, and passes that size on.
+"""
+
+import shutil
+
+from tqdm.auto import tqdm
+
+
+def bar(iterable=None, **kwargs) -> tqdm:
+    """`tqdm(iterable, **kwargs)`, off where the output is not a terminal, never zero-width."""
+    columns, lines = shutil.get_terminal_size()
+    settings = {"ncols": columns, "nrows": lines, "disable": None, "mininterval": 1.0,
+                "leave": False}
+    return tqdm(iterable, **{**settings, **kwargs})
