@@ -21,7 +21,7 @@ cores=$(nproc)
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
   $py -c 'import torch, triton; print("torch", torch.__version__, "triton", triton.__version__)'
   echo "## 1. gpu tests"
-  timeout 60 $py -m pytest -q -m gpu tests/test_kernels.py 2>&1 | tail -5
+  timeout 60 $py -m pytest -q -o addopts="" -m gpu tests/test_kernels.py 2>&1 | tail -5
   echo "## 2. epochs (best of 2, 20 epochs each)"
   timeout 60 $py benchmarks/bench_epochs.py --backends gpu --device cuda --runs 90 900 \
       --threads 1 --steps 20 --repeats 2
