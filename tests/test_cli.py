@@ -319,3 +319,24 @@ def test_shell_completion_installs_and_completes_the_keys_of_each_verb(tmp_path)
         assert done.returncode == 0 and expected in done.stdout.split(), done.stderr
     bad = _moex(["-sc"], tmp_path)
     assert bad.returncode == 2 and "install=bash" in bad.stderr and "Traceback" not in bad.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["lissajous2", "lissajous9", "reber"])
+def test_every_task_trains_and_evaluates_on_the_gpu_backend(task, tmp_path):
+    """backend=gpu end to end (Triton's interpreter without CUDA: 40-110 s a task): both phases,
+    the evaluation's closed loop with its tangent, symbols and every output file."""
+    from moex.kernels import _gpu_module
+
+    if _gpu_module()[0] is None:
+        pytest.skip("backend gpu: Triton is not installed")
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    done = _moex(["train", f"task={task}", "task.num_series=2", "task.length=40",
+                  "task.num_test_series=1", "train.experts.steps=2", "train.gating.steps=2",
+                  "num_runs=2", "backend=gpu", f"device={device}", "eval.num_samples=2",
+                  "eval.lyapunov_steps=40", "eval.transient=10", "eval.plot_steps=40",
+                  f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    metrics = pd.read_csv(tmp_path / "run" / "metrics.csv")
+    assert len(metrics) == 2 and metrics["max_lyapunov"].notna().all()
+    assert not metrics["failed"].any()
