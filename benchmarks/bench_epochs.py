@@ -54,7 +54,7 @@ def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats:
     cfg = Config(task=TaskConfig(name=task))
     if task == "reber":
         cfg.task.num_series, cfg.task.length = 4, 500
-        cfg.model.num_experts, cfg.model.gating.time_constant = 7, 0.1
+        cfg.model.num_experts, cfg.model.gating.epsilon = 7, 0.1
     cfg.model.gating.context_size = context_size
     dtype = getattr(torch, dtype)
     data = load_task(cfg)
