@@ -42,6 +42,9 @@ CAUSES = {
     ("Table 1", 10, "E_g"): lambda: "reproduced in the mean only through one saturated network "
                                     "(median 0.076)",
     ("Table 1", 20, "block_kl_train"): _protocol_cause,
+    ("Table 1", 20, "block_kl_test"): lambda: "differs, cause open: not the protocol, not the C "
+                                              "code's initialisation, learned τ or attraction "
+                                              "alone (question 3)",
     ("Table 2", "P = 0.5", "switch_prob"): _targets_cause,
 }
 METRICS = {"E_g": "E^g", "block_kl_train": "KL train", "block_kl_test": "KL test",
