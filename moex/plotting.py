@@ -379,14 +379,16 @@ def plot_residence_panels(hists: dict[float, tuple[np.ndarray, np.ndarray | None
 
 def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=None,
                     band: float = 0.0, log_y: bool = False):
-    """One point per network, coloured by `group` (e.g. the P = 0.5 study's arms); with
+    """One point per network, coloured by `group` (e.g. the P = 0.5 study's arms; networks
+    without a value, as in a run that is not a study arm, form one group); with
     `reference` (the data's value of `y`), its mean as a line and ±`band` shaded; a dotted
     line at x = 0 (the sign of λ_max is what matters); `log_y` for values spanning decades."""
     fig, ax = plt.subplots(figsize=(7.5, 4.8), constrained_layout=True)
-    names = list(dict.fromkeys(runs[group]))
+    groups = runs[group].astype(object).where(runs[group].notna(), "all networks")
+    names = list(dict.fromkeys(groups))
     colours, markers = palette(min(len(names), 20)), "os^D"  # 80 distinct (colour, marker)
     for i, name in enumerate(names):
-        part = runs[runs[group] == name]
+        part = runs[groups == name]
         ax.scatter(part[x], part[y], s=24, color=colours[i % len(colours)],
                    marker=markers[i // len(colours) % 4], label=str(name), alpha=0.85,
                    edgecolors="none")
@@ -406,5 +408,5 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     ax.set_ylabel(label(y))
     ax.set_title(f"{label(y)} against {label(x)}, one point per network")
     ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5),
-              title=names_of.get(group, group))
+              title=names_of.get(group, group) if runs[group].notna().any() else None)
     return fig

@@ -62,3 +62,15 @@ def test_gate_series_labels_every_step_of_a_short_window_and_each_run_of_a_long_
     labels = [(int(text.get_position()[0]), text.get_text()) for text in axes[1].texts]
     assert labels == [(50, "a"), (151, "c"), (225, "a"), (275, "b")]
     plt.close("all")
+
+
+def test_scatter_draws_networks_that_belong_to_no_study_arm():
+    """A run folder that is not a study arm has an empty `arm` column: every network is still a
+    point (in one group), and the legend does not call them a study arm."""
+    runs = pd.DataFrame({"max_lyapunov": [1e-3, 2e-3, -1e-5], "switch_prob": [0.4, 0.5, 0.0],
+                         "arm": [np.nan] * 3})
+    fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "arm")
+    ax = fig.axes[0]
+    assert sum(len(c.get_offsets()) for c in ax.collections) == 3
+    assert ax.get_legend().get_title().get_text() == ""
+    plt.close(fig)
