@@ -77,13 +77,13 @@ class EvalConfig:
               f"eval.symbol_rule={self.symbol_rule!r}; choose argmax or threshold")
         check(self.kl_form in ("paper", "mregn"),
               f"eval.kl_form={self.kl_form!r}; choose paper or mregn")
+        check_positive("eval.kl_floor", self.kl_floor)
 
     def block_kl(self, data, model) -> float:
         """D_KL^(m) of this evaluation's form and block length, data first."""
         if self.kl_form == "mregn":
             return block_kl_mregn(data, model, self.block_length)
         return block_kl(data, model, self.block_length, self.kl_floor)
-        check_positive("eval.kl_floor", self.kl_floor)
 
 
 # computed on the closed loop with the noise of eval.noise_var added to x_n; every other metric

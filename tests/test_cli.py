@@ -167,6 +167,8 @@ def test_reber_trains_the_gating_network_only(tmp_path):
     ("num_runs=0", "num_runs=0 must be >= 1"),
     ("hydra/launcher=nope", "hydra/launcher=nope is unknown; choose one of basic, joblib"),
     ("plot.run=-2", "plot.run"),
+    ("eval.kl_floor=0", "eval.kl_floor=0.0 must be positive"),
+    ("eval.kl_form=c", "eval.kl_form='c'; choose paper or mregn"),
 ] + ([] if torch.cuda.is_available() else [
     ("device=cuda", "device=cuda but this machine has no CUDA device"),
 ]))
