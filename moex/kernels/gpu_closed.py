@@ -143,7 +143,7 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
     l_mask = ok3 & tm[None, :, None] & km[None, None, :]
     eu, gu = _load(EU, e_off, e_mask), _load(GU, g_off, g_mask)
     xl, gl = _load(XL, x_off, x_mask), _load(GL, l_off, l_mask)
-    if TANGENT:  # the same layouts with the tangent index for the trajectory's
+    if TANGENT:  # the state's layouts, indexed by tangent (trow) instead of trajectory (row)
         tok3 = tok[:, None, None]
         v_e = trow[:, None, None] * K * M + k[None, :, None] * M + m[None, None, :]
         v_x = trow[:, None, None] * TAU * D + tt[None, :, None] * D + d[None, None, :]
