@@ -49,7 +49,8 @@ def _time(fn, steps: int, repeats: int, base: int = 5) -> tuple[float, float]:
 
 def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
           context_size: int, dtype: str, device: str = "cpu") -> list[dict]:
-    torch.set_num_threads(threads)
+    # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
+    torch.set_num_threads(1 if get_backend(backend).name == "cpu" else threads)
     numba.set_num_threads(threads)
     cfg = Config(task=TaskConfig(name=task))
     if task == "reber":

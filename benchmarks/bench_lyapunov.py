@@ -25,7 +25,8 @@ def bench(runs: int, samples: int, steps: int, threads: int, backend: str, devic
           repeats: int = 3) -> float:
     """Seconds per closed-loop step (with one tangent vector) for runs × samples trajectories,
     the best of `repeats` blocks of `steps` steps."""
-    torch.set_num_threads(threads)
+    # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
+    torch.set_num_threads(1 if get_backend(backend).name == "cpu" else threads)
     numba.set_num_threads(threads)
     backend = get_backend(backend, device)
     cfg = Config()

@@ -4,6 +4,7 @@ exponents. Each law test runs on every backend through the `backend` fixture."""
 
 import dataclasses
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -114,6 +115,40 @@ def test_inactive_runs_are_skipped_and_others_unchanged(backend):
     for name, value in _host(grads).items():
         np.testing.assert_array_equal(value[[0, 2]], kept[name][[0, 2]])
         np.testing.assert_array_equal(value[1], kept[name][1])
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs 2 numba threads")
+@pytest.mark.parametrize("R", [3, 9])
+def test_cpu_kernels_give_the_same_bits_on_any_number_of_threads(R):
+    """Both phases (value and every gradient) and the closed loop with a tangent give the same
+    bits on 1 and 2 threads. With K·S = 9 lanes a chunk is 8 runs: R = 3 compares the
+    whole-chunk path (1 thread) with the stage-by-stage path (2 threads), R = 9 the whole-chunk
+    path on 1 and 2 threads."""
+    _, fast = _problems(R, 3, 11, 3, 2, 4, 1, True, True, torch.float64)
+    model = ModelConfig(num_experts=3)
+    gens = generators(range(R))
+    experts, gating = init_experts(model, 3, 2, gens), init_gating(model, 3, 2, gens)
+    state = random_state(experts, gating, 5, 2, 1, gens[0])
+    tangents = initial_tangents(state.flat(), 1, torch.Generator().manual_seed(0))
+    results = []
+    before = numba.get_num_threads()
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(threads)
+            out = []
+            for problem, params in fast:
+                grads = {k: torch.zeros_like(v) for k, v in params.items()}
+                out += [*_host(problem.value_and_grad(params, grads, torch.ones(R, dtype=bool)))
+                        .values(), *_host(grads).values(),
+                        *_host(problem.value(params, torch.ones(R, dtype=bool))).values()]
+            run = COMPILED.closed_loop(experts, gating, state, 20, None, tangents, True)
+            out += [run.outputs.numpy(), run.gates.numpy(), run.growth.numpy()]
+            results.append(out)
+    finally:
+        numba.set_num_threads(before)
+    assert len(results[0]) == len(results[1]) > 20
+    for one, two in zip(*results, strict=True):
+        np.testing.assert_array_equal(one, two)
 
 
 def _trajectory_cases():

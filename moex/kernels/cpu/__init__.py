@@ -1,19 +1,21 @@
-"""Compiled CPU backend (numba): the functions of `moex.kernels.reference`, each training step one
-compiled call for all R runs.
+"""Compiled CPU backend (numba): the functions of `moex.kernels.reference`; a training step of all
+R runs is one compiled call per thread (with fewer chunks of runs than threads, one per thread
+for each of three stages).
 
 Layout. Every independent recurrence is a *lane*: an (expert, series) pair of one run in phase 1
 (lane (r·K + k)·S + s), a series of one run in phase 2 (lane r·S + s), a (run, sample) trajectory
 of the closed loop. Lanes are the last axis of every work array, padded to whole blocks of `LB`
 (`simd`); each lane carries its own copy of its network's weights, so a block of lanes is one SIMD
 vector whichever networks its lanes belong to. A block runs its whole time loop with the lane
-loop innermost; blocks run in parallel threads. The per-lane weight gradients are summed over the
-lanes of each network at the end.
+loop innermost; blocks are shared out among threads (`threads`). The per-lane weight gradients
+are summed over the lanes of each network at the end.
 
-Modules: `simd` (lanes, exp/log/tanh, fma), `rnn` (the leaky RNN's forward pass and BPTT over a
-block of lanes, with the derivation), `lanes` (parameters to lanes and back, work arrays),
-`phases` (phase 1 and phase 2: the objectives, one compiled call per step, the problem classes),
-`closed_loop` (the autonomous mixture with Lyapunov tangents), `symbols` (nearest-point readout).
-The GPU backend (`moex.kernels.gpu`) mirrors `rnn` and `phases`.
+Modules: `simd` (lanes, exp/log/tanh, fma), `threads` (the kernels' thread pool), `rnn` (the
+leaky RNN's forward pass and BPTT over a block of lanes, with the derivation), `lanes`
+(parameters to lanes and back, work arrays), `phases` (phase 1 and phase 2: the objectives, the
+problem classes), `closed_loop` (the autonomous mixture with Lyapunov tangents), `symbols`
+(nearest-point readout), `warm` (a first run's helper process that compiles the later kernels
+while the run trains). The GPU backend (`moex.kernels.gpu`) mirrors `rnn` and `phases`.
 """
 
 from moex.kernels.cpu.closed_loop import closed_loop

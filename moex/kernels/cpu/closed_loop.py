@@ -3,268 +3,12 @@ trajectory, the same results as `moex.kernels.reference.closed_loop`."""
 
 import numpy as np
 import torch
-from numba import njit, prange
+from numba import njit
 
+from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import _NET, _first_use, _in_lanes
 from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log, stack, tanh
 from moex.model import ClosedLoopRun
-
-
-@njit(**JIT)
-def _closed_block(E, G, state, V, noise, count, uniform_gates, out_y, out_g, out_u,
-                  growth):  # pragma: no cover
-    """One block of trajectories for out_y.shape[0] steps (every array is the block's part).
-
-    E: expert weights (w_in (KE, M, D), w_rec (KE, M, M), w_out (KE, D, M), b_c, b_o, ε) per
-    lane; G: gating weights (w_in (H, K + D), w_rec, w_out (K, H), b_c, b_o, ε) per lane;
-    state: u of the experts (KE·M), u^g (H), the delay lines x (τ·D) and g (τ·K), updated in
-    place; V (k, dim): tangent vectors in the layout of `ClosedLoopState.flat`, propagated by the
-    exact Jacobian and re-orthonormalised (modified Gram-Schmidt) every step; growth (k) += ln of
-    the norms when `count`. Records y, the gates that mixed it and u^g (if out_u is not empty)."""
-    e_wi, e_wr, e_wo, e_bc, e_bo, e_eps = E
-    g_wi, g_wr, g_wo, g_bc, g_bo, g_eps = G
-    eu, gu, xl, gl = state
-    KE, M = e_wi.shape[0], e_wi.shape[1]
-    H, K = g_wr.shape[0], g_wo.shape[0]
-    TAU = gl.shape[0] // K
-    D = xl.shape[0] // TAU
-    NV, steps = V.shape[0], out_y.shape[0]
-    og, ox = KE * M, KE * M + H
-    ot = ox + TAU * D
-    dim = ot + TAU * K
-    has_noise, keep_u = noise.shape[0] > 0, out_u.shape[0] > 0
-    ue, ce, dce_prev, dce = stack(eu, KE * M), stack(eu, KE * M), stack(eu, KE * M), \
-        stack(eu, KE * M)
-    outs = stack(eu, KE * D)
-    dc = stack(eu, KE * M)  # a tangent's ∂c of the experts (and dcgv of the gating RNN)
-    ug, cg, dcg_prev, dcg = stack(eu, H), stack(eu, H), stack(eu, H), stack(eu, H)
-    dcgv = stack(eu, H)
-    x, y, dy = stack(eu, D), stack(eu, D), stack(eu, D)
-    g, ng, dl = stack(eu, K), stack(eu, K), stack(eu, K)
-    nv = stack(eu, dim)
-    acc, top, total = lanes(eu), lanes(eu), lanes(eu)
-    for q in range(KE * M):
-        for v in range(LB):
-            ue[q, v] = eu[q, v]
-            ce[q, v] = tanh(ue[q, v] + e_bc[q // M, q % M, v])
-    for h in range(H):
-        for v in range(LB):
-            ug[h, v] = gu[h, v]
-            cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
-    for t in range(steps):
-        for d in range(D):
-            for v in range(LB):
-                x[d, v] = xl[d, v] + (noise[t, d, v] if has_noise else 0.0)
-        for k in range(K):
-            for v in range(LB):
-                g[k, v] = gl[k, v]
-        # experts, Eqs. 1-3, all on the same input x_m
-        for e in range(KE):
-            for i in range(M):
-                for v in range(LB):
-                    dce_prev[e * M + i, v] = 1.0 - ce[e * M + i, v] * ce[e * M + i, v]
-            for i in range(M):
-                for v in range(LB):
-                    acc[v] = 0.0
-                for d in range(D):
-                    for v in range(LB):
-                        acc[v] = fma(e_wi[e, i, d, v], x[d, v], acc[v])
-                for j in range(M):
-                    for v in range(LB):
-                        acc[v] = fma(e_wr[e, i, j, v], ce[e * M + j, v], acc[v])
-                for v in range(LB):
-                    ue[e * M + i, v] = (1.0 - e_eps[e, i, v]) * ue[e * M + i, v] \
-                        + e_eps[e, i, v] * acc[v]
-            for i in range(M):
-                for v in range(LB):
-                    ce[e * M + i, v] = tanh(ue[e * M + i, v] + e_bc[e, i, v])
-                    dce[e * M + i, v] = 1.0 - ce[e * M + i, v] * ce[e * M + i, v]
-            for d in range(D):
-                for v in range(LB):
-                    acc[v] = e_bo[e, d, v]
-                for i in range(M):
-                    for v in range(LB):
-                        acc[v] = fma(e_wo[e, d, i, v], ce[e * M + i, v], acc[v])
-                for v in range(LB):
-                    outs[e * D + d, v] = tanh(acc[v])
-        for d in range(D):  # Eq. 4; without experts (symbolic tasks) D = 0
-            for v in range(LB):
-                y[d, v] = 0.0
-            for e in range(KE):
-                for v in range(LB):
-                    y[d, v] = fma(g[e, v], outs[e * D + d, v], y[d, v])
-        # gating RNN, Eqs. 5-8: reads (g_m, x_m), emits g_{m+τ}
-        for h in range(H):
-            for v in range(LB):
-                dcg_prev[h, v] = 1.0 - cg[h, v] * cg[h, v]
-        for h in range(H):
-            for v in range(LB):
-                acc[v] = 0.0
-            for k in range(K):
-                for v in range(LB):
-                    acc[v] = fma(g_wi[h, k, v], g[k, v], acc[v])
-            for d in range(D):
-                for v in range(LB):
-                    acc[v] = fma(g_wi[h, K + d, v], x[d, v], acc[v])
-            for j in range(H):
-                for v in range(LB):
-                    acc[v] = fma(g_wr[h, j, v], cg[j, v], acc[v])
-            for v in range(LB):
-                ug[h, v] = (1.0 - g_eps[h, v]) * ug[h, v] + g_eps[h, v] * acc[v]
-        for h in range(H):
-            for v in range(LB):
-                cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
-                dcg[h, v] = 1.0 - cg[h, v] * cg[h, v]
-        for k in range(K):
-            for v in range(LB):
-                acc[v] = g_bo[k, v]
-            for h in range(H):
-                for v in range(LB):
-                    acc[v] = fma(g_wo[k, h, v], cg[h, v], acc[v])
-            for v in range(LB):
-                ng[k, v] = acc[v]
-        for v in range(LB):
-            top[v] = ng[0, v]
-            total[v] = 0.0
-        for k in range(1, K):
-            for v in range(LB):
-                top[v] = ng[k, v] if ng[k, v] > top[v] else top[v]
-        for k in range(K):
-            for v in range(LB):
-                ng[k, v] = exp(ng[k, v] - top[v])
-                total[v] += ng[k, v]
-        for k in range(K):
-            for v in range(LB):
-                ng[k, v] /= total[v]
-        # tangents: the same step differentiated (the Jacobian of the whole closed loop)
-        for n in range(NV):
-            for q in range(KE * M):  # ∂c_{m-1} = (1 - c_{m-1}²) ∂u_{m-1}
-                for v in range(LB):
-                    dc[q, v] = dce_prev[q, v] * V[n, q, v]
-            for e in range(KE):
-                for i in range(M):
-                    for v in range(LB):
-                        acc[v] = 0.0
-                    for d in range(D):
-                        for v in range(LB):
-                            acc[v] = fma(e_wi[e, i, d, v], V[n, ox + d, v], acc[v])
-                    for j in range(M):
-                        for v in range(LB):
-                            acc[v] = fma(e_wr[e, i, j, v], dc[e * M + j, v], acc[v])
-                    for v in range(LB):
-                        nv[e * M + i, v] = (1.0 - e_eps[e, i, v]) * V[n, e * M + i, v] \
-                            + e_eps[e, i, v] * acc[v]
-            for q in range(KE * M):  # ∂c_m
-                for v in range(LB):
-                    dc[q, v] = dce[q, v] * nv[q, v]
-            for d in range(D):
-                for v in range(LB):
-                    dy[d, v] = 0.0
-                for e in range(KE):
-                    for v in range(LB):
-                        acc[v] = 0.0
-                    for i in range(M):
-                        for v in range(LB):
-                            acc[v] = fma(e_wo[e, d, i, v], dc[e * M + i, v], acc[v])
-                    for v in range(LB):
-                        weight = 1.0 / KE if uniform_gates else g[e, v]
-                        dy[d, v] += V[n, ot + e, v] * outs[e * D + d, v] + weight \
-                            * (1.0 - outs[e * D + d, v] * outs[e * D + d, v]) * acc[v]
-            for h in range(H):
-                for v in range(LB):
-                    dcgv[h, v] = dcg_prev[h, v] * V[n, og + h, v]
-            for h in range(H):
-                for v in range(LB):
-                    acc[v] = 0.0
-                for k in range(K):
-                    for v in range(LB):
-                        acc[v] = fma(g_wi[h, k, v], V[n, ot + k, v], acc[v])
-                for d in range(D):
-                    for v in range(LB):
-                        acc[v] = fma(g_wi[h, K + d, v], V[n, ox + d, v], acc[v])
-                for j in range(H):
-                    for v in range(LB):
-                        acc[v] = fma(g_wr[h, j, v], dcgv[j, v], acc[v])
-                for v in range(LB):
-                    nv[og + h, v] = (1.0 - g_eps[h, v]) * V[n, og + h, v] + g_eps[h, v] * acc[v]
-            for h in range(H):
-                for v in range(LB):
-                    dcgv[h, v] = dcg[h, v] * nv[og + h, v]
-            for v in range(LB):
-                total[v] = 0.0
-            for k in range(K):
-                for v in range(LB):
-                    acc[v] = 0.0
-                for h in range(H):
-                    for v in range(LB):
-                        acc[v] = fma(g_wo[k, h, v], dcgv[h, v], acc[v])
-                for v in range(LB):
-                    dl[k, v] = acc[v]
-                    total[v] = fma(ng[k, v], acc[v], total[v])
-            for q in range(TAU - 1):  # the delay lines shift by one
-                for d in range(D):
-                    for v in range(LB):
-                        nv[ox + q * D + d, v] = V[n, ox + (q + 1) * D + d, v]
-                for k in range(K):
-                    for v in range(LB):
-                        nv[ot + q * K + k, v] = V[n, ot + (q + 1) * K + k, v]
-            for d in range(D):
-                for v in range(LB):
-                    nv[ox + (TAU - 1) * D + d, v] = dy[d, v]
-            for k in range(K):
-                for v in range(LB):
-                    nv[ot + (TAU - 1) * K + k, v] = ng[k, v] * (dl[k, v] - total[v])
-            for q in range(dim):
-                for v in range(LB):
-                    V[n, q, v] = nv[q, v]
-        for n in range(NV):  # modified Gram-Schmidt = QR; the norms are |R_nn|
-            for w in range(n):
-                for v in range(LB):
-                    acc[v] = 0.0
-                for q in range(dim):
-                    for v in range(LB):
-                        acc[v] = fma(V[w, q, v], V[n, q, v], acc[v])
-                for q in range(dim):
-                    for v in range(LB):
-                        V[n, q, v] -= acc[v] * V[w, q, v]
-            for v in range(LB):
-                acc[v] = 0.0
-            for q in range(dim):
-                for v in range(LB):
-                    acc[v] = fma(V[n, q, v], V[n, q, v], acc[v])
-            for v in range(LB):
-                acc[v] = np.sqrt(acc[v])
-            for q in range(dim):
-                for v in range(LB):
-                    V[n, q, v] /= acc[v]
-            if count:
-                for v in range(LB):
-                    growth[n, v] += log(acc[v])
-        for q in range(TAU - 1):
-            for d in range(D):
-                for v in range(LB):
-                    xl[q * D + d, v] = xl[(q + 1) * D + d, v]
-            for k in range(K):
-                for v in range(LB):
-                    gl[q * K + k, v] = gl[(q + 1) * K + k, v]
-        for d in range(D):
-            for v in range(LB):
-                xl[(TAU - 1) * D + d, v] = y[d, v]
-                out_y[t, d, v] = y[d, v]
-        for k in range(K):
-            for v in range(LB):
-                gl[(TAU - 1) * K + k, v] = ng[k, v]
-                out_g[t, k, v] = g[k, v]
-        if keep_u:
-            for h in range(H):
-                for v in range(LB):
-                    out_u[t, h, v] = ug[h, v]
-    for q in range(KE * M):
-        for v in range(LB):
-            eu[q, v] = ue[q, v]
-    for h in range(H):
-        for v in range(LB):
-            gu[h, v] = ug[h, v]
 
 
 @njit(inline="always", **JIT)
@@ -289,21 +33,278 @@ def _spread_run(lane, N, params, lane_params):  # pragma: no cover
                 wo[b, k, o, i, v] = w_out[r, k, o, i]
 
 
-@njit(parallel=True, **JIT)
-def _closed_loop(N, experts, gating, E, G, state, V, noise, count, uniform_gates, out_y, out_g,
-                 out_u, growth):  # pragma: no cover
-    eu, gu, xl, gl = state
-    NB = eu.shape[0]
-    for lane in prange(NB * LB):
-        _spread_run(lane, N, experts, E)
-        _spread_run(lane, N, gating, G)
-    e_wi, e_wr, e_wo, e_bc, e_bo, e_eps = E
-    g_wi, g_wr, g_wo, g_bc, g_bo, g_eps = G
-    for b in prange(NB):
-        _closed_block((e_wi[b], e_wr[b], e_wo[b], e_bc[b], e_bo[b], e_eps[b]),
-                      (g_wi[b, 0], g_wr[b, 0], g_wo[b, 0], g_bc[b, 0], g_bo[b, 0], g_eps[b, 0]),
-                      (eu[b], gu[b], xl[b], gl[b]), V[b], noise[b], count, uniform_gates,
-                      out_y[b], out_g[b], out_u[b], growth[b])
+@njit(nogil=True, **JIT)
+def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, noise_all, count,
+                   uniform_gates, out_y_all, out_g_all, out_u_all, growth_all):  # pragma: no cover
+    """Blocks lo..hi-1 of trajectories for out_y_all.shape[1] steps; each block first gets its
+    lanes' weights from experts / gating (`_spread_run`), then, with every array below its part
+    of the block-major *_all array:
+
+    E: expert weights (w_in (KE, M, D), w_rec (KE, M, M), w_out (KE, D, M), b_c, b_o, ε) per
+    lane; G: gating weights (w_in (H, K + D), w_rec, w_out (K, H), b_c, b_o, ε) per lane;
+    state: u of the experts (KE·M), u^g (H), the delay lines x (τ·D) and g (τ·K), updated in
+    place; V (k, dim): tangent vectors in the layout of `ClosedLoopState.flat`, propagated by the
+    exact Jacobian and re-orthonormalised (modified Gram-Schmidt) every step; growth (k) += ln of
+    the norms when `count`. Records y, the gates that mixed it and u^g (if out_u is not empty)."""
+    # one compiled function for the whole loop: a callee per block would be compiled twice
+    # (alone, then again inside its caller; BENCHMARKS.md)
+    E_wi, E_wr, E_wo, E_bc, E_bo, E_eps = E_all
+    G_wi, G_wr, G_wo, G_bc, G_bo, G_eps = G_all
+    EU, GU, XL, GL = state_all
+    e_wi, g_wr, g_wo, eu, xl, gl = E_wi[0], G_wr[0, 0], G_wo[0, 0], EU[0], XL[0], GL[0]
+    V, noise, out_y, out_u = V_all[0], noise_all[0], out_y_all[0], out_u_all[0]
+    KE, M = e_wi.shape[0], e_wi.shape[1]
+    H, K = g_wr.shape[0], g_wo.shape[0]
+    TAU = gl.shape[0] // K
+    D = xl.shape[0] // TAU
+    NV, steps = V.shape[0], out_y.shape[0]
+    og, ox = KE * M, KE * M + H
+    ot = ox + TAU * D
+    dim = ot + TAU * K
+    has_noise, keep_u = noise.shape[0] > 0, out_u.shape[0] > 0
+    ue, ce, dce_prev, dce = stack(eu, KE * M), stack(eu, KE * M), stack(eu, KE * M), \
+        stack(eu, KE * M)
+    outs = stack(eu, KE * D)
+    dc = stack(eu, KE * M)  # a tangent's ∂c of the experts (and dcgv of the gating RNN)
+    ug, cg, dcg_prev, dcg = stack(eu, H), stack(eu, H), stack(eu, H), stack(eu, H)
+    dcgv = stack(eu, H)
+    x, y, dy = stack(eu, D), stack(eu, D), stack(eu, D)
+    g, ng, dl = stack(eu, K), stack(eu, K), stack(eu, K)
+    nv = stack(eu, dim)
+    acc, top, total = lanes(eu), lanes(eu), lanes(eu)
+    for b in range(lo, hi):
+        for lane in range(b * LB, (b + 1) * LB):
+            _spread_run(lane, N, experts, E_all)
+            _spread_run(lane, N, gating, G_all)
+        e_wi, e_wr, e_wo, e_bc, e_bo, e_eps = E_wi[b], E_wr[b], E_wo[b], E_bc[b], E_bo[b], \
+            E_eps[b]
+        g_wi, g_wr, g_wo, g_bc, g_bo, g_eps = G_wi[b, 0], G_wr[b, 0], G_wo[b, 0], G_bc[b, 0], \
+            G_bo[b, 0], G_eps[b, 0]
+        eu, gu, xl, gl = EU[b], GU[b], XL[b], GL[b]
+        V, noise, out_y, out_g = V_all[b], noise_all[b], out_y_all[b], out_g_all[b]
+        out_u, growth = out_u_all[b], growth_all[b]
+        for q in range(KE * M):
+            for v in range(LB):
+                ue[q, v] = eu[q, v]
+                ce[q, v] = tanh(ue[q, v] + e_bc[q // M, q % M, v])
+        for h in range(H):
+            for v in range(LB):
+                ug[h, v] = gu[h, v]
+                cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
+        for t in range(steps):
+            for d in range(D):
+                for v in range(LB):
+                    x[d, v] = xl[d, v] + (noise[t, d, v] if has_noise else 0.0)
+            for k in range(K):
+                for v in range(LB):
+                    g[k, v] = gl[k, v]
+            # experts, Eqs. 1-3, all on the same input x_m
+            for e in range(KE):
+                for i in range(M):
+                    for v in range(LB):
+                        dce_prev[e * M + i, v] = 1.0 - ce[e * M + i, v] * ce[e * M + i, v]
+                for i in range(M):
+                    for v in range(LB):
+                        acc[v] = 0.0
+                    for d in range(D):
+                        for v in range(LB):
+                            acc[v] = fma(e_wi[e, i, d, v], x[d, v], acc[v])
+                    for j in range(M):
+                        for v in range(LB):
+                            acc[v] = fma(e_wr[e, i, j, v], ce[e * M + j, v], acc[v])
+                    for v in range(LB):
+                        ue[e * M + i, v] = (1.0 - e_eps[e, i, v]) * ue[e * M + i, v] \
+                            + e_eps[e, i, v] * acc[v]
+                for i in range(M):
+                    for v in range(LB):
+                        ce[e * M + i, v] = tanh(ue[e * M + i, v] + e_bc[e, i, v])
+                        dce[e * M + i, v] = 1.0 - ce[e * M + i, v] * ce[e * M + i, v]
+                for d in range(D):
+                    for v in range(LB):
+                        acc[v] = e_bo[e, d, v]
+                    for i in range(M):
+                        for v in range(LB):
+                            acc[v] = fma(e_wo[e, d, i, v], ce[e * M + i, v], acc[v])
+                    for v in range(LB):
+                        outs[e * D + d, v] = tanh(acc[v])
+            for d in range(D):  # Eq. 4; without experts (symbolic tasks) D = 0
+                for v in range(LB):
+                    y[d, v] = 0.0
+                for e in range(KE):
+                    for v in range(LB):
+                        y[d, v] = fma(g[e, v], outs[e * D + d, v], y[d, v])
+            # gating RNN, Eqs. 5-8: reads (g_m, x_m), emits g_{m+τ}
+            for h in range(H):
+                for v in range(LB):
+                    dcg_prev[h, v] = 1.0 - cg[h, v] * cg[h, v]
+            for h in range(H):
+                for v in range(LB):
+                    acc[v] = 0.0
+                for k in range(K):
+                    for v in range(LB):
+                        acc[v] = fma(g_wi[h, k, v], g[k, v], acc[v])
+                for d in range(D):
+                    for v in range(LB):
+                        acc[v] = fma(g_wi[h, K + d, v], x[d, v], acc[v])
+                for j in range(H):
+                    for v in range(LB):
+                        acc[v] = fma(g_wr[h, j, v], cg[j, v], acc[v])
+                for v in range(LB):
+                    ug[h, v] = (1.0 - g_eps[h, v]) * ug[h, v] + g_eps[h, v] * acc[v]
+            for h in range(H):
+                for v in range(LB):
+                    cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
+                    dcg[h, v] = 1.0 - cg[h, v] * cg[h, v]
+            for k in range(K):
+                for v in range(LB):
+                    acc[v] = g_bo[k, v]
+                for h in range(H):
+                    for v in range(LB):
+                        acc[v] = fma(g_wo[k, h, v], cg[h, v], acc[v])
+                for v in range(LB):
+                    ng[k, v] = acc[v]
+            for v in range(LB):
+                top[v] = ng[0, v]
+                total[v] = 0.0
+            for k in range(1, K):
+                for v in range(LB):
+                    top[v] = ng[k, v] if ng[k, v] > top[v] else top[v]
+            for k in range(K):
+                for v in range(LB):
+                    ng[k, v] = exp(ng[k, v] - top[v])
+                    total[v] += ng[k, v]
+            for k in range(K):
+                for v in range(LB):
+                    ng[k, v] /= total[v]
+            # tangents: the same step differentiated (the Jacobian of the whole closed loop)
+            for n in range(NV):
+                for q in range(KE * M):  # ∂c_{m-1} = (1 - c_{m-1}²) ∂u_{m-1}
+                    for v in range(LB):
+                        dc[q, v] = dce_prev[q, v] * V[n, q, v]
+                for e in range(KE):
+                    for i in range(M):
+                        for v in range(LB):
+                            acc[v] = 0.0
+                        for d in range(D):
+                            for v in range(LB):
+                                acc[v] = fma(e_wi[e, i, d, v], V[n, ox + d, v], acc[v])
+                        for j in range(M):
+                            for v in range(LB):
+                                acc[v] = fma(e_wr[e, i, j, v], dc[e * M + j, v], acc[v])
+                        for v in range(LB):
+                            nv[e * M + i, v] = (1.0 - e_eps[e, i, v]) * V[n, e * M + i, v] \
+                                + e_eps[e, i, v] * acc[v]
+                for q in range(KE * M):  # ∂c_m
+                    for v in range(LB):
+                        dc[q, v] = dce[q, v] * nv[q, v]
+                for d in range(D):
+                    for v in range(LB):
+                        dy[d, v] = 0.0
+                    for e in range(KE):
+                        for v in range(LB):
+                            acc[v] = 0.0
+                        for i in range(M):
+                            for v in range(LB):
+                                acc[v] = fma(e_wo[e, d, i, v], dc[e * M + i, v], acc[v])
+                        for v in range(LB):
+                            weight = 1.0 / KE if uniform_gates else g[e, v]
+                            dy[d, v] += V[n, ot + e, v] * outs[e * D + d, v] + weight \
+                                * (1.0 - outs[e * D + d, v] * outs[e * D + d, v]) * acc[v]
+                for h in range(H):
+                    for v in range(LB):
+                        dcgv[h, v] = dcg_prev[h, v] * V[n, og + h, v]
+                for h in range(H):
+                    for v in range(LB):
+                        acc[v] = 0.0
+                    for k in range(K):
+                        for v in range(LB):
+                            acc[v] = fma(g_wi[h, k, v], V[n, ot + k, v], acc[v])
+                    for d in range(D):
+                        for v in range(LB):
+                            acc[v] = fma(g_wi[h, K + d, v], V[n, ox + d, v], acc[v])
+                    for j in range(H):
+                        for v in range(LB):
+                            acc[v] = fma(g_wr[h, j, v], dcgv[j, v], acc[v])
+                    for v in range(LB):
+                        nv[og + h, v] = (1.0 - g_eps[h, v]) * V[n, og + h, v] + g_eps[h, v] * acc[v]
+                for h in range(H):
+                    for v in range(LB):
+                        dcgv[h, v] = dcg[h, v] * nv[og + h, v]
+                for v in range(LB):
+                    total[v] = 0.0
+                for k in range(K):
+                    for v in range(LB):
+                        acc[v] = 0.0
+                    for h in range(H):
+                        for v in range(LB):
+                            acc[v] = fma(g_wo[k, h, v], dcgv[h, v], acc[v])
+                    for v in range(LB):
+                        dl[k, v] = acc[v]
+                        total[v] = fma(ng[k, v], acc[v], total[v])
+                for q in range(TAU - 1):  # the delay lines shift by one
+                    for d in range(D):
+                        for v in range(LB):
+                            nv[ox + q * D + d, v] = V[n, ox + (q + 1) * D + d, v]
+                    for k in range(K):
+                        for v in range(LB):
+                            nv[ot + q * K + k, v] = V[n, ot + (q + 1) * K + k, v]
+                for d in range(D):
+                    for v in range(LB):
+                        nv[ox + (TAU - 1) * D + d, v] = dy[d, v]
+                for k in range(K):
+                    for v in range(LB):
+                        nv[ot + (TAU - 1) * K + k, v] = ng[k, v] * (dl[k, v] - total[v])
+                for q in range(dim):
+                    for v in range(LB):
+                        V[n, q, v] = nv[q, v]
+            for n in range(NV):  # modified Gram-Schmidt = QR; the norms are |R_nn|
+                for w in range(n):
+                    for v in range(LB):
+                        acc[v] = 0.0
+                    for q in range(dim):
+                        for v in range(LB):
+                            acc[v] = fma(V[w, q, v], V[n, q, v], acc[v])
+                    for q in range(dim):
+                        for v in range(LB):
+                            V[n, q, v] -= acc[v] * V[w, q, v]
+                for v in range(LB):
+                    acc[v] = 0.0
+                for q in range(dim):
+                    for v in range(LB):
+                        acc[v] = fma(V[n, q, v], V[n, q, v], acc[v])
+                for v in range(LB):
+                    acc[v] = np.sqrt(acc[v])
+                for q in range(dim):
+                    for v in range(LB):
+                        V[n, q, v] /= acc[v]
+                if count:
+                    for v in range(LB):
+                        growth[n, v] += log(acc[v])
+            for q in range(TAU - 1):
+                for d in range(D):
+                    for v in range(LB):
+                        xl[q * D + d, v] = xl[(q + 1) * D + d, v]
+                for k in range(K):
+                    for v in range(LB):
+                        gl[q * K + k, v] = gl[(q + 1) * K + k, v]
+            for d in range(D):
+                for v in range(LB):
+                    xl[(TAU - 1) * D + d, v] = y[d, v]
+                    out_y[t, d, v] = y[d, v]
+            for k in range(K):
+                for v in range(LB):
+                    gl[(TAU - 1) * K + k, v] = ng[k, v]
+                    out_g[t, k, v] = g[k, v]
+            if keep_u:
+                for h in range(H):
+                    for v in range(LB):
+                        out_u[t, h, v] = ug[h, v]
+        for q in range(KE * M):
+            for v in range(LB):
+                eu[q, v] = ue[q, v]
+        for h in range(H):
+            for v in range(LB):
+                gu[h, v] = ug[h, v]
 
 
 def _check_shapes(experts, gating, state) -> None:
@@ -326,10 +327,12 @@ def _check_shapes(experts, gating, state) -> None:
 def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
                 count: bool = False, uniform_gates: bool = False,
                 potentials: bool = True) -> ClosedLoopRun:
-    """`moex.kernels.reference.closed_loop` in one compiled call: same arguments and results.
+    """`moex.kernels.reference.closed_loop` in one compiled call per thread: same arguments and
+    results.
 
     Trajectory (r, n) is lane r·N + n; every lane carries its run's weights, so a block of
-    lanes advances LB trajectories with vector instructions, one thread per block.
+    lanes advances LB trajectories with vector instructions; blocks are shared out among the
+    threads (`threads.over`).
     """
     R, N, K = state.gates.shape[0], state.gates.shape[1], state.gates.shape[-1]
     TAU, D, H = state.inputs.shape[2], state.inputs.shape[-1], state.gating_u.shape[-1]
@@ -362,9 +365,9 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
     out_y, out_g = np.zeros((NB, steps, D, LB), dtype), np.zeros((NB, steps, K, LB), dtype)
     out_u = np.zeros((NB, steps if potentials else 0, H, LB), dtype)
     growth = np.zeros((NB, k, LB), dtype)
-    with _first_use(_closed_loop, "closed-loop kernel"):
-        _closed_loop(N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V, noise_l, count,
-                     uniform_gates, out_y, out_g, out_u, growth)
+    with _first_use(_closed_blocks, "closed-loop kernel"):
+        threads.over(_closed_blocks, NB, N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V,
+                     noise_l, count, uniform_gates, out_y, out_g, out_u, growth)
 
     def back(x, shape):  # (NB, ..., LB) -> (R, N, ...)
         flat = np.moveaxis(x, -1, 1).reshape((NB * LB,) + x.shape[1:-1])[:B]

@@ -124,13 +124,18 @@ _ready: set = set()
 @contextlib.contextmanager
 def _first_use(kernel, what: str):
     """Log lines around the first call of a kernel in this process: numba compiles it then
-    (tens of seconds) or loads it from its cache on disk (about a second)."""
+    (tens of seconds), loads it from its cache on disk (about a second), or waits for the helper
+    that compiles it beside the run (`warm`)."""
     if kernel in _ready:
         yield
         return
+    from moex.kernels.cpu import warm
+
     logger.info("preparing the compiled %s (compiled on first use, then cached on disk) ...",
                 what)
     start = time.perf_counter()
+    if warm.wait_for(kernel):
+        logger.info("the helper process compiled the %s in the meantime", what)
     yield
     _ready.add(kernel)
     logger.info("compiled %s ready in %.1f s", what, time.perf_counter() - start)

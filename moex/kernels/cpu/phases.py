@@ -1,14 +1,15 @@
-"""Both training phases, one compiled call per training step for all R runs: phase 1 (the experts
-and β, Eqs. 9-13) and phase 2 (the gating RNN fitted to ĝ, Eqs. 14-16), and the problem classes
-the training loop calls (`moex.kernels.Problem`)."""
+"""Both training phases, a training step of all R runs in one compiled call per thread: phase 1
+(the experts and β, Eqs. 9-13) and phase 2 (the gating RNN fitted to ĝ, Eqs. 14-16), and the
+problem classes the training loop calls (`moex.kernels.Problem`)."""
 
 import math
 
 import numpy as np
 import torch
-from numba import get_num_threads, njit, prange
+from numba import njit
 
 from moex.kernels import input_noise
+from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import (
     _block_active,
     _first_use,
@@ -137,87 +138,85 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
 
 
 @njit(**JIT)
-def _expert_runs(first, last, S, work, net, lane_grads, X, targets, beta, var, want_grad,
-                 g_beta, active, block_runs):  # pragma: no cover
-    """Runs first..last-1, whose lanes fill whole blocks: forward, mixture and backward."""
-    C0, C, Y, U, S1, S2, DY, partial, _ = work
-    wi, wr, wo, bc, bo, eps, u0_lane = net
-    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
-    K = beta.shape[3]
-    lo, hi = first * K * S // LB, min(-(-last * K * S // LB), wi.shape[0])
-    for b in range(lo, hi):
-        if _block_active(b, block_runs, active):
-            _forward(X[b], wi[b], wr[b], wo[b], bc[b], bo[b], eps[b], u0_lane[b], True, C0[b],
-                     C[b], Y[b], U[b], S1[b], S2[b])
-    for q in range(first * S, last * S):
-        if active[q // S]:
-            _mixture(q // S, q % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
-    if want_grad:
-        for b in range(lo, hi):
-            if _block_active(b, block_runs, active):
-                _backward(DY[b], X[b], C0[b], C[b], U[b], u0_lane[b], wr[b], wo[b], eps[b],
-                          l_wi[b], l_wr[b], l_wo[b], l_bc[b], l_bo[b], l_eps[b], l_u0[b])
-
-
-@njit(parallel=True, **JIT)
-def _expert_step(params, u0, log_sigma, beta, net, work, lane_grads, grads, g_u0, g_log_sigma,
-                 g_beta, X, targets, sigma_min, prior_std, attraction, want_grad, active,
-                 block_runs, chunk, threads, out):  # pragma: no cover
-    """Phase 1 of every active run in one call: forward, objective and every gradient.
-    out (4, R): objective, ln p(Y | X, θ), ln φ(β), E.
-
-    With at least as many chunks of `chunk` runs (whole blocks of lanes) as `threads`, each thread
-    takes whole chunks through forward, mixture and backward while their histories are still in
-    its cache; with fewer, each pass runs over all blocks, in parallel."""
-    C0, C, Y, U, S1, S2, DY, partial, var = work
-    R, S, T, K = beta.shape
-    NB = net[0].shape[0]
-    floor = sigma_min * sigma_min
-    for r in range(R):  # σ_k² = e^{2 s_k} + σ̄², and ς beside them for _mixture
+def _variances(first, last, log_sigma, floor, prior_std, var):  # pragma: no cover
+    """σ_k² = e^{2 s_k} + σ̄² of runs first..last-1, and ς beside them for `_mixture`."""
+    K = log_sigma.shape[1]
+    for r in range(first, last):
         for k in range(K):
             var[r, k] = exp(2.0 * log_sigma[r, k]) + floor
         var[r, K] = prior_std
-    for lane in prange(NB * LB):
-        _spread(lane, S, params, u0, net)
-    chunks = -(-R // chunk)
-    if chunks >= threads:
-        for c in prange(chunks):
-            _expert_runs(c * chunk, min((c + 1) * chunk, R), S, work, net, lane_grads, X,
-                         targets, beta, var, want_grad, g_beta, active, block_runs)
-    else:
-        wi, wr, wo, bc, bo, eps, u0_lane = net
-        l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
-        for b in prange(NB):
-            if _block_active(b, block_runs, active):
-                _forward(X[b], wi[b], wr[b], wo[b], bc[b], bo[b], eps[b], u0_lane[b], True,
-                         C0[b], C[b], Y[b], U[b], S1[b], S2[b])
-        for q in prange(R * S):
-            if active[q // S]:
-                _mixture(q // S, q % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
-        if want_grad:
-            for b in prange(NB):
-                if _block_active(b, block_runs, active):
-                    _backward(DY[b], X[b], C0[b], C[b], U[b], u0_lane[b], wr[b], wo[b],
-                              eps[b], l_wi[b], l_wr[b], l_wo[b], l_bc[b], l_bo[b], l_eps[b],
-                              l_u0[b])
+
+
+@njit(**JIT)
+def _run_sums(r, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_log_sigma, floor,
+              attraction, want_grad, out):  # pragma: no cover
+    """Run r after its backward pass: its K networks' gradients gathered from their lanes, and
+    out[:, r], g_u0[r], g_log_sigma[r] from the per-series partial sums."""
+    S1, S2, partial, var = work[4], work[5], work[7], work[8]
+    K = g_log_sigma.shape[1]
     if want_grad:
-        for g in prange(R * K):
-            if active[g // K]:
-                _gather(g, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
-    for r in prange(R):
-        if not active[r]:
-            continue
-        log_lik = partial[r * S:(r + 1) * S, 0].sum()
-        prior = partial[r * S:(r + 1) * S, 1].sum()
-        error = partial[r * S:(r + 1) * S, 2].sum()
-        out[0, r] = log_lik + prior + _run_lanes(r, S, T, net[6], S1, S2, floor, attraction,
-                                                 want_grad, lane_grads[6], g_u0)
-        out[1, r], out[2, r] = log_lik, prior
-        out[3, r] = 0.5 * error / (S * T * targets.shape[2])
-        if want_grad:
-            for k in range(K):
-                g_log_sigma[r, k] = partial[r * S:(r + 1) * S, 3 + k].sum() \
-                    * (var[r, k] - floor) / var[r, k]
+        for g in range(r * K, (r + 1) * K):
+            _gather(g, S, params[5], lane_grads[:6], grads, work[3].shape[1] > 0)
+    log_lik = partial[r * S:(r + 1) * S, 0].sum()
+    prior = partial[r * S:(r + 1) * S, 1].sum()
+    error = partial[r * S:(r + 1) * S, 2].sum()
+    out[0, r] = log_lik + prior + _run_lanes(r, S, T, net[6], S1, S2, floor, attraction,
+                                             want_grad, lane_grads[6], g_u0)
+    out[1, r], out[2, r] = log_lik, prior
+    out[3, r] = 0.5 * error / (S * T * targets.shape[2])
+    if want_grad:
+        for k in range(K):
+            g_log_sigma[r, k] = partial[r * S:(r + 1) * S, 3 + k].sum() \
+                * (var[r, k] - floor) / var[r, k]
+
+
+# the stages of a phase-1 step: whole chunks of runs, or blocks / series / blocks / runs
+_CHUNKS, _FORWARD, _MIXTURE, _BACKWARD, _RUNS = range(5)
+
+
+@njit(nogil=True, **JIT)
+def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_grads, grads,
+                  g_u0, g_log_sigma, g_beta, X, targets, floor, prior_std, attraction, want_grad,
+                  active, block_runs, chunk, out):  # pragma: no cover
+    """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent).
+
+    _CHUNKS: chunks of `chunk` runs (whole blocks of lanes), each taken through every stage in
+    one thread while its histories are in that thread's cache. Otherwise, after `_variances` of
+    every run, in turn: _FORWARD (blocks), _MIXTURE (series r·S + s), _BACKWARD (blocks), _RUNS
+    (runs)."""
+    C0, C, Y, U, S1, S2, DY, partial, var = work
+    wi, wr, wo, bc, bo, eps, u0_lane = net
+    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
+    R, S, T, K = beta.shape
+    NB = wi.shape[0]
+    if stage == _CHUNKS:
+        for c in range(lo, hi):
+            first, last = c * chunk, min((c + 1) * chunk, R)
+            b0, b1 = first * K * S // LB, min(-(-last * K * S // LB), NB)
+            _variances(first, last, log_sigma, floor, prior_std, var)
+            for stage_of_chunk, i0, i1 in ((_FORWARD, b0, b1), (_MIXTURE, first * S, last * S),
+                                           (_BACKWARD, b0, b1), (_RUNS, first, last)):
+                _expert_items(i0, i1, stage_of_chunk, params, u0, log_sigma, beta, net, work,
+                              lane_grads, grads, g_u0, g_log_sigma, g_beta, X, targets, floor,
+                              prior_std, attraction, want_grad, active, block_runs, chunk, out)
+        return
+    for i in range(lo, hi):
+        if stage == _FORWARD:
+            for lane in range(i * LB, (i + 1) * LB):
+                _spread(lane, S, params, u0, net)
+            if _block_active(i, block_runs, active):
+                _forward(X[i], wi[i], wr[i], wo[i], bc[i], bo[i], eps[i], u0_lane[i], True,
+                         C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+        elif stage == _MIXTURE:
+            if active[i // S]:
+                _mixture(i // S, i % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
+        elif stage == _BACKWARD:
+            if want_grad and _block_active(i, block_runs, active):
+                _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], wr[i], wo[i], eps[i],
+                          l_wi[i], l_wr[i], l_wo[i], l_bc[i], l_bo[i], l_eps[i], l_u0[i])
+        elif active[i]:
+            _run_sums(i, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_log_sigma,
+                      floor, attraction, want_grad, out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -257,43 +256,43 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
         log_lik[v] = total[v]
 
 
-@njit(parallel=True, **JIT)
-def _gating_step(params, u0, net, work, lane_grads, grads, g_u0, X, targets, entropy,
-                 sigma_min, attraction, want_grad, active, block_runs, out):  # pragma: no cover
-    """Phase 2 of every active run in one call. out (4, R): objective, Σ ĝ ln g, KL, E^g."""
+@njit(nogil=True, **JIT)
+def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
+                  entropy, sigma_min, attraction, want_grad, active, block_runs,
+                  out):  # pragma: no cover
+    """Items lo..hi-1 of one stage of a phase-2 step: with `blocks`, blocks of lanes (weights
+    spread to the lanes, forward, objective, backward); otherwise runs, after every block
+    (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes)."""
     C0, C, Y, U, S1, S2, DY, log_lik = work
     wi, wr, wo, bc, bo, eps, u0_lane = net
     l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
-    R, S, NB = u0.shape[0], u0.shape[1], wi.shape[0]
+    S = u0.shape[1]
     T, K = targets.shape[1], targets.shape[2]
-    for lane in prange(NB * LB):
-        _spread(lane, S, params, u0, net)
-    for b in prange(NB):
-        if _block_active(b, block_runs, active):
-            _forward(X[b], wi[b], wr[b], wo[b], bc[b], bo[b], eps[b], u0_lane[b], False, C0[b],
-                     C[b], Y[b], U[b], S1[b], S2[b])
-            _softmax_objective(Y[b], targets[b], want_grad, DY[b], log_lik[b])
+    for i in range(lo, hi):
+        if blocks:
+            for lane in range(i * LB, (i + 1) * LB):
+                _spread(lane, S, params, u0, net)
+            if _block_active(i, block_runs, active):
+                _forward(X[i], wi[i], wr[i], wo[i], bc[i], bo[i], eps[i], u0_lane[i], False,
+                         C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                _softmax_objective(Y[i], targets[i], want_grad, DY[i], log_lik[i])
+                if want_grad:
+                    _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], wr[i], wo[i], eps[i],
+                              l_wi[i], l_wr[i], l_wo[i], l_bc[i], l_bo[i], l_eps[i], l_u0[i])
+        elif active[i]:
+            total = _lane_sum(log_lik, i * S, (i + 1) * S)
+            out[1, i] = total
+            out[2, i] = entropy[i] - total
+            out[3, i] = out[2, i] / (S * T * K)
+            out[0, i] = total + _run_lanes(i, S, T, u0_lane, S1, S2, sigma_min * sigma_min,
+                                           attraction, want_grad, l_u0, g_u0)
             if want_grad:
-                _backward(DY[b], X[b], C0[b], C[b], U[b], u0_lane[b], wr[b], wo[b], eps[b],
-                          l_wi[b], l_wr[b], l_wo[b], l_bc[b], l_bo[b], l_eps[b], l_u0[b])
-    for r in prange(R):
-        if not active[r]:
-            continue
-        total = _lane_sum(log_lik, r * S, (r + 1) * S)
-        out[1, r] = total
-        out[2, r] = entropy[r] - total
-        out[3, r] = out[2, r] / (S * T * K)
-        out[0, r] = total + _run_lanes(r, S, T, u0_lane, S1, S2, sigma_min * sigma_min,
-                                       attraction, want_grad, l_u0, g_u0)
-        if want_grad:
-            _gather(r, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
-
-
+                _gather(i, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
 
 
 class ExpertProblem:
     """Phase 1 of R runs (Sec. 2.1.2, Eqs. 9-13): `value_and_grad` and `value` of ln L(D, θ)
-    for all runs, one compiled call each (`resample` has nothing to draw).
+    for all runs, one compiled call per thread each (`resample` has nothing to draw).
 
     Args:
         inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
@@ -322,19 +321,31 @@ class ExpertProblem:
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
-        with _first_use(_expert_step, "phase-1 kernel"):
+        with _first_use(_expert_items, "phase-1 kernel"):
             self._step(p, g, lanes, active, want_grad)
         self.staging.store(grads)
         return lanes.stats(self.STATS)
 
     def _step(self, p, g, lanes, active, want_grad):
-        _expert_step(_per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
-                     tuple(lanes.work), lanes.lane_grads, _per_network(g, True), g["u0"],
-                     g["log_sigma"], g["beta"], self.inputs, self.targets,
-                     float(self.model.sigma_min), float(self.phase.gate_prior_std),
-                     bool(self.phase.attraction), want_grad,
-                     np.ascontiguousarray(_host(active)),
-                     lanes.block_runs, self.chunk, get_num_threads(), lanes.out)
+        """One phase-1 step of every active run: whole chunks of runs when there are at least as
+        many chunks as threads, otherwise stage by stage over all blocks (`_expert_items`)."""
+        R, S, T, K = self.shape
+        floor = float(self.model.sigma_min) ** 2
+        prior_std = float(self.phase.gate_prior_std)
+        args = (_per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
+                tuple(lanes.work), lanes.lane_grads, _per_network(g, True), g["u0"],
+                g["log_sigma"], g["beta"], self.inputs, self.targets, floor, prior_std,
+                bool(self.phase.attraction), want_grad, np.ascontiguousarray(_host(active)),
+                lanes.block_runs, self.chunk, lanes.out)
+        chunks = -(-R // self.chunk)
+        if chunks >= threads.count():
+            threads.over(_expert_items, chunks, _CHUNKS, *args)
+            return
+        _variances(0, R, p["log_sigma"], floor, prior_std, lanes.work[8])
+        NB = lanes.net[0].shape[0]
+        for stage, items in ((_FORWARD, NB), (_MIXTURE, R * S), (_BACKWARD, NB * want_grad)):
+            threads.over(_expert_items, items, stage, *args)
+        _expert_items(0, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
 
     def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
         """Objective statistics per run (R,); every gradient is written into `grads`."""
@@ -350,7 +361,7 @@ class ExpertProblem:
 
 class GatingProblem:
     """Phase 2 of R runs (Sec. 2.1.2, Eqs. 14-16): ln L(D^g, θ^g) up to ln Z for all runs, one
-    compiled call each.
+    compiled call per thread each.
 
     Args:
         gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n (D may be 0).
@@ -387,18 +398,19 @@ class GatingProblem:
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
-        with _first_use(_gating_step, "phase-2 kernel"):
+        with _first_use(_gating_items, "phase-2 kernel"):
             self._step(p, g, lanes, active, want_grad)
         self.staging.store(grads)
         return lanes.stats(self.STATS)
 
     def _step(self, p, g, lanes, active, want_grad):
-        _gating_step(_per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
-                     lanes.lane_grads, _per_network(g, False), g["u0"][:, :, None],
-                     self.inputs, self.targets, self.entropy, float(self.model.sigma_min),
-                     bool(self.phase.attraction), want_grad,
-                     np.ascontiguousarray(_host(active)),
-                     lanes.block_runs, lanes.out)
+        args = (_per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
+                lanes.lane_grads, _per_network(g, False), g["u0"][:, :, None], self.inputs,
+                self.targets, self.entropy, float(self.model.sigma_min),
+                bool(self.phase.attraction), want_grad, np.ascontiguousarray(_host(active)),
+                lanes.block_runs, lanes.out)
+        threads.over(_gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
+        _gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
 
     def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
         """Objective statistics per run (R,); every gradient is written into `grads`."""

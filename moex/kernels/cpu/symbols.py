@@ -1,18 +1,19 @@
 """The symbol of each generated point: the symbol of its nearest prototype, compiled."""
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
+from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import _first_use
 from moex.kernels.cpu.simd import JIT, LB, fma, lanes, padded
 
 
-@njit(parallel=True, **JIT)
-def _nearest(points, prototypes, symbols, out):  # pragma: no cover
+@njit(nogil=True, **JIT)
+def _nearest(lo, hi, points, prototypes, symbols, out):  # pragma: no cover
     """out[n] = symbols[argmin_p ‖points[:, n] - prototypes[p]‖²] for points (D, n), LB points
-    at a time."""
+    at a time (blocks lo..hi-1 of them)."""
     P, D = prototypes.shape
-    for b in prange(points.shape[1] // LB):
+    for b in range(lo, hi):
         best, index, dist = lanes(points), lanes(points), lanes(points)
         for v in range(LB):
             best[v] = np.inf
@@ -41,6 +42,7 @@ def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
     by_coordinate[:, :len(flat)] = flat.T
     out = np.empty(by_coordinate.shape[1], np.int64)
     with _first_use(_nearest, "symbol kernel"):
-        _nearest(by_coordinate, np.ascontiguousarray(prototypes, np.float64),
+        threads.over(_nearest, by_coordinate.shape[1] // LB, by_coordinate,
+                     np.ascontiguousarray(prototypes, np.float64),
                  np.ascontiguousarray(prototype_symbols, np.int64), out)
     return out[:len(flat)].reshape(points.shape[:-1])

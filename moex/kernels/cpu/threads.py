@@ -1,0 +1,56 @@
+"""The kernels' threads: every compiled kernel is a serial `nogil` function over a range of
+independent items (blocks of lanes, runs, chunks of runs), and `over` runs one call per thread on
+contiguous ranges, the calling thread taking the first.
+
+Why not numba's `prange`: each `prange` loop compiles into a function of its own that links and
+re-optimises everything it calls, and the function around it does so again; the phase-1 kernel's
+seven loops made a first run spend about 35 s compiling it (BENCHMARKS.md). The items and their
+arithmetic are the same whichever thread runs them, so results do not depend on the number of
+threads: `numba.get_num_threads()` (`NUMBA_NUM_THREADS`, `numba.set_num_threads`) sets it.
+
+The first call on more than one thread sets PyTorch's intra-op threads to 1 for the process: the
+training loop's tensor operations are small, and after each one PyTorch's OpenMP threads spin
+for a while on the cores the kernel threads need (a 2-run training on 2 threads ran its phase 1
+at half speed beside them; BENCHMARKS.md).
+"""
+
+import logging
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+from numba import get_num_threads
+
+logger = logging.getLogger("moex.kernels.cpu")
+
+_pool: ThreadPoolExecutor | None = None
+_workers = 0
+
+
+def count() -> int:
+    """The number of threads a kernel call uses."""
+    return get_num_threads()
+
+
+def over(kernel, items: int, *args) -> None:
+    """kernel(lo, hi, *args) for contiguous ranges that cover 0..items-1, one per thread."""
+    global _pool, _workers
+    threads = min(count(), items)
+    if threads <= 1:
+        if items > 0:
+            kernel(0, items, *args)
+        return
+    if _workers < threads - 1:
+        _pool, _workers = ThreadPoolExecutor(threads - 1, "moex-kernel"), threads - 1
+        if torch.get_num_threads() > 1:
+            torch.set_num_threads(1)
+            logger.info("PyTorch's intra-op threads set to 1: the compiled kernels' %d threads "
+                        "use the cores", threads)
+    bounds = [items * t // threads for t in range(threads + 1)]
+    futures = [_pool.submit(kernel, bounds[t], bounds[t + 1], *args) for t in range(1, threads)]
+    try:
+        kernel(bounds[0], bounds[1], *args)
+    finally:  # never return (or raise) while another thread still writes the arrays
+        for future in futures:
+            future.exception()
+    for future in futures:
+        future.result()

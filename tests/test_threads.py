@@ -1,0 +1,53 @@
+"""The kernels' thread pool (`moex.kernels.cpu.threads.over`): contiguous ranges that cover every
+item once, the calling thread taking the first; errors reach the caller after every thread ends."""
+
+import threading
+import time
+
+import numba
+import pytest
+
+from moex.kernels.cpu import threads
+
+
+@pytest.fixture
+def two_threads():
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs 2 numba threads")
+    before = numba.get_num_threads()
+    numba.set_num_threads(2)
+    yield
+    numba.set_num_threads(before)
+
+
+@pytest.mark.parametrize("items", [1, 2, 5, 37])
+def test_ranges_cover_every_item_once(two_threads, items):
+    calls = []
+    threads.over(lambda lo, hi, tag: calls.append((lo, hi, tag, threading.get_ident())), items,
+                 "x")
+    covered = sorted(i for lo, hi, _, _ in calls for i in range(lo, hi))
+    assert covered == list(range(items))
+    assert all(tag == "x" and hi > lo for lo, hi, tag, _ in calls)
+    assert len(calls) == min(2, items)
+    first = min(calls)
+    assert first[0] == 0 and first[3] == threading.get_ident()  # the caller takes the first
+
+
+def test_no_items_no_call(two_threads):
+    calls = []
+    threads.over(lambda lo, hi: calls.append((lo, hi)), 0)
+    assert calls == []
+
+
+def test_an_error_in_another_thread_reaches_the_caller_after_every_thread_ends(two_threads):
+    finished = []
+
+    def kernel(lo, hi):
+        if lo > 0:
+            raise ValueError("in the other thread")
+        time.sleep(0.2)
+        finished.append(lo)
+
+    with pytest.raises(ValueError, match="other thread"):
+        threads.over(kernel, 2)
+    assert finished == [0]
