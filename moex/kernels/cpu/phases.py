@@ -180,8 +180,9 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                   active, block_runs, chunk, out):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent).
 
-    _CHUNKS: chunks of `chunk` runs (whole blocks of lanes), each taken through every stage in
-    one thread while its histories are in that thread's cache. Otherwise, after `_variances` of
+    _CHUNKS: chunks of `chunk` runs (whole blocks of lanes), each taken through every stage (a
+    call of this function per stage) in one thread while its histories are in that thread's
+    cache. Otherwise, after `_variances` of
     every run, in turn: _FORWARD (blocks), _MIXTURE (series r·S + s), _BACKWARD (blocks), _RUNS
     (runs)."""
     C0, C, Y, U, S1, S2, DY, partial, var = work
