@@ -51,27 +51,25 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
     E_wi, E_wr, E_wo, E_bc, E_bo, E_eps = E_all
     G_wi, G_wr, G_wo, G_bc, G_bo, G_eps = G_all
     EU, GU, XL, GL = state_all
-    e_wi, g_wr, g_wo, eu, xl, gl = E_wi[0], G_wr[0, 0], G_wo[0, 0], EU[0], XL[0], GL[0]
-    V, noise, out_y, out_u = V_all[0], noise_all[0], out_y_all[0], out_u_all[0]
-    KE, M = e_wi.shape[0], e_wi.shape[1]
-    H, K = g_wr.shape[0], g_wo.shape[0]
-    TAU = gl.shape[0] // K
-    D = xl.shape[0] // TAU
-    NV, steps = V.shape[0], out_y.shape[0]
+    KE, M = E_wi.shape[1], E_wi.shape[2]
+    H, K = G_wr.shape[2], G_wo.shape[2]
+    TAU = GL.shape[1] // K
+    D = XL.shape[1] // TAU
+    NV, steps = V_all.shape[1], out_y_all.shape[1]
     og, ox = KE * M, KE * M + H
     ot = ox + TAU * D
     dim = ot + TAU * K
-    has_noise, keep_u = noise.shape[0] > 0, out_u.shape[0] > 0
-    ue, ce, dce_prev, dce = stack(eu, KE * M), stack(eu, KE * M), stack(eu, KE * M), \
-        stack(eu, KE * M)
-    outs = stack(eu, KE * D)
-    dc = stack(eu, KE * M)  # a tangent's ∂c of the experts (and dcgv of the gating RNN)
-    ug, cg, dcg_prev, dcg = stack(eu, H), stack(eu, H), stack(eu, H), stack(eu, H)
-    dcgv = stack(eu, H)
-    x, y, dy = stack(eu, D), stack(eu, D), stack(eu, D)
-    g, ng, dl = stack(eu, K), stack(eu, K), stack(eu, K)
-    nv = stack(eu, dim)
-    acc, top, total = lanes(eu), lanes(eu), lanes(eu)
+    has_noise, keep_u = noise_all.shape[1] > 0, out_u_all.shape[1] > 0
+    ue, ce, dce_prev, dce = stack(EU, KE * M), stack(EU, KE * M), stack(EU, KE * M), \
+        stack(EU, KE * M)
+    outs = stack(EU, KE * D)
+    dc = stack(EU, KE * M)  # a tangent's ∂c of the experts (and dcgv of the gating RNN)
+    ug, cg, dcg_prev, dcg = stack(EU, H), stack(EU, H), stack(EU, H), stack(EU, H)
+    dcgv = stack(EU, H)
+    x, y, dy = stack(EU, D), stack(EU, D), stack(EU, D)
+    g, ng, dl = stack(EU, K), stack(EU, K), stack(EU, K)
+    nv = stack(EU, dim)
+    acc, top, total = lanes(EU), lanes(EU), lanes(EU)
     for b in range(lo, hi):
         for lane in range(b * LB, (b + 1) * LB):
             _spread_run(lane, N, experts, E_all)
