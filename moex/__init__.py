@@ -2,32 +2,50 @@
 
 The Python API is `fit` (train on your own arrays) and the `Fitted` it returns (`evaluate`,
 `generate`, `save`), and `load` (a run folder of `moex train` as a `Fitted`); the building blocks
-below are what it is made of.
+below are what it is made of. Each name is imported on first use, so that the `moex` command can
+start compiling kernels before it imports PyTorch (`moex.launch`).
 """
 
-from moex.api import Fitted, fit, load
-from moex.closed_loop import closed_loop_lyapunov, generate, random_state, trained_state
-from moex.config import Config
-from moex.errors import ConfigError
-from moex.evaluate import EvalConfig, evaluate
-from moex.kernels import get_backend
-from moex.model import (
-    ModelConfig,
-    expert_forward,
-    gate_estimates,
-    gating_forward,
-    init_experts,
-    init_gating,
-    leaky_scan,
-)
-from moex.pipeline import run_train
-from moex.tasks import Dataset, TaskConfig, make_task
-from moex.train import TrainConfig, train_experts, train_gating
+import importlib
+import sys
+import types
 
-__all__ = [
-    "Config", "ConfigError", "Dataset", "EvalConfig", "Fitted", "ModelConfig", "TaskConfig",
-    "TrainConfig", "closed_loop_lyapunov", "evaluate", "expert_forward", "fit", "gate_estimates",
-    "gating_forward", "generate", "get_backend", "init_experts", "init_gating", "leaky_scan",
-    "load", "make_task", "random_state", "run_train", "train_experts", "train_gating",
-    "trained_state",
-]
+_HOMES = {
+    "moex.api": ("Fitted", "fit", "load"),
+    "moex.closed_loop": ("closed_loop_lyapunov", "generate", "random_state", "trained_state"),
+    "moex.config": ("Config",),
+    "moex.errors": ("ConfigError",),
+    "moex.evaluate": ("EvalConfig", "evaluate"),
+    "moex.kernels": ("get_backend",),
+    "moex.model": ("ModelConfig", "expert_forward", "gate_estimates", "gating_forward",
+                   "init_experts", "init_gating", "leaky_scan"),
+    "moex.pipeline": ("run_train",),
+    "moex.tasks": ("Dataset", "TaskConfig", "make_task"),
+    "moex.train": ("TrainConfig", "train_experts", "train_gating"),
+}
+_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
+__all__ = sorted(_HOME_OF)
+
+
+def __getattr__(name: str):
+    if name not in _HOME_OF:
+        raise AttributeError(f"module 'moex' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_HOME_OF[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
+class _Package(types.ModuleType):
+    """Keeps `moex.evaluate` the function: importing the submodule of that name would otherwise
+    bind the module to it (an eager `from moex.evaluate import evaluate` used to rebind it)."""
+
+    def __setattr__(self, name, value):
+        if not (name in _HOME_OF and isinstance(value, types.ModuleType)):
+            super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import torch
 
-MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
+MOEX = [sys.executable, "-c", "from moex.launch import main; main()"]  # the `moex` command
 TINY = ["task.num_series=2", "task.length=40", "task.num_test_series=1",
         "model.experts.context_size=4", "model.gating.context_size=5",
         "train.experts.steps=6", "train.gating.steps=4", "train.experts.log_every=2",

@@ -1,5 +1,7 @@
-"""The first run's helper process (`moex.kernels.cpu.warm`): the run waits for the kernels the
-helper compiles, only while the helper runs and only until the kernel is in the cache."""
+"""The first run's helper process (`moex.kernels.cpu.warm`, started by `moex.launch`): the run
+waits for the kernels the helper compiles, only while the helper runs and only until the kernel is
+in the cache for the run's precision; the command starts a helper only for a cpu training, and the
+run adopts it or stops it."""
 
 import subprocess
 import sys
@@ -8,6 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from moex import launch
 from moex.kernels.cpu import warm
 
 
@@ -22,6 +25,7 @@ def helper(monkeypatch):
     """A helper process that runs for 0.6 s."""
     process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.6)"])
     monkeypatch.setattr(warm, "_helper", process)
+    monkeypatch.setattr(warm, "_dtype", None)
     yield process
     process.kill()
     process.wait()
@@ -51,3 +55,68 @@ def test_the_run_never_waits_for_a_kernel_the_helper_does_not_compile(helper, tm
 def test_without_a_helper_nothing_waits(monkeypatch, tmp_path):
     monkeypatch.setattr(warm, "_helper", None)
     assert not warm.wait_for(_kernel("_closed_blocks", tmp_path / "missing.nbi"))
+
+
+def _sleeper():
+    return subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+
+
+def test_a_signature_of_the_runs_precision_counts_as_cached():
+    def kernel(*signatures):
+        keys = {(signature, "magic"): 0 for signature in signatures}
+        return SimpleNamespace(_cache=SimpleNamespace(_cache_file=SimpleNamespace(
+            _load_index=lambda: keys)))
+
+    f64 = "(int64, Tuple((Array(float64, 4, 'C', False, aligned=True),)))"
+    f32 = f64.replace("float64", "float32")
+    assert warm._indexed(kernel(f64), "float64") and not warm._indexed(kernel(f64), "float32")
+    assert warm._indexed(kernel(f32), "float32") and not warm._indexed(kernel(f32), "float64")
+    assert warm._indexed(kernel(f64, f32), "float32")
+    assert not warm._indexed(kernel(), "float64")
+
+
+@pytest.mark.parametrize("argv, precision", [
+    (["train"], "float64"),
+    (["train", "task=reber", "precision=float32", "num_runs=3"], "float32"),
+    (["train", "-m", "task.switch_prob=0.5,0.25", "backend=cpu"], "float64"),
+    (["train", "+backend=compiled"], "float64"),
+    (["train", "precision=float32,float64"], None),  # a sweep over precisions
+    (["train", "backend=reference"], None),
+    (["train", "backend=gpu", "device=cuda"], None),
+    (["train", "device=cuda"], None),
+    (["train", "-m", "hydra/launcher=joblib"], None),  # jobs in other processes
+    (["train", "--cfg", "job"], None),
+    (["evaluate", "run_dir=outputs/x"], None),
+    ([], None),
+])
+def test_the_command_starts_a_helper_only_for_a_cpu_training_in_its_process(argv, precision):
+    assert launch.helper_precision(argv) == precision
+
+
+def test_the_run_adopts_the_commands_helper_of_its_precision(monkeypatch):
+    process = _sleeper()
+    monkeypatch.setattr(launch, "helper", ("float64", process))
+    monkeypatch.setattr(warm, "_helper", None)
+    try:
+        assert warm.start("float64") is process
+        assert warm._helper is process and launch.helper is None
+        assert process.poll() is None
+    finally:
+        process.kill()
+        process.wait()
+
+
+def test_a_helper_of_another_precision_is_stopped(monkeypatch):
+    process = _sleeper()
+    monkeypatch.setattr(launch, "helper", ("float32", process))
+    monkeypatch.setattr(warm, "_helper", None)
+    monkeypatch.setattr(warm, "cached", lambda dtype: True)  # start no helper of its own
+    assert warm.start("float64") is None
+    assert process.poll() is not None and launch.helper is None
+
+
+def test_a_helper_the_run_never_adopted_is_stopped_at_exit(monkeypatch):
+    process = _sleeper()
+    monkeypatch.setattr(launch, "helper", ("float64", process))
+    launch.stop_helper()  # registered with atexit when the command starts a helper
+    assert process.poll() is not None and launch.helper is None

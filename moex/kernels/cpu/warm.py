@@ -1,9 +1,12 @@
 """Compiling the kernels a training needs while it runs its first phase: a first run (an empty
 numba cache) compiles the phase-1 kernel in the training process and, at the same time, the
-phase-2, closed-loop and symbol kernels in a helper process that calls each on a tiny problem of
-the same types and leaves them in the cache. Exact reruns make this safe: a kernel loaded from the
-cache gives the bits of one compiled in the process (tested)."""
+closed-loop, phase-2 and symbol kernels in a helper process that calls each on a tiny problem of
+the same types and leaves them in the cache. `moex.launch` starts the helper before the command's
+imports and the run adopts it (`start`); a run started otherwise starts its own. Exact reruns
+make this safe: a kernel loaded from the cache gives the bits of one compiled in the process
+(tested)."""
 
+import pickle
 import subprocess
 import sys
 import time
@@ -12,31 +15,44 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from moex import launch
 from moex.kernels.cpu import phases
 
 _helper: subprocess.Popen | None = None
+_dtype: str | None = None  # the precision of the run (and its helper)
 _COMPILES = ("_gating_items", "_closed_blocks", "_nearest")  # what compile_later_phases calls
 
 
-def _indexed(kernel) -> bool:
-    """Whether `kernel` has a cache index on disk (numba's internals; False when unsure)."""
+def _indexed(kernel, dtype: str | None = None) -> bool:
+    """Whether `kernel` has a cache index on disk holding a signature of `dtype` (any, when None;
+    float32 arrays in the signature mean a float32 run). numba's internals; False when unsure."""
     try:
-        return Path(kernel._cache._cache_file._index_path).exists()
-    except AttributeError:
+        if dtype is None:
+            return Path(kernel._cache._cache_file._index_path).exists()
+        return any(("float32" in str(key[0])) == (dtype == "float32")
+                   for key in kernel._cache._cache_file._load_index())
+    except (AttributeError, OSError, EOFError, pickle.UnpicklingError):
         return False
 
 
-def cached() -> bool:
-    """Whether the helper's last kernel (the closed loop) is in the cache."""
+def cached(dtype: str) -> bool:
+    """Whether the helper's two large kernels (closed loop, phase 2) are cached for `dtype`."""
     from moex.kernels.cpu.closed_loop import _closed_blocks
 
-    return _indexed(_closed_blocks)
+    return _indexed(_closed_blocks, dtype) and _indexed(phases._gating_items, dtype)
 
 
 def start(dtype: str) -> subprocess.Popen | None:
-    """Start the helper when the later phases' kernels are not cached yet; None otherwise."""
-    global _helper
-    if cached():
+    """Adopt the helper `moex.launch` started for `dtype` (stopping one of another precision), or
+    start one when the later kernels are not cached for `dtype`; None when none is needed."""
+    global _helper, _dtype
+    _dtype = dtype
+    if launch.helper is not None:
+        if launch.helper[0] == dtype:
+            _helper, launch.helper = launch.helper[1], None
+            return _helper
+        launch.stop_helper()
+    if cached(dtype):
         return None
     _helper = subprocess.Popen([sys.executable, "-m", "moex.kernels.cpu.warm", dtype],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -49,7 +65,7 @@ def wait_for(kernel) -> bool:
     waited = False
     if kernel.__name__ not in _COMPILES:
         return waited
-    while _helper is not None and _helper.poll() is None and not _indexed(kernel):
+    while _helper is not None and _helper.poll() is None and not _indexed(kernel, _dtype):
         time.sleep(0.05)
         waited = True
     return waited
@@ -69,19 +85,21 @@ def compile_later_phases(dtype: str) -> None:
     generators = [torch.Generator().manual_seed(0)]
     gating = init_gating(model, 1, 2, generators, torch_dtype)
     experts = init_experts(model, 1, 2, generators, torch_dtype)
-    # in the order the run needs them (the run waits for the one it needs next): phase 2 (7 s on
-    # an idle 2-core VM), ready before the run's phase 1 ends, then the closed loop (11 s)
+    # the closed loop first (about 12 s of an idle 2-core VM's core, the largest), then phase 2,
+    # whose RNN passes (`rnn._forward`, `_backward`) the run's phase-1 kernel has cached by then,
+    # so only its own functions are left (about 5 s): the run's phase 1 (compiling, then
+    # training) ends about when they are ready
+    state = random_state(experts, gating, 1, 2, 1, generators[0])
+    tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
+    tangents[..., 0, 0] = 1.0
+    closed_loop(experts, gating, state, 2, None, tangents, True)
     ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype).numpy()
     problem = phases.GatingProblem(ghat, np.zeros((1, 4, 2), dtype), model, GatingPhaseConfig(),
                                    [0])
     grads = {k: torch.zeros_like(v) for k, v in gating.items()}
     problem.value_and_grad(gating, grads, torch.ones(1, dtype=torch.bool))
-    state = random_state(experts, gating, 1, 2, 1, generators[0])
-    tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
-    tangents[..., 0, 0] = 1.0
-    closed_loop(experts, gating, state, 2, None, tangents, True)
     nearest_symbols(np.zeros((1, 2, 2)), np.zeros((2, 2)), np.arange(2))
 
 
-if __name__ == "__main__":
+if __name__ == "__main__" and not cached(sys.argv[1]):
     compile_later_phases(sys.argv[1])

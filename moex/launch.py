@@ -1,0 +1,59 @@
+"""The `moex` command's entry point: starts compiling before the command's own imports.
+
+A first `moex train` on the cpu backend (an empty numba cache) compiles its kernels, about 50 s
+of CPU: the run compiles the phase-1 kernel while a helper process (`moex.kernels.cpu.warm`)
+compiles the closed loop and phase 2. Here the helper starts before the command imports PyTorch
+and Hydra (about 3 s on a 2-core machine), when the command line says the run trains on the cpu
+backend; the run adopts it (`warm.start`). One it never adopts (a bad override, a run that ends
+early) is stopped when the command exits. The helper itself exits at once when the kernels are
+already in the cache.
+"""
+
+import atexit
+import subprocess
+import sys
+
+_NOT_TRAINING = {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"}
+
+helper: tuple[str, subprocess.Popen] | None = None  # (precision, process) until the run adopts it
+
+
+def helper_precision(argv: list[str]) -> str | None:
+    """The precision a helper should compile for when `argv` (the command's arguments) trains on
+    the cpu backend in this process, by its overrides (the config's defaults otherwise: backend
+    auto, device cpu, float64); None for other verbs and flags, another backend, device or
+    launcher, or a sweep over precisions."""
+    if not argv or argv[0] != "train" or _NOT_TRAINING & set(argv):
+        return None
+    values = dict(arg.lstrip("+").split("=", 1) for arg in argv[1:] if "=" in arg)
+    if values.get("backend", "auto") not in ("auto", "cpu", "compiled") \
+            or values.get("device", "cpu") != "cpu" or "hydra/launcher" in values:
+        return None
+    precision = values.get("precision", "float64")
+    return precision if precision in ("float64", "float32") else None
+
+
+def start_helper(precision: str) -> None:
+    global helper
+    helper = precision, subprocess.Popen(
+        [sys.executable, "-m", "moex.kernels.cpu.warm", precision],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    atexit.register(stop_helper)
+
+
+def stop_helper() -> None:
+    """Stop a helper the run has not adopted."""
+    global helper
+    if helper is not None:
+        helper[1].kill()
+        helper[1].wait()
+        helper = None
+
+
+def main() -> None:
+    precision = helper_precision(sys.argv[1:])
+    if precision is not None:
+        start_helper(precision)
+    from moex.cli import main as run_command
+
+    run_command()
