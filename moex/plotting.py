@@ -164,7 +164,8 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
                      names: list[str], axes=None, bad: np.ndarray | None = None):
     """Outputs (T, D) over the gate openings (T, K), labelled with the symbol of each step
     (beyond 120 steps, of each run of one symbol that is not a brief flicker); steps flagged in
-    `bad` (T,) are labelled in red (paper Figs. 4, 8 and 13). D = 0: the gates alone."""
+    `bad` (T,) are labelled in red (paper Figs. 4, 8 and 13), a symbol beyond `names` (the
+    threshold rule's "no gate above 0.5") as "–". D = 0: the gates alone."""
     if axes is None:
         rows = 2 if outputs.shape[1] else 1
         fig, axes = plt.subplots(rows, 1, figsize=(10, 2.2 * rows + 0.6), sharex=True,
@@ -191,7 +192,8 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
             starts = np.cumsum(lengths) - lengths
             steps = (starts + lengths // 2)[lengths >= len(symbols) / 40]
         for n in steps:
-            axes[1].text(n, K - 0.45, names[symbols[n]], ha="center", va="bottom", fontsize=6,
+            name = names[symbols[n]] if symbols[n] < len(names) else "–"  # no gate above 0.5
+            axes[1].text(n, K - 0.45, name, ha="center", va="bottom", fontsize=6,
                          color="red" if bad is not None and bad[n] else "black")
     return axes
 

@@ -61,6 +61,10 @@ def test_gate_series_labels_every_step_of_a_short_window_and_each_run_of_a_long_
     axes = plotting.plot_gate_series(np.zeros((300, 2)), _one_hot(symbols, K), symbols, names)
     labels = [(int(text.get_position()[0]), text.get_text()) for text in axes[1].texts]
     assert labels == [(50, "a"), (151, "c"), (225, "a"), (275, "b")]
+    symbols = np.array([0, 3, 1])  # eval.symbol_rule=threshold: K is "no gate above 0.5"
+    axes = plotting.plot_gate_series(np.zeros((3, 2)), _one_hot(symbols, K + 1)[:, :K], symbols,
+                                     names)
+    assert [text.get_text() for text in axes[1].texts] == ["a", "–", "b"]
     plt.close("all")
 
 

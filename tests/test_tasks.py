@@ -81,6 +81,11 @@ def test_reber_strings_obey_grammar_and_choice_probability():
     broken = symbols.copy()
     broken[10] = S if symbols[10] != S else B
     assert not reber.accepts(broken) or reber.violations(broken).any()
+    # the threshold rule's "no gate above 0.5" symbol (index 7) is a violation, then a restart
+    none = symbols.copy()
+    none[20] = len(reber.SYMBOLS)
+    assert not reber.accepts(none)
+    assert np.flatnonzero(reber.violations(none)).tolist() == [20]
 
 
 def test_reber_one_hot_targets():

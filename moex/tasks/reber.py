@@ -30,11 +30,18 @@ def generate_reber(length: int, burn_in: int, choice_prob: float,
     return np.array(out[burn_in:], dtype=np.int64)
 
 
+def _emitted(states, s) -> set:
+    """The states reached from `states` by emitting symbol index `s`; none for an index beyond
+    the grammar's symbols (`eval.symbol_rule=threshold` gives index 7 to "no gate above 0.5")."""
+    name = SYMBOLS[s] if 0 <= s < len(SYMBOLS) else None
+    return {nxt for st in states for sym, nxt in AUTOMATON[st] if sym == name}
+
+
 def accepts(symbols: np.ndarray) -> bool:
     """Whether some start state of the automaton emits exactly this symbol sequence."""
     states = set(AUTOMATON)
     for s in symbols:
-        states = {nxt for st in states for sym, nxt in AUTOMATON[st] if sym == SYMBOLS[s]}
+        states = _emitted(states, s)
         if not states:
             return False
     return True
@@ -43,14 +50,15 @@ def accepts(symbols: np.ndarray) -> bool:
 def violations(symbols: np.ndarray) -> np.ndarray:
     """(T,) bool: steps whose symbol cannot follow the recent history (paper Fig. 4, red labels).
 
-    The automaton state is tracked as a set of possible states and restarted after a violation.
+    The automaton state is tracked as a set of possible states and restarted after a violation
+    (from every state, or from the states that emit the symbol when it is a grammar symbol).
     """
     bad = np.zeros(len(symbols), dtype=bool)
     states = set(AUTOMATON)
     for n, s in enumerate(symbols):
-        nxt = {t for st in states for sym, t in AUTOMATON[st] if sym == SYMBOLS[s]}
+        nxt = _emitted(states, s)
         if not nxt:
             bad[n] = True
-            nxt = {t for st in AUTOMATON for sym, t in AUTOMATON[st] if sym == SYMBOLS[s]}
+            nxt = _emitted(AUTOMATON, s) or set(AUTOMATON)
         states = nxt
     return bad
