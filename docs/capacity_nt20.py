@@ -1,10 +1,11 @@
-"""Figs. 14b and 16 with twice the data of the largest grid cell: the NT 20 / LT 1000 cells.
+"""Figs. 14b and 16 with twice the grid's largest NT: the NT 20 cells (LT 1000 or another).
 
-    python docs/capacity_nt20.py EVAL_ROOT    # folders EVAL_ROOT/nc<NC>_noise<ρ²>/metrics.csv
+    python docs/capacity_nt20.py EVAL_ROOT [LT]   # folders EVAL_ROOT/nc<NC>_noise<ρ²>/metrics.csv
 
 Each folder is `moex evaluate run_dir=<the cell's run> eval.noise_var=<ρ²>` (today's metrics,
 among them λ_max's standard error over the 50 samples). Writes docs/capacity_nt20_summary.csv
-(one row per network, NC and ρ²) and prints per NC and ρ²: networks with λ_max > 0 by sign,
+(LT 1000, the default) or docs/capacity_nt20_lt<LT>_summary.csv (one row per network, NC and
+ρ²) and prints per NC and ρ²: networks with λ_max > 0 by sign,
 beyond twice its standard error over the samples, and above 10⁻⁴ (the grid tables' threshold: a
 limit cycle's finite-time exponent is 0 only up to a bias of order 1/steps that every sample
 shares, so the standard error alone does not bound it), the switching probability, the networks
@@ -55,5 +56,7 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
 
 if __name__ == "__main__":
     table = collect(Path(sys.argv[1]))
-    table.to_csv(DOCS / "capacity_nt20_summary.csv", index=False)
+    length = sys.argv[2] if len(sys.argv) > 2 else "1000"
+    name = f"capacity_nt20{'' if length == '1000' else f'_lt{length}'}_summary.csv"
+    table.to_csv(DOCS / name, index=False)
     print(to_markdown(summary(table)))
