@@ -1,16 +1,21 @@
-"""How much the data realisation decides: the data-seed experiment's variance split, recomputed
-from docs/data_seeds_summary.csv (written by `moex report` over the `data_seeds` sweep).
+"""How much the data realisation decides (open question 0): the data-seed experiments' variance
+splits, recomputed from the per-network CSVs `moex report` wrote over each sweep.
 
-    python docs/data_seeds.py
+    python docs/data_seeds.py            # every experiment: per-data-set tables and the splits
+    python docs/data_seeds.py overview   # only the overview table REPRODUCTION.md quotes
 
-One-way random-effects split of each metric over networks into a between-data-set part and a
-within-data-set part (the same initial networks on every data set), the share of the variance
-the data set explains (intraclass correlation), and a permutation p-value for "the data set
-makes no difference" (data-set labels shuffled 20 000 times; no SciPy needed); then the same
-split by initial network (the `run` index: network r starts from the same weights on every data
-set), which asks whether the network, rather than the data, decides.
+Each experiment (EXPERIMENTS) trains the same initial networks (seed 0: Table 1's or Table 2's
+networks 0, 1, ...) on several data sets (`task.data_seed`), a crossed design. For each metric:
+- one-way random-effects splits, once by data set and once by initial network (the `run` index),
+  each with the share of the variance it explains (intraclass correlation) and a permutation
+  p-value (labels shuffled 20 000 times; no SciPy needed);
+- the two-way additive split of the crossed design: variance components of the data set, the
+  initial network and the rest (their interaction and round-off), with a restricted permutation
+  test for the data set (data-set labels shuffled within each initial network, so the network's
+  effect is held fixed).
 """
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,10 +26,21 @@ from moex.report import to_markdown
 DOCS = Path(__file__).resolve().parent
 KEY = "task.data_seed"
 STAYS = 0.03  # a network below this switching probability stays on one curve
+PERMUTATIONS = 20000
+LISSAJOUS = ("switch_prob", "max_lyapunov", "nonperiodic_fraction")
+REBER = ("block_kl_test", "block_kl_train", "E_g", "max_lyapunov")
+# name -> (per-network CSV in docs/, metrics)
+EXPERIMENTS = {
+    "Table 2, P = 0.5": ("data_seeds_p05_summary.csv", LISSAJOUS),
+    "Table 2, P = 0.25": ("data_seeds_summary.csv", LISSAJOUS),
+    "Table 2, P = 0.125": ("data_seeds_p0125_summary.csv", LISSAJOUS),
+    "Table 1, NC = 20": ("data_seeds_reber_summary.csv", REBER),
+}
 
 
 def _f_statistic(values: np.ndarray, groups: np.ndarray) -> tuple[float, float, float]:
-    """(F, between-set variance component, within-set variance) of a balanced one-way design."""
+    """(F, between-group variance component, within-group variance) of a balanced one-way
+    design."""
     labels = np.unique(groups)
     n = len(values) // len(labels)
     means = np.array([values[groups == g].mean() for g in labels])
@@ -33,7 +49,8 @@ def _f_statistic(values: np.ndarray, groups: np.ndarray) -> tuple[float, float, 
     return between / within, max((between - within) / n, 0.0), within
 
 
-def split(runs: pd.DataFrame, metric: str, key: str = KEY, permutations: int = 20000) -> dict:
+def split(runs: pd.DataFrame, metric: str, key: str = KEY,
+          permutations: int = PERMUTATIONS) -> dict:
     values, groups = runs[metric].to_numpy(float), runs[key].to_numpy()
     f, between, within = _f_statistic(values, groups)
     rng = np.random.default_rng(0)
@@ -45,26 +62,96 @@ def split(runs: pd.DataFrame, metric: str, key: str = KEY, permutations: int = 2
             "permutation p": (1 + sum(x >= f for x in null)) / (1 + permutations)}
 
 
-def main() -> None:
-    runs = pd.read_csv(DOCS / "data_seeds_summary.csv")
+def _two_way(table: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+    """(F of the data set, data, network and residual variance components) of data set ×
+    network tables without replication (..., rows: data sets, columns: networks), additive
+    model; leading axes are tables of their own (the components are those of the last)."""
+    d, n = table.shape[-2:]
+    grand = table.mean(axis=(-2, -1), keepdims=True)
+    rows, cols = table.mean(axis=-1, keepdims=True), table.mean(axis=-2, keepdims=True)
+    residual = table - rows - cols + grand
+    ms_data = n * ((rows - grand) ** 2).sum(axis=(-2, -1)) / (d - 1)
+    ms_net = d * ((cols - grand) ** 2).sum(axis=(-2, -1)) / (n - 1)
+    ms_res = (residual ** 2).sum(axis=(-2, -1)) / ((d - 1) * (n - 1))
+    last = np.s_[-1] if table.ndim > 2 else np.s_[()]
+    return (ms_data / ms_res, max((ms_data[last] - ms_res[last]) / n, 0.0),
+            max((ms_net[last] - ms_res[last]) / d, 0.0), float(ms_res[last]))
+
+
+def two_way(runs: pd.DataFrame, metric: str, permutations: int = PERMUTATIONS) -> dict:
+    table = runs.pivot(index=KEY, columns="run", values=metric).to_numpy(float)
+    f, data, network, rest = _two_way(table)
+    rng = np.random.default_rng(0)
+    shuffled = rng.permuted(np.broadcast_to(table, (permutations, *table.shape)), axis=1)
+    null = _two_way(shuffled)[0]
+    total = data + network + rest
+    return {"metric": metric, "data sets × networks": f"{table.shape[0]} × {table.shape[1]}",
+            "mean": table.mean(), "sd over all": np.sqrt(total),
+            "share: data set": data / total, "share: initial network": network / total,
+            "share: rest": rest / total,
+            "data set p": (1 + int((null >= f).sum())) / (1 + permutations)}
+
+
+def load(csv: str) -> pd.DataFrame | None:
+    """The experiment's finished networks; None while its CSV is not in docs/. Only data sets
+    with every network are kept (the design must stay balanced)."""
+    path = DOCS / csv
+    if not path.is_file():
+        return None
+    runs = pd.read_csv(path)
     runs = runs[~runs["failed"].astype(bool)]
-    per_set = runs.groupby(KEY).agg(
-        networks=("run", "size"), switch_prob=("switch_prob", "mean"),
-        switch_sd=("switch_prob", "std"), stay_on_one_curve=("switch_prob",
-                                                             lambda x: int((x < STAYS).sum())),
-        max_lyapunov=("max_lyapunov", "mean"), positive=("max_lyapunov",
-                                                         lambda x: int((x > 0).sum())),
-        data_switch_prob=("data_switch_prob", "first"))
-    print(to_markdown(per_set.reset_index()))
-    metrics = ("switch_prob", "max_lyapunov", "nonperiodic_fraction")
-    print(to_markdown(pd.DataFrame([split(runs, m) for m in metrics])))
-    per_network = runs.groupby("run").agg(
-        data_sets=(KEY, "size"), switch_prob=("switch_prob", "mean"),
-        switch_min=("switch_prob", "min"), switch_max=("switch_prob", "max"),
-        stay_on_one_curve=("switch_prob", lambda x: int((x < STAYS).sum())))
-    print(to_markdown(per_network.reset_index()))
-    print(to_markdown(pd.DataFrame([split(runs, m, "run") for m in metrics])))
+    full = runs.groupby(KEY)["run"].transform("size") == runs["run"].nunique()
+    return runs[full]
+
+
+def overview() -> pd.DataFrame:
+    """One row per experiment and metric: the two-way split, rounded for REPRODUCTION.md."""
+    rows = []
+    for name, (csv, metrics) in EXPERIMENTS.items():
+        runs = load(csv)
+        if runs is None:
+            continue
+        for metric in metrics:
+            row = two_way(runs, metric)
+            rows.append({"experiment": name, "metric": metric,
+                         "data sets × networks": row["data sets × networks"],
+                         "mean ± sd": f"{row['mean']:.3g} ± {row['sd over all']:.2g}",
+                         **{k: f"{row[k]:.0%}" for k in row if k.startswith("share")},
+                         "data set p": f"{row['data set p']:.2g}"})
+    return pd.DataFrame(rows)
+
+
+def per_data_set(runs: pd.DataFrame) -> pd.DataFrame:
+    if (runs["task"] == "lissajous2").all():
+        agg = {"switch_prob": ("switch_prob", "mean"), "switch_sd": ("switch_prob", "std"),
+               "stay_on_one_curve": ("switch_prob", lambda x: int((x < STAYS).sum())),
+               "data_switch_prob": ("data_switch_prob", "first")}
+    else:
+        agg = {"E_g": ("E_g", "mean"), "block_kl_train": ("block_kl_train", "mean"),
+               "block_kl_test": ("block_kl_test", "mean"),
+               "block_kl_test_median": ("block_kl_test", "median")}
+    agg |= {"networks": ("run", "size"), "max_lyapunov": ("max_lyapunov", "mean"),
+            "positive": ("max_lyapunov", lambda x: int((x > 0).sum()))}
+    return runs.groupby(KEY).agg(**agg).reset_index()
+
+
+def main(argv: list[str]) -> None:
+    if argv[1:] == ["overview"]:
+        print(to_markdown(overview()))
+        return
+    for name, (csv, metrics) in EXPERIMENTS.items():
+        runs = load(csv)
+        if runs is None:
+            print(f"## {name}: docs/{csv} not there (not run)\n")
+            continue
+        print(f"## {name} (docs/{csv})\n")
+        print(to_markdown(per_data_set(runs)))
+        print(to_markdown(pd.DataFrame([split(runs, m) for m in metrics])))
+        print(to_markdown(pd.DataFrame([split(runs, m, "run") for m in metrics])))
+        print(to_markdown(pd.DataFrame([two_way(runs, m) for m in metrics])))
+    print("## Overview\n")
+    print(to_markdown(overview()))
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv)

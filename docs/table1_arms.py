@@ -4,6 +4,8 @@ baseline: the C code's initialisation (`model.init=mregn`), learned time constan
 (`model.learn_time_constants=true`), the u_0 attraction term (`train.gating.attraction=true`).
 
     python docs/table1_arms.py NC baseline=RUN_DIR init_mregn=RUN_DIR ...   # run folders
+    python docs/table1_arms.py NC --add init_tau=RUN_DIR ...   # more arms beside those in the CSV
+    python docs/table1_arms.py NC                              # the table from the CSV alone
 
 Writes docs/table1_nc<NC>_arms.csv (one row per arm and network) and prints, per arm, each
 metric's mean ± sd and its paired change against the baseline (mean ± standard error over the
@@ -49,7 +51,16 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
 
 
 if __name__ == "__main__":
-    nc, folders = sys.argv[1], dict(arg.split("=", 1) for arg in sys.argv[2:])
-    table = arms(folders)
-    table.to_csv(DOCS / f"table1_nc{nc}_arms.csv", index=False)
+    nc, args = sys.argv[1], sys.argv[2:]
+    csv = DOCS / f"table1_nc{nc}_arms.csv"
+    add = args[:1] == ["--add"]
+    folders = dict(arg.split("=", 1) for arg in args[add:])
+    if folders:
+        table = arms(folders)
+        if add:
+            kept = pd.read_csv(csv)
+            table = pd.concat([kept[~kept.arm.isin(folders)], table], ignore_index=True)
+        table.to_csv(csv, index=False)
+    else:
+        table = pd.read_csv(csv)
     print(to_markdown(summary(table)))

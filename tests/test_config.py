@@ -3,6 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
 from moex.cli import CONF_DIR, _override_variants
@@ -63,6 +64,12 @@ def test_sweep_overrides_are_validated_value_by_value():
 EXPERIMENTS = sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
 
 
+def sweep_values(key: str, values) -> list[str]:
+    """The values a sweeper param expands to, as Hydra parses them (lists, `range(...)`)."""
+    override = OverridesParser.create().parse_override(f"{key}={values}")
+    return list(override.sweep_string_iterator()) if override.is_sweep_override() else [str(values)]
+
+
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_every_experiment_composes_with_each_sweep_value(experiment):
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
@@ -71,7 +78,7 @@ def test_every_experiment_composes_with_each_sweep_value(experiment):
         params = base.hydra.sweeper.params or {}
         variants = [[f"experiment={experiment}"]] + [
             [f"experiment={experiment}", f"{key}={value}"]
-            for key, values in params.items() for value in str(values).split(",")]
+            for key, values in params.items() for value in sweep_values(key, values)]
         for overrides in variants:
             cfg = OmegaConf.to_object(compose("config", overrides=overrides))
             assert isinstance(cfg, Config)
@@ -94,7 +101,7 @@ def test_cached_sweeps_vary_phase1_settings_fastest(experiment):
         for key, values in params.items():
             paths = {_phase1_cache(OmegaConf.to_object(compose(
                 "config", overrides=[f"experiment={experiment}", f"{key}={v}"])))
-                for v in str(values).split(",")}
+                for v in sweep_values(key, values)}
             changes.append(len(paths) > 1)
     assert True in changes  # the grid does contain phase-1 settings
     first_phase1 = changes.index(True)
