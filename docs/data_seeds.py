@@ -62,34 +62,40 @@ def split(runs: pd.DataFrame, metric: str, key: str = KEY,
             "permutation p": (1 + sum(x >= f for x in null)) / (1 + permutations)}
 
 
-def _two_way(table: np.ndarray) -> tuple[np.ndarray, float, float, float]:
-    """(F of the data set, data, network and residual variance components) of data set ×
-    network tables without replication (..., rows: data sets, columns: networks), additive
-    model; leading axes are tables of their own (the components are those of the last)."""
-    d, n = table.shape[-2:]
-    grand = table.mean(axis=(-2, -1), keepdims=True)
-    rows, cols = table.mean(axis=-1, keepdims=True), table.mean(axis=-2, keepdims=True)
-    residual = table - rows - cols + grand
+def _mean_squares(tables: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean squares (data set, network, residual) of data set × network tables without
+    replication, additive model; the last two axes are rows (data sets) and columns (networks),
+    any leading axes index tables of their own."""
+    d, n = tables.shape[-2:]
+    grand = tables.mean(axis=(-2, -1), keepdims=True)
+    rows, cols = tables.mean(axis=-1, keepdims=True), tables.mean(axis=-2, keepdims=True)
     ms_data = n * ((rows - grand) ** 2).sum(axis=(-2, -1)) / (d - 1)
     ms_net = d * ((cols - grand) ** 2).sum(axis=(-2, -1)) / (n - 1)
-    ms_res = (residual ** 2).sum(axis=(-2, -1)) / ((d - 1) * (n - 1))
-    last = np.s_[-1] if table.ndim > 2 else np.s_[()]
-    return (ms_data / ms_res, max((ms_data[last] - ms_res[last]) / n, 0.0),
-            max((ms_net[last] - ms_res[last]) / d, 0.0), float(ms_res[last]))
+    ms_res = ((tables - rows - cols + grand) ** 2).sum(axis=(-2, -1)) / ((d - 1) * (n - 1))
+    return ms_data, ms_net, ms_res
+
+
+def components(table: np.ndarray) -> tuple[float, float, float]:
+    """Variance components (data set, network, rest) of one data set × network table."""
+    d, n = table.shape
+    ms_data, ms_net, ms_res = _mean_squares(table)
+    return max((ms_data - ms_res) / n, 0.0), max((ms_net - ms_res) / d, 0.0), float(ms_res)
 
 
 def two_way(runs: pd.DataFrame, metric: str, permutations: int = PERMUTATIONS) -> dict:
     table = runs.pivot(index=KEY, columns="run", values=metric).to_numpy(float)
-    f, data, network, rest = _two_way(table)
+    data, network, rest = components(table)
+    ms_data, _, ms_res = _mean_squares(table)
     rng = np.random.default_rng(0)
     shuffled = rng.permuted(np.broadcast_to(table, (permutations, *table.shape)), axis=1)
-    null = _two_way(shuffled)[0]
+    null_data, _, null_res = _mean_squares(shuffled)
     total = data + network + rest
     return {"metric": metric, "data sets × networks": f"{table.shape[0]} × {table.shape[1]}",
             "mean": table.mean(), "sd over all": np.sqrt(total),
             "share: data set": data / total, "share: initial network": network / total,
             "share: rest": rest / total,
-            "data set p": (1 + int((null >= f).sum())) / (1 + permutations)}
+            "data set p": (1 + int((null_data / null_res >= ms_data / ms_res).sum()))
+                          / (1 + permutations)}
 
 
 def load(csv: str) -> pd.DataFrame | None:

@@ -45,7 +45,7 @@ def test_the_two_way_split_recovers_a_known_data_effect():
     rng = np.random.default_rng(1)
     data, nets = rng.normal(0, 2.0, (40, 1)), rng.normal(0, 1.0, (1, 30))
     table = data + nets + rng.normal(0, 0.5, (40, 30))
-    _, var_data, var_net, var_rest = seeds._two_way(table)
+    var_data, var_net, var_rest = seeds.components(table)
     assert abs(var_data / 4.0 - 1) < 0.5 and abs(var_net / 1.0 - 1) < 0.5
     assert abs(var_rest / 0.25 - 1) < 0.15
     runs = pd.DataFrame([{"task.data_seed": d, "run": r, "x": table[d, r]}
