@@ -17,9 +17,9 @@ import pandas as pd
 from moex.report import PAPER_TABLE1, PAPER_TABLE2, wilson_interval
 
 DOCS = Path(__file__).resolve().parent
-def _distance(values: pd.Series, paper: float) -> str:
+def _distance(values: pd.Series, paper: float, digits: str = ".3f") -> str:
     values = values.dropna()
-    return (f"{values.mean():.3f} ± {values.std():.3f} ({len(values)}), "
+    return (f"{values.mean():{digits}} ± {values.std():{digits}} ({len(values)}), "
             f"{(values.mean() - paper) / (values.std() / np.sqrt(len(values))):+.1f} SE")
 
 
@@ -94,14 +94,16 @@ def _row(table, setting, metric, paper, values) -> dict:
 
 
 def _own_data(table, setting, metric) -> str:
-    """Table 2's switching rows: the same statistic with a data set per network beside it."""
-    if (table, metric) != ("Table 2", "switch_prob"):
+    """Table 2's switching and λ_max rows: the same statistic with a data set per network."""
+    if table != "Table 2" or metric not in ("switch_prob", "max_lyapunov"):
         return ""
     own = pd.read_csv(DOCS / "table2_own_data_summary.csv")
     p = float(setting.removeprefix("P = "))
-    runs = own.switch_prob[(own.switch_prob_task == p) & ~own.failed.astype(bool)]
-    paper = PAPER_TABLE2.set_index("switch_prob_task").loc[p, "paper_switch_prob"]
-    return f"; with a data set per network: {_distance(runs, paper)}" if len(runs) else ""
+    runs = own[metric][(own.switch_prob_task == p) & ~own.failed.astype(bool)]
+    paper = PAPER_TABLE2.set_index("switch_prob_task").loc[p, f"paper_{metric}"]
+    digits = ".3f" if metric == "switch_prob" else ".3g"
+    return (f"; with a data set per network: {_distance(runs, paper, digits)}" if len(runs)
+            else "")
 
 
 def _share(table, setting, paper_percent, lyapunov) -> dict:
