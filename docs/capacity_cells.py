@@ -2,17 +2,22 @@
 
     python docs/capacity_cells.py grid REPORT_DIR      # REPORT_DIR/summary.csv, `moex report`'s
     python docs/capacity_cells.py nt20 EVAL_ROOT [LT]  # EVAL_ROOT/nc<NC>_noise<ρ²>/metrics.csv
+    python docs/capacity_cells.py window WINDOW_ROOT   # <sweep>_<job>_noise<ρ²>/metrics.csv
 
 `grid` reads the per-network table `moex report` wrote for the grid's sweeps (each job trained,
 then `moex evaluate run_dir=<job> eval.noise_var=<ρ²>` for ρ² > 0) and writes
 docs/capacity_grid_summary.csv. `nt20` reads one `moex evaluate ... out_dir=` folder per NC and
 ρ² of an NT 20 cell and writes docs/capacity_nt20_summary.csv (LT 1000, the default) or
-docs/capacity_nt20_lt<LT>_summary.csv. Both print, per cell and ρ²: networks with λ_max > 0 by
-sign, beyond twice its standard error over the samples, and above 10⁻⁴ (a limit cycle's
-finite-time exponent is 0 only up to a bias of order 1/steps that every sample shares, so the
-standard error alone does not bound it; `zero_band` measures that bias on the networks whose every
-sample is periodic), the switching probability, the networks that stay on one curve (< 0.02),
-the mean nonperiodic share and the networks with a majority of nonperiodic samples, and E^closed.
+docs/capacity_nt20_lt<LT>_summary.csv. `window` reads the grid's jobs evaluated again with
+periodicity judged on 10 000 closed-loop steps per sample (`eval.lyapunov_steps=10000`, folders
+named after the sweep below outputs/paper_capacity/, the job and ρ²), writes
+docs/capacity_window10k_summary.csv and prints `window_table`.
+`grid` and `nt20` print, per cell and ρ²: networks with λ_max > 0 by sign, beyond twice its
+standard error over the samples, and above 10⁻⁴ (a limit cycle's finite-time exponent is 0 only
+up to a bias of order 1/steps that every sample shares, so the standard error alone does not
+bound it; `zero_band` measures that bias on the networks whose every sample is periodic), the
+switching probability, the networks that stay on one curve (< 0.02), the mean nonperiodic share
+and the networks with a majority of nonperiodic samples, and E^closed.
 """
 
 import re
@@ -29,6 +34,8 @@ COLUMNS = ["run", "E_closed", "max_lyapunov", "max_lyapunov_se", "switch_prob",
 CELL = ["context_size", "num_series", "length"]
 NAMES = {"context_size": "NC", "num_series": "NT", "length": "LT", "noise_var": "ρ²"}
 THRESHOLD = 1e-4  # the grid tables' λ_max threshold for "chaotic"
+FIRST_TRAINING = ["capacity_summary.csv", "capacity_nc20_summary.csv"]
+OUTCOMES = ["max_lyapunov", "switch_prob", "nonperiodic_fraction"]
 
 
 def collect_evals(root: Path) -> pd.DataFrame:
@@ -75,11 +82,116 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def replication(table: pd.DataFrame) -> pd.DataFrame:
+    """The retrained grid against its first training (the same seeds and commands, another CPU
+    and kernel build; docs/capacity_summary.csv and capacity_nc20_summary.csv), network by
+    network without noise: how far round-off alone moves a network's outcome."""
+    first = pd.concat([pd.read_csv(DOCS / name) for name in FIRST_TRAINING])
+    first = first[first.noise_var_setting == 0]
+    keys = CELL + ["run"]
+    pairs = table[table.noise_var == 0].merge(first[keys + OUTCOMES], on=keys,
+                                              suffixes=("", "_first"))
+    moved = (pairs.switch_prob - pairs.switch_prob_first).abs()
+    chaotic = (pairs.max_lyapunov > THRESHOLD) == (pairs.max_lyapunov_first > THRESHOLD)
+    majority = (pairs.nonperiodic_fraction > 0.5) == (pairs.nonperiodic_fraction_first > 0.5)
+    return pd.DataFrame([{
+        "networks paired": len(pairs),
+        "λ_max bit-identical": int((pairs.max_lyapunov == pairs.max_lyapunov_first).sum()),
+        "same side of 10⁻⁴": f"{chaotic.mean():.0%}",
+        "switching moved, median (90 %)": f"{moved.median():.3f} ({moved.quantile(0.9):.3f})",
+        "switching correlation": round(pairs.switch_prob.corr(pairs.switch_prob_first), 2),
+        "same majority (nonperiodic or not)": f"{majority.mean():.0%}",
+    }])
+
+
+def collect_window(root: Path) -> pd.DataFrame:
+    """The grid's jobs evaluated on 10 000 steps per sample, the cell read from each sweep's
+    jobs.csv."""
+    parts = []
+    for folder in sorted(f.parent for f in root.glob("*_noise*/metrics.csv")):
+        sweep, job, noise = re.fullmatch(r"(.+)_(\d+)_noise([0-9.e-]+)", folder.name).groups()
+        jobs = pd.read_csv(root.parent / sweep / "jobs.csv", dtype=str).set_index("folder")
+        cell = dict(kv.split("=") for kv in jobs.loc[job, "overrides"].split())
+        runs = pd.read_csv(folder / "metrics.csv")[["run", "nonperiodic_fraction",
+                                                    "periodicity_samples"]]
+        for key, override in zip(CELL, ("model.gating.context_size", "task.num_series",
+                                        "task.length"), strict=True):
+            runs.insert(0, key, int(cell[override]))
+        runs.insert(0, "noise_var", float(noise))
+        parts.append(runs)
+    return pd.concat(parts, ignore_index=True).sort_values(CELL + ["noise_var", "run"],
+                                                           ignore_index=True)
+
+
+def window_table(window: pd.DataFrame, grid: pd.DataFrame) -> pd.DataFrame:
+    """Networks with a majority of nonperiodic samples, judged on 100 000 (the grid) and on
+    10 000 steps per sample, per cell at ρ² = 0 and 10⁻³."""
+    rows = []
+    for values, cell in window.groupby(CELL):
+        full = grid.merge(pd.DataFrame([dict(zip(CELL, values, strict=True))]))
+        row = dict(zip(["NC", "NT", "LT"], values, strict=True))
+        for noise in (0, 1e-3):
+            pair = [int((t.nonperiodic_fraction[t.noise_var == noise] > 0.5).sum())
+                    if (t.noise_var == noise).any() else "–" for t in (full, cell)]
+            row[f"ρ² = {noise:g}: 100 000 → 10 000 steps"] = f"{pair[0]} → {pair[1]}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _e_closed(c: pd.DataFrame) -> str:
+    return f"{c.E_closed.mean():.4f} ± {c.E_closed.std():.4f}"
+
+
+def _chaotic(c: pd.DataFrame) -> str:
+    return f"{(c.max_lyapunov > THRESHOLD).sum()} ({(c.max_lyapunov > 0).sum()})"
+
+
+def _switching(c: pd.DataFrame) -> str:
+    return f"{c.switch_prob.mean():.2f} ± {c.switch_prob.std():.2f}"
+
+
+def _nonperiodic(c: pd.DataFrame) -> str:
+    """Networks with a majority of nonperiodic samples at each noise level, "–" if not run."""
+    return " → ".join(str(int((c.nonperiodic_fraction[c.noise_var == v] > 0.5).sum()))
+                      if (c.noise_var == v).any() else "–" for v in (0, 1e-4, 1e-3))
+
+
+# title -> (which evaluations, the cell's entry): Fig. 14's quantities without noise, Fig. 16's
+CELL_TABLES = {
+    "E^closed, mean ± sd": (True, _e_closed),
+    "λ_max > 10⁻⁴ (in brackets > 0), of 10": (True, _chaotic),
+    "switching probability, mean ± sd (data 0.5)": (True, _switching),
+    "mostly nonperiodic at ρ² = 0 → 10⁻⁴ → 10⁻³, of 10": (False, _nonperiodic),
+}
+
+
+def cell_tables(table: pd.DataFrame) -> str:
+    """The grid's pivot tables REPRODUCTION.md quotes, one per quantity (rows NC × NT)."""
+    parts = []
+    for title, (noiseless, value) in CELL_TABLES.items():
+        rows = table[table.noise_var == 0] if noiseless else table
+        lengths = sorted(rows.length.unique())
+        frame = pd.DataFrame([
+            {"NC": nc, "NT \\\\ LT": nt,
+             **{str(lt): value(cell[cell.length == lt]) if (cell.length == lt).any() else "–"
+                for lt in lengths}}
+            for (nc, nt), cell in rows.groupby(["context_size", "num_series"])])
+        parts.append(f"{title}:\n\n{to_markdown(frame)}")
+    return "\n".join(parts)
+
+
 if __name__ == "__main__":
     mode, source = sys.argv[1], Path(sys.argv[2])
+    if mode == "window":
+        table = collect_window(source)
+        table.to_csv(DOCS / "capacity_window10k_summary.csv", index=False)
+        print(to_markdown(window_table(table, pd.read_csv(DOCS / "capacity_grid_summary.csv"))))
+        sys.exit()
     if mode == "grid":
         table, name = collect_grid(source), "capacity_grid_summary.csv"
         print(f"zero band (largest λ_max of an all-periodic network): {zero_band(table):.3g}")
+        print(cell_tables(table))
+        print(to_markdown(replication(table)))
     else:
         length = sys.argv[3] if len(sys.argv) > 3 else "1000"
         table = collect_evals(source)

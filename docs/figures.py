@@ -3,12 +3,14 @@ style (the same functions `moex report` and `moex train` use):
 
     python docs/figures.py
 
-capacity_*.png (Figs. 14 and 16: NT × LT heat maps per NC, one colour range per quantity),
+capacity_*.png (Figs. 14 and 16: NT × LT heat maps of the retrained grid per NC, one colour range
+per quantity; "chaotic": λ_max > 10⁻⁴, the threshold docs/capacity_cells.py uses),
 table1_kl_vs_lyapunov.png, p05_study_switch_vs_lyapunov.png and learning_curves_{reber,
 lissajous2}.png. The figures of single closed-loop samples (trajectories, gates, residence
 times) need the run folders and are not redrawn here.
 """
 
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -16,19 +18,22 @@ import pandas as pd
 from moex import plotting
 from moex.report import NEAR, _limits, aggregate
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from capacity_cells import THRESHOLD  # noqa: E402
+
 DOCS = Path(__file__).resolve().parent
-HEAT = {"E_closed_mean": "E_closed", "positive_percent": "positive",
+HEAT = {"E_closed_mean": "E_closed", "chaotic_percent": "chaotic",
         "nonperiodic_fraction_mean": "nonperiodic"}
 
 
 def capacity() -> None:
-    runs = pd.concat([pd.read_csv(DOCS / "capacity_summary.csv"),
-                      pd.read_csv(DOCS / "capacity_nc20_summary.csv")], ignore_index=True)
-    keys = ["num_series", "length", "context_size", "noise_var_setting"]
-    summary = aggregate(runs, keys)
+    runs = pd.read_csv(DOCS / "capacity_grid_summary.csv")
+    keys = ["num_series", "length", "context_size", "noise_var"]
+    chaotic = (runs.max_lyapunov > THRESHOLD).groupby([runs[k] for k in keys]).mean() * 100
+    summary = aggregate(runs, keys).merge(chaotic.rename("chaotic_percent").reset_index())
     for column, name in HEAT.items():
         limits = _limits(summary[column], column)
-        for (nc, noise), cell in summary.groupby(["context_size", "noise_var_setting"]):
+        for (nc, noise), cell in summary.groupby(["context_size", "noise_var"]):
             if column != "nonperiodic_fraction_mean" and noise > 0:
                 continue  # noise enters only the periodicity (Sec. 4.3)
             title = f"NC = {nc:g}" + (f", noise ρ² = {noise:g}" if noise > 0 else "")

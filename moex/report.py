@@ -272,7 +272,7 @@ def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, 
 
 def _limits(values: pd.Series, column: str) -> tuple[float, float]:
     """One colour range for every panel of a column: shares on their full scale."""
-    if column == "positive_percent":
+    if column.endswith("_percent"):
         return 0.0, 100.0
     if column.startswith("nonperiodic_fraction"):
         return 0.0, 1.0

@@ -61,3 +61,18 @@ def test_the_design_comparison_is_the_one_the_csvs_give():
     assert len(rows) == 2 * len(tests) and len(tests) >= 1
     text = (ROOT / "REPRODUCTION.md").read_text()
     assert designs.markdown(rows) in text and designs.markdown(tests) in text
+
+
+def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
+    cells = _script("capacity_cells")
+    table = pd.read_csv(ROOT / "docs" / "capacity_grid_summary.csv")
+    text = (ROOT / "REPRODUCTION.md").read_text()
+    assert cells.cell_tables(table) in text
+    assert f"{cells.zero_band(table):.2g}" in text
+
+
+def test_the_zero_band_is_the_largest_exponent_of_an_all_periodic_network():
+    cells = _script("capacity_cells")
+    table = pd.DataFrame({"noise_var": [0, 0, 0, 1e-3], "nonperiodic_fraction": [0, 0, 0.5, 0],
+                          "max_lyapunov": [-1e-3, 2e-6, 5e-3, 9e-3]})
+    assert cells.zero_band(table) == 2e-6  # not the nonperiodic network, not the noisy row
