@@ -94,8 +94,14 @@ def replication(table: pd.DataFrame) -> pd.DataFrame:
     moved = (pairs.switch_prob - pairs.switch_prob_first).abs()
     chaotic = (pairs.max_lyapunov > THRESHOLD) == (pairs.max_lyapunov_first > THRESHOLD)
     majority = (pairs.nonperiodic_fraction > 0.5) == (pairs.nonperiodic_fraction_first > 0.5)
+    counts = pairs.assign(now=pairs.max_lyapunov > THRESHOLD,
+                          then=pairs.max_lyapunov_first > THRESHOLD).groupby(CELL)[["now", "then"]]
+    cell_moves = (counts.sum().now - counts.sum().then).abs()
     return pd.DataFrame([{
         "networks paired": len(pairs),
+        "cells whose count above 10⁻⁴ moved by 0-2 / 3-5 / more": (
+            f"{(cell_moves <= 2).sum()} / {cell_moves.between(3, 5).sum()} / "
+            f"{(cell_moves > 5).sum()}"),
         "λ_max bit-identical": int((pairs.max_lyapunov == pairs.max_lyapunov_first).sum()),
         "same side of 10⁻⁴": f"{chaotic.mean():.0%}",
         "switching moved, median (90 %)": f"{moved.median():.3f} ({moved.quantile(0.9):.3f})",
