@@ -92,22 +92,27 @@ def replication(table: pd.DataFrame) -> pd.DataFrame:
     pairs = table[table.noise_var == 0].merge(first[keys + OUTCOMES], on=keys,
                                               suffixes=("", "_first"))
     moved = (pairs.switch_prob - pairs.switch_prob_first).abs()
-    chaotic = (pairs.max_lyapunov > THRESHOLD) == (pairs.max_lyapunov_first > THRESHOLD)
+    now, then = pairs.max_lyapunov > THRESHOLD, pairs.max_lyapunov_first > THRESHOLD
     majority = (pairs.nonperiodic_fraction > 0.5) == (pairs.nonperiodic_fraction_first > 0.5)
-    counts = pairs.assign(now=pairs.max_lyapunov > THRESHOLD,
-                          then=pairs.max_lyapunov_first > THRESHOLD).groupby(CELL)[["now", "then"]]
-    cell_moves = (counts.sum().now - counts.sum().then).abs()
+    cells = [pairs[k] for k in CELL]
+    cell_moves = (now.groupby(cells).sum() - then.groupby(cells).sum()).abs()
     return pd.DataFrame([{
         "networks paired": len(pairs),
         "cells whose count above 10⁻⁴ moved by 0-2 / 3-5 / more": (
             f"{(cell_moves <= 2).sum()} / {cell_moves.between(3, 5).sum()} / "
             f"{(cell_moves > 5).sum()}"),
         "λ_max bit-identical": int((pairs.max_lyapunov == pairs.max_lyapunov_first).sum()),
-        "same side of 10⁻⁴": f"{chaotic.mean():.0%}",
+        "same side of 10⁻⁴": f"{(now == then).mean():.0%}",
         "switching moved, median (90 %)": f"{moved.median():.3f} ({moved.quantile(0.9):.3f})",
         "switching correlation": round(pairs.switch_prob.corr(pairs.switch_prob_first), 2),
         "same majority (nonperiodic or not)": f"{majority.mean():.0%}",
     }])
+
+
+def _mostly_nonperiodic(table: pd.DataFrame, noise: float) -> int | str:
+    """Networks with a majority of nonperiodic samples at one noise level, "–" if not run."""
+    at = table.nonperiodic_fraction[table.noise_var == noise]
+    return int((at > 0.5).sum()) if len(at) else "–"
 
 
 def collect_window(root: Path) -> pd.DataFrame:
@@ -137,9 +142,8 @@ def window_table(window: pd.DataFrame, grid: pd.DataFrame) -> pd.DataFrame:
         full = grid.merge(pd.DataFrame([dict(zip(CELL, values, strict=True))]))
         row = dict(zip(["NC", "NT", "LT"], values, strict=True))
         for noise in (0, 1e-3):
-            pair = [int((t.nonperiodic_fraction[t.noise_var == noise] > 0.5).sum())
-                    if (t.noise_var == noise).any() else "–" for t in (full, cell)]
-            row[f"ρ² = {noise:g}: 100 000 → 10 000 steps"] = f"{pair[0]} → {pair[1]}"
+            row[f"ρ² = {noise:g}: 100 000 → 10 000 steps"] = (
+                f"{_mostly_nonperiodic(full, noise)} → {_mostly_nonperiodic(cell, noise)}")
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -157,9 +161,7 @@ def _switching(c: pd.DataFrame) -> str:
 
 
 def _nonperiodic(c: pd.DataFrame) -> str:
-    """Networks with a majority of nonperiodic samples at each noise level, "–" if not run."""
-    return " → ".join(str(int((c.nonperiodic_fraction[c.noise_var == v] > 0.5).sum()))
-                      if (c.noise_var == v).any() else "–" for v in (0, 1e-4, 1e-3))
+    return " → ".join(str(_mostly_nonperiodic(c, v)) for v in (0, 1e-4, 1e-3))
 
 
 # title -> (which evaluations, the cell's entry): Fig. 14's quantities without noise, Fig. 16's

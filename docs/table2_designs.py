@@ -20,7 +20,7 @@ import pandas as pd
 
 DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS))
-from table2_onehot import _one, markdown  # noqa: E402
+from table2_onehot import _one, at_p, markdown  # noqa: E402
 
 from moex.report import PAPER_TABLE2  # noqa: E402
 
@@ -51,8 +51,7 @@ def table() -> tuple[pd.DataFrame, pd.DataFrame]:
     rows, tests = [], []
     for _, paper in PAPER_TABLE2.iterrows():
         p = paper["switch_prob_task"]
-        mine = own[(own["switch_prob_task"] == p) & ~own["failed"].astype(bool)]
-        theirs = one[(one["switch_prob_task"] == p) & ~one["failed"].astype(bool)]
+        mine, theirs = at_p(own, p), at_p(one, p)
         if mine.empty:
             continue
         for name, runs in (("one data set", theirs), ("a data set per network", mine)):

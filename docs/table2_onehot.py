@@ -46,14 +46,18 @@ def _one(runs: pd.DataFrame, paper: float) -> dict:
     }
 
 
+def at_p(runs: pd.DataFrame, p: float) -> pd.DataFrame:
+    """The networks of one P of Table 2 that did not fail."""
+    return runs[(runs["switch_prob_task"] == p) & ~runs["failed"].astype(bool)]
+
+
 def table() -> tuple[pd.DataFrame, pd.DataFrame]:
     onehot = pd.read_csv(DOCS / "table2_onehot30_summary.csv")
     soft = pd.read_csv(DOCS / "table2_summary.csv")
     rows, pairs = [], []
     for _, paper in PAPER_TABLE2.iterrows():
         p = paper["switch_prob_task"]
-        mine = onehot[(onehot["switch_prob_task"] == p) & ~onehot["failed"]]
-        theirs = soft[(soft["switch_prob_task"] == p) & ~soft["failed"]]
+        mine, theirs = at_p(onehot, p), at_p(soft, p)
         if mine.empty:
             continue
         for name, runs in (("soft", theirs), ("one-hot", mine)):
