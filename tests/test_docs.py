@@ -69,6 +69,9 @@ def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
     text = (ROOT / "REPRODUCTION.md").read_text()
     assert cells.cell_tables(table) in text
     assert f"{cells.zero_band(table):.2g}" in text
+    assert cells.to_markdown(cells.replication(table)) in text
+    window = pd.read_csv(ROOT / "docs" / "capacity_window10k_summary.csv")
+    assert cells.to_markdown(cells.window_table(window, table)) in text
 
 
 def test_the_zero_band_is_the_largest_exponent_of_an_all_periodic_network():
