@@ -34,8 +34,12 @@ COLUMNS = ["run", "E_closed", "max_lyapunov", "max_lyapunov_se", "switch_prob",
 CELL = ["context_size", "num_series", "length"]
 NAMES = {"context_size": "NC", "num_series": "NT", "length": "LT", "noise_var": "ρ²"}
 THRESHOLD = 1e-4  # the grid tables' λ_max threshold for "chaotic"
+SAMPLES = 50  # closed-loop samples per network, from 50 random initial states (Sec. 3.2.1)
 FIRST_TRAINING = ["capacity_summary.csv", "capacity_nc20_summary.csv"]
 OUTCOMES = ["max_lyapunov", "switch_prob", "nonperiodic_fraction"]
+# NT 20 cells trained before the grid's NT 20 sweeps, by `nt20` mode: file -> LT (NC 10, 20, 30
+# at LT 1000; NC 10 at LT 250)
+NT20_CELLS = {"capacity_nt20_summary.csv": 1000, "capacity_nt20_lt250_summary.csv": 250}
 
 
 def collect_evals(root: Path) -> pd.DataFrame:
@@ -51,16 +55,24 @@ def collect_evals(root: Path) -> pd.DataFrame:
 
 
 def collect_grid(report_dir: Path) -> pd.DataFrame:
-    """The grid: `moex report`'s per-network table, one row per network, cell and ρ²."""
-    runs = pd.read_csv(report_dir / "summary.csv")
+    """The grid: `moex report`'s per-network table, one row per network, cell and ρ², with the
+    NT 20 cells trained on their own (`NT20_CELLS`; their sample counts were not recorded)."""
+    runs = pd.concat([pd.read_csv(report_dir / "summary.csv")]
+                     + [pd.read_csv(DOCS / name).assign(num_series=20, length=length)
+                        for name, length in NT20_CELLS.items()], ignore_index=True)
     runs = runs[CELL + ["noise_var"] + COLUMNS + ["periodicity_samples"]]
+    if runs.duplicated(CELL + ["noise_var", "run"]).any():
+        raise ValueError("a network appears twice: an NT 20 cell is both in the report and in "
+                         f"{list(NT20_CELLS)}")
     return runs.sort_values(CELL + ["noise_var", "run"], ignore_index=True)
 
 
 def zero_band(table: pd.DataFrame) -> float:
     """The largest noiseless λ_max of a network whose every sample was judged periodic: how far
-    from 0 the estimator puts exponents that should be 0 or negative (limit cycles)."""
-    periodic = table[(table.noise_var == 0) & (table.nonperiodic_fraction == 0)]
+    from 0 the estimator puts exponents that should be 0 or negative (limit cycles). Only
+    networks whose samples were all judged (`periodicity_samples` recorded and `SAMPLES`) count."""
+    periodic = table[(table.noise_var == 0) & (table.nonperiodic_fraction == 0)
+                     & (table.periodicity_samples == SAMPLES)]
     return float(periodic.max_lyapunov.max())
 
 

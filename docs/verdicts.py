@@ -23,33 +23,42 @@ def _distance(values: pd.Series, paper: float, digits: str = ".3f") -> str:
             f"{(values.mean() - paper) / (values.std() / np.sqrt(len(values))):+.1f} SE")
 
 
-def _onehot(p: float, paper: float) -> str:
+def _paper(table: str, setting: float, metric: str) -> float:
+    """The paper's number: Table 1 by NC, Table 2 by P."""
+    frame, key = ((PAPER_TABLE1, "context_size") if table == "Table 1"
+                  else (PAPER_TABLE2, "switch_prob_task"))
+    return float(frame.set_index(key).loc[setting, f"paper_{metric}"])
+
+
+def _onehot(p: float) -> str:
     onehot = pd.read_csv(DOCS / "table2_onehot30_summary.csv")
     return ("one-hot targets on the same seeds (another CPU): "
-            + _distance(onehot.switch_prob[onehot.switch_prob_task == p], paper))
+            + _distance(onehot.switch_prob[onehot.switch_prob_task == p],
+                        _paper("Table 2", p, "switch_prob")))
 
 
 def _targets_cause() -> str:
     return ("differs, cause found: the soft phase-2 targets (networks stay on one curve or "
-            "alternate); " + _onehot(0.5, 0.451))
+            "alternate); " + _onehot(0.5))
 
 
 def _targets_part() -> str:
-    return "differs, cause partly found: the soft phase-2 targets; " + _onehot(0.25, 0.276)
+    return "differs, cause partly found: the soft phase-2 targets; " + _onehot(0.25)
 
 
 def _protocol_cause() -> str:
     runs = pd.read_csv(DOCS / "table1_nc20_protocol.csv")
     return ("differs, cause found: protocol; with the C code's symbol rule and KL formula "
             "(50 networks retrained): " + _distance(runs.block_kl_train_threshold_10000_mregnkl,
-                                                   0.258))
+                                                   _paper("Table 1", 20, "block_kl_train")))
 
 
 def _protocol_cause_nc10() -> str:
     arms = pd.read_csv(DOCS / "table1_nc10_arms.csv")
     runs = arms[arms.arm == "baseline_c_protocol"]
     return ("differs, cause found: protocol, as at NC = 20; with the C code's symbol rule and KL "
-            "formula (50 networks retrained): " + _distance(runs.block_kl_train, 2.512))
+            "formula (50 networks retrained): " + _distance(runs.block_kl_train,
+                                            _paper("Table 1", 10, "block_kl_train")))
 
 
 def _reber_test_open() -> str:
@@ -58,8 +67,9 @@ def _reber_test_open() -> str:
     both = arms[arms.arm == "init_tau"].block_kl_test.mean() - \
         arms[arms.arm == "baseline"].block_kl_test.mean()
     every = arms[arms.arm == "init_tau_attraction"]
+    paper = _paper("Table 1", 20, "block_kl_test")
     return ("differs, cause open: not the protocol; not the data or held-out draw (10 data sets × "
-            f"5 networks: median {seeds.median():.3f}, mean " + _distance(seeds, 0.3091) +
+            f"5 networks: median {seeds.median():.3f}, mean " + _distance(seeds, paper) +
             " through 2 networks with a periodic closed loop); not the C code's "
             f"initialisation, learned τ or attraction alone, nor the first two together "
             f"({both:+.3f}); all three give a median of {every.block_kl_test.median():.3f}, near "
@@ -67,10 +77,20 @@ def _reber_test_open() -> str:
             f" only by fitting worse (E^g median {every.E_g.median():.3f}) (question 3)")
 
 
+def _saturated_nc10() -> str:
+    e_g = _table1_runs(10).E_g
+    return (f"reproduced in the mean only through {(e_g > 1).sum()} saturated network "
+            f"(E^g {e_g.max():.2f}; median {e_g.median():.3f})")
+
+
+def _table1_runs(nc: int) -> pd.DataFrame:
+    reber = pd.read_csv(DOCS / "table1_summary.csv")
+    return reber[(reber["context_size"] == nc) & ~reber["failed"]]
+
+
 # (table, setting, metric) -> what a controlled comparison found; rows not named: cause open
 CAUSES = {
-    ("Table 1", 10, "E_g"): lambda: "reproduced in the mean only through one saturated network "
-                                    "(median 0.076)",
+    ("Table 1", 10, "E_g"): _saturated_nc10,
     ("Table 1", 10, "block_kl_train"): _protocol_cause_nc10,
     ("Table 1", 20, "block_kl_train"): _protocol_cause,
     ("Table 1", 20, "block_kl_test"): _reber_test_open,
@@ -100,7 +120,7 @@ def _own_data(table, setting, metric) -> str:
     own = pd.read_csv(DOCS / "table2_own_data_summary.csv")
     p = float(setting.removeprefix("P = "))
     runs = own[metric][(own.switch_prob_task == p) & ~own.failed.astype(bool)]
-    paper = PAPER_TABLE2.set_index("switch_prob_task").loc[p, f"paper_{metric}"]
+    paper = _paper("Table 2", p, metric)
     digits = ".3f" if metric == "switch_prob" else ".3g"
     return (f"; with a data set per network: {_distance(runs, paper, digits)}" if len(runs)
             else "")
@@ -118,10 +138,9 @@ def _share(table, setting, paper_percent, lyapunov) -> dict:
 
 def verdicts() -> pd.DataFrame:
     rows = []
-    reber = pd.read_csv(DOCS / "table1_summary.csv")
     for _, paper in PAPER_TABLE1.iterrows():
         nc = int(paper["context_size"])
-        runs = reber[(reber["context_size"] == nc) & ~reber["failed"]]
+        runs = _table1_runs(nc)
         for metric in ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov"):
             rows.append(_row("Table 1", nc, metric, paper[f"paper_{metric}"], runs[metric]))
         rows.append(_share("Table 1", nc, paper["paper_positive_percent"],

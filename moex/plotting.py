@@ -224,14 +224,17 @@ def plot_phase_portrait(gating_u: np.ndarray, ax=None, title: str = ""):
 def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = None,
                    title: str = "repetitions of a curve before a switch",
                    censored_hist: np.ndarray | None = None):
-    """Distribution of repetitions of a curve: model (pooled over runs) as bars, the geometric
-    law (1 - P)^(k-1) P of the task as a line when P is known (paper Fig. 9). Stays cut off by
-    the end of a sample (`censored_hist`, their true length is at least the one shown) are
-    stacked on top, hatched; the last bin holds every longer stay."""
+    """Distribution of repetitions of a curve, (runs, bins) counts: the runs' own distributions
+    averaged (each run weighs the same, as in paper Fig. 9) as bars, the geometric law
+    (1 - P)^(k-1) P of the task as a line when P is known. Stays cut off by the end of a sample
+    (`censored_hist`, their true length is at least the one shown) are stacked on top, hatched;
+    the last bin holds every longer stay."""
     ax = ax or plt.figure(figsize=(5, 3.6)).gca()
     cut = np.zeros_like(model_hist) if censored_hist is None else censored_hist
-    total = max(model_hist.sum() + cut.sum(), 1)
-    model, censored = model_hist.sum(0) / total, cut.sum(0) / total
+    totals = (model_hist.sum(1) + cut.sum(1))[:, None]
+    weight = np.divide(1.0, totals, out=np.zeros(totals.shape), where=totals > 0)
+    runs = max(int((totals > 0).sum()), 1)
+    model, censored = (model_hist * weight).sum(0) / runs, (cut * weight).sum(0) / runs
     k = np.arange(len(model))
     both = model + censored
     top = max(int(np.flatnonzero(both).max()) + 2 if both.any() else 10, 10)
@@ -242,6 +245,8 @@ def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = 
                edgecolor=OKABE_ITO[0], hatch="///", label="cut off by the sample's end (≥)")
     if switch_prob is not None:
         law = (1 - switch_prob) ** (k[1:top] - 1) * switch_prob
+        if top >= len(k):  # the last bin holds every longer stay: the law's tail mass
+            law[-1] = (1 - switch_prob) ** (k[-1] - 1)
         ax.plot(k[1:top], law, ".-", color="black", label=f"data: geometric, P = {switch_prob:g}")
     if not both[1:top].any():
         ax.text(0.5, 0.5, "no stay recorded: the closed loop never completed a curve",

@@ -76,6 +76,29 @@ def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
 
 def test_the_zero_band_is_the_largest_exponent_of_an_all_periodic_network():
     cells = _script("capacity_cells")
-    table = pd.DataFrame({"noise_var": [0, 0, 0, 1e-3], "nonperiodic_fraction": [0, 0, 0.5, 0],
-                          "max_lyapunov": [-1e-3, 2e-6, 5e-3, 9e-3]})
-    assert cells.zero_band(table) == 2e-6  # not the nonperiodic network, not the noisy row
+    table = pd.DataFrame({"noise_var": [0, 0, 0, 1e-3, 0],
+                          "nonperiodic_fraction": [0, 0, 0.5, 0, 0],
+                          "max_lyapunov": [-1e-3, 2e-6, 5e-3, 9e-3, 7e-5],
+                          "periodicity_samples": [50, 50, 50, 50, float("nan")]})
+    # not the nonperiodic network, not the noisy row, not a network whose samples were not counted
+    assert cells.zero_band(table) == 2e-6
+
+
+def test_the_residence_table_is_the_one_the_csv_gives():
+    residence = _script("residence")
+    table = residence.table(pd.read_csv(residence.CSV))
+    assert list(table.P) == [0.5, 0.25, 0.125] and (table.networks == 30).all()
+    assert residence.to_markdown(table) in (ROOT / "REPRODUCTION.md").read_text()
+
+
+def test_stays_drawn_from_the_geometric_law_are_at_zero_distance_from_it():
+    residence = _script("residence")
+    p, rng = 0.25, np.random.default_rng(0)
+    assert np.isclose(residence.law(p).sum(), 1)
+    laps = np.minimum(rng.geometric(p, size=(4, 200_000)), residence.LONG)
+    stays = pd.DataFrame([{"P": p, "job": "j", "run": r, "laps": k, "completed": n, "cut": 0}
+                          for r in range(4)
+                          for k, n in zip(*np.unique(laps[r], return_counts=True), strict=True)])
+    row = residence.table(stays).iloc[0]
+    assert row["total variation from the law"] <= 0.005 and row["networks"] == 4
+    assert row["mean laps, completed stays pooled (law 1/P)"].startswith("4.0")

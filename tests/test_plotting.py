@@ -40,6 +40,11 @@ def test_figures_state_facts_and_hide_what_is_empty():
     assert len(fig.legends) == 1 and all(ax.get_legend() is None for ax in visible)
     ax = plotting.plot_residence(np.zeros((2, 20)))
     assert "never completed" in ax.texts[0].get_text() and ax.get_legend() is None
+    many_short = np.zeros((2, 20), dtype=int)
+    many_short[0, 1], many_short[1, 5] = 1000, 1  # run 0: 1000 stays of 1 lap; run 1: one of 5
+    ax = plotting.plot_residence(many_short, switch_prob=0.5)
+    heights = {round(b.get_x() + b.get_width() / 2): b.get_height() for b in ax.patches}
+    assert heights[1] == heights[5] == 0.5  # each run weighs the same (Fig. 9's average)
     ax = plotting.plot_phase_portrait(np.tile([[0.2, -0.3]], (100, 1)), title="run 0")
     assert "a fixed point at (0.2, -0.3)" in ax.get_title()
     plt.close("all")
