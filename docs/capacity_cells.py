@@ -1,17 +1,21 @@
 """Figs. 14 and 16 cell by cell, at ρ² = 0, 10⁻⁴ and 10⁻³: the retrained grid and the NT 20 cells.
 
     python docs/capacity_cells.py grid REPORT_DIR      # REPORT_DIR/summary.csv, `moex report`'s
+    python docs/capacity_cells.py add REPORT_DIR       # its new cells into that CSV
     python docs/capacity_cells.py nt20 EVAL_ROOT [LT]  # EVAL_ROOT/nc<NC>_noise<ρ²>/metrics.csv
     python docs/capacity_cells.py window WINDOW_ROOT   # <sweep>_<job>_noise<ρ²>/metrics.csv
 
 `grid` reads the per-network table `moex report` wrote for the grid's sweeps (each job trained,
 then `moex evaluate run_dir=<job> eval.noise_var=<ρ²>` for ρ² > 0) and writes
-docs/capacity_grid_summary.csv. `nt20` reads one `moex evaluate ... out_dir=` folder per NC and
-ρ² of an NT 20 cell and writes docs/capacity_nt20_summary.csv (LT 1000, the default) or
-docs/capacity_nt20_lt<LT>_summary.csv. `window` reads the grid's jobs evaluated again with
-periodicity judged on 10 000 closed-loop steps per sample (`eval.lyapunov_steps=10000`, folders
-named after the sweep below outputs/paper_capacity/, the job and ρ²), writes
-docs/capacity_window10k_summary.csv and prints `window_table`.
+docs/capacity_grid_summary.csv. `add` appends the cells of a later `moex report` (a sweep over
+cells the CSV lacks, e.g. the LT 2000 column) to that CSV and refuses a network it already has,
+so the grid grows without the earlier sweeps' folders. `nt20` reads one
+`moex evaluate ... out_dir=` folder per NC and ρ² of an NT 20 cell and writes
+docs/capacity_nt20_summary.csv (LT 1000, the default) or docs/capacity_nt20_lt<LT>_summary.csv.
+`window` reads the grid's jobs evaluated again with periodicity judged on 10 000 closed-loop
+steps per sample (`eval.lyapunov_steps=10000`, folders named after the sweep below
+outputs/paper_capacity/, the job and ρ²), writes docs/capacity_window10k_summary.csv and prints
+`window_table`.
 `grid` and `nt20` print, per cell and ρ²: networks with λ_max > 0 by sign, beyond twice its
 standard error over the samples, and above 10⁻⁴ (a limit cycle's finite-time exponent is 0 only
 up to a bias of order 1/steps that every sample shares, so the standard error alone does not
@@ -54,17 +58,24 @@ def collect_evals(root: Path) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True)
 
 
+def merge_cells(parts: list[pd.DataFrame]) -> pd.DataFrame:
+    """Per-network tables of disjoint cells as one, sorted; a network (cell, ρ², run) in two
+    parts is an error, not a silent duplicate."""
+    runs = pd.concat(parts, ignore_index=True)[CELL + ["noise_var"] + COLUMNS
+                                               + ["periodicity_samples"]]
+    twice = runs[runs.duplicated(CELL + ["noise_var", "run"], keep=False)]
+    if len(twice):
+        cells = sorted({tuple(int(v) for v in row) for row in twice[CELL].to_numpy()})
+        raise ValueError(f"networks appear twice, cells (NC, NT, LT) {cells}")
+    return runs.sort_values(CELL + ["noise_var", "run"], ignore_index=True)
+
+
 def collect_grid(report_dir: Path) -> pd.DataFrame:
     """The grid: `moex report`'s per-network table, one row per network, cell and ρ², with the
     NT 20 cells trained on their own (`NT20_CELLS`; their sample counts were not recorded)."""
-    runs = pd.concat([pd.read_csv(report_dir / "summary.csv")]
-                     + [pd.read_csv(DOCS / name).assign(num_series=20, length=length)
-                        for name, length in NT20_CELLS.items()], ignore_index=True)
-    runs = runs[CELL + ["noise_var"] + COLUMNS + ["periodicity_samples"]]
-    if runs.duplicated(CELL + ["noise_var", "run"]).any():
-        raise ValueError("a network appears twice: an NT 20 cell is both in the report and in "
-                         f"{list(NT20_CELLS)}")
-    return runs.sort_values(CELL + ["noise_var", "run"], ignore_index=True)
+    return merge_cells([pd.read_csv(report_dir / "summary.csv")]
+                       + [pd.read_csv(DOCS / name).assign(num_series=20, length=length)
+                          for name, length in NT20_CELLS.items()])
 
 
 def zero_band(table: pd.DataFrame) -> float:
@@ -207,8 +218,10 @@ if __name__ == "__main__":
         table.to_csv(DOCS / "capacity_window10k_summary.csv", index=False)
         print(to_markdown(window_table(table, pd.read_csv(DOCS / "capacity_grid_summary.csv"))))
         sys.exit()
-    if mode == "grid":
-        table, name = collect_grid(source), "capacity_grid_summary.csv"
+    if mode in ("grid", "add"):
+        name = "capacity_grid_summary.csv"
+        table = (collect_grid(source) if mode == "grid" else
+                 merge_cells([pd.read_csv(DOCS / name), pd.read_csv(source / "summary.csv")]))
         print(f"zero band (largest λ_max of an all-periodic network): {zero_band(table):.3g}")
         print(cell_tables(table))
         print(to_markdown(replication(table)))

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -72,6 +73,20 @@ def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
     assert cells.to_markdown(cells.replication(table)) in text
     window = pd.read_csv(ROOT / "docs" / "capacity_window10k_summary.csv")
     assert cells.to_markdown(cells.window_table(window, table)) in text
+
+
+def test_new_cells_join_the_grid_and_a_network_twice_is_refused():
+    cells = _script("capacity_cells")
+    grid = pd.read_csv(ROOT / "docs" / "capacity_grid_summary.csv")
+    cell = grid[(grid.context_size == 10) & (grid.num_series == 2) & (grid.length == 250)]
+    new = cell.assign(length=4000)  # a cell the grid lacks
+    merged = cells.merge_cells([grid, new])
+    assert len(merged) == len(grid) + len(new)
+    added = merged[merged.length == 4000].reset_index(drop=True)
+    expected = new.sort_values(["noise_var", "run"], ignore_index=True)[added.columns]
+    pd.testing.assert_frame_equal(added, expected)
+    with pytest.raises(ValueError, match=r"\(10, 2, 250\)"):
+        cells.merge_cells([grid, cell])
 
 
 def test_the_zero_band_is_the_largest_exponent_of_an_all_periodic_network():
