@@ -348,7 +348,8 @@ def _column_label(column: str) -> str:
 def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "", ax=None,
                  limits: tuple[float, float] | None = None):
     """NT × LT phase plot of one column (paper Figs. 14 and 16), the value written in each cell;
-    missing cells stay blank. `limits`: the colour range, shared by the panels compared."""
+    a missing cell stays blank and says "not run". `limits`: the colour range, shared by the
+    panels compared."""
     grid = table.pivot_table(index=y, columns=x, values=value, aggfunc="mean")
     if ax is None:
         fig, ax = plt.subplots(figsize=(4.6, 3.6), constrained_layout=True)
@@ -364,6 +365,8 @@ def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "
             shade = mesh.norm(v)
             ax.text(j, i, f"{v:.3g}", ha="center", va="center", fontsize=8,
                     color="black" if shade > 0.6 else "white")
+        else:
+            ax.text(j, i, "not run", ha="center", va="center", fontsize=7, color="0.45")
     ax.set_xticks(range(grid.shape[1]), [f"{v:g}" for v in grid.columns])
     ax.set_yticks(range(grid.shape[0]), [f"{v:g}" for v in grid.index])
     ax.set_xlabel(HEAT_LABELS.get(x, x))

@@ -83,3 +83,13 @@ def test_scatter_draws_networks_that_belong_to_no_study_arm():
     assert sum(len(c.get_offsets()) for c in ax.collections) == 3
     assert ax.get_legend().get_title().get_text() == ""
     plt.close(fig)
+
+
+def test_a_heatmap_writes_each_cell_and_names_the_cells_not_run():
+    cells = pd.DataFrame({"num_series": [2, 2, 5], "length": [250, 500, 250],
+                          "E_closed_mean": [0.01, 0.02, 0.03]})  # NT 5 / LT 500 not run
+    fig = plotting.plot_heatmap(cells, "num_series", "length", "E_closed_mean",
+                                limits=(0.005, 0.05))
+    texts = {(t.get_position(), t.get_text()) for t in fig.axes[0].texts}
+    assert texts == {((0, 0), "0.01"), ((0, 1), "0.02"), ((1, 0), "0.03"), ((1, 1), "not run")}
+    plt.close("all")
