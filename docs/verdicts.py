@@ -159,6 +159,19 @@ def verdicts() -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+KINDS = ["reproduced", "differs, cause found", "differs, cause partly found",
+         "differs, cause open"]
+
+
+def tally(frame: pd.DataFrame) -> str:
+    """One line for the top of REPRODUCTION.md: how many rows have each kind of verdict."""
+    kinds = frame.verdict.map(lambda v: next(k for k in reversed(KINDS) if v.startswith(k)))
+    n = kinds.value_counts().reindex(KINDS, fill_value=0)
+    return (f"Of the table's {len(frame)} rows, {n.iloc[0]} are reproduced; {n.iloc[1:].sum()} "
+            f"differ, {n.iloc[1]} with the cause found, {n.iloc[2]} with the cause partly found "
+            f"and {n.iloc[3]} with the cause open.")
+
+
 def markdown(frame: pd.DataFrame) -> str:
     lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
     lines += ["| " + " | ".join(map(str, row)) + " |" for row in frame.itertuples(False)]
@@ -166,4 +179,6 @@ def markdown(frame: pd.DataFrame) -> str:
 
 
 if __name__ == "__main__":
-    print(markdown(verdicts()))
+    frame = verdicts()
+    print(tally(frame))
+    print(markdown(frame))

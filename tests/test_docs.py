@@ -22,6 +22,17 @@ def test_the_verdict_table_is_the_one_the_csvs_give():
     table = verdicts.markdown(verdicts.verdicts())
     assert len(table.splitlines()) == 2 + 4 * 5 + 3 * 3
     assert table in (ROOT / "REPRODUCTION.md").read_text()
+    assert verdicts.tally(verdicts.verdicts()) in (ROOT / "REPRODUCTION.md").read_text()
+
+
+def test_the_tally_counts_each_kind_of_verdict_once():
+    verdicts = _script("verdicts")
+    frame = pd.DataFrame({"verdict": ["reproduced", "reproduced in the mean only through x",
+                                      "differs, cause found: y", "differs, cause partly found: z",
+                                      "differs, cause open", "differs, cause open; with w"]})
+    assert verdicts.tally(frame) == ("Of the table's 6 rows, 2 are reproduced; 4 differ, 1 with "
+                                     "the cause found, 1 with the cause partly found and 2 with "
+                                     "the cause open.")
 
 
 def test_the_one_hot_tables_are_the_ones_the_csvs_give():
