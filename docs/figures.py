@@ -3,8 +3,9 @@ style (the same functions `moex report` and `moex train` use):
 
     python docs/figures.py
 
-capacity_*.png (Figs. 14 and 16: NT × LT heat maps of the retrained grid per NC, one colour range
-per quantity; "chaotic": λ_max > 10⁻⁴, the threshold docs/capacity_cells.py uses),
+capacity_fig14.png (E^closed and the share with λ_max > 10⁻⁴, the threshold docs/capacity_cells.py
+uses, as NT × LT heat maps, one panel per NC) and capacity_fig16.png (the nonperiodic share, one
+row per noise level), each quantity on one colour range,
 table1_kl_vs_lyapunov.png, p05_study_switch_vs_lyapunov.png and learning_curves_{reber,
 lissajous2}.png. The figures of single closed-loop samples (trajectories, gates, residence
 times) need the run folders and are not redrawn here.
@@ -13,6 +14,7 @@ times) need the run folders and are not redrawn here.
 import sys
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import pandas as pd
 
 from moex import plotting
@@ -22,8 +24,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from capacity_cells import THRESHOLD  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent
-HEAT = {"E_closed_mean": "E_closed", "chaotic_percent": "chaotic",
-        "nonperiodic_fraction_mean": "nonperiodic"}
+NETWORKS = "10 networks per cell, P = 0.5, the paper's training"
+# Fig. 14: one row per quantity without noise; Fig. 16: one row per noise level ρ²
+FIG14 = ["E_closed_mean", "chaotic_percent"]
+FIG16 = "nonperiodic_fraction_mean"
+
+
+def _heat_row(axes, summary: pd.DataFrame, column: str, limits, row_title: str) -> None:
+    """One row of NT × LT panels, one per NC, on one colour range with one colour bar."""
+    panels = list(summary.groupby("context_size"))
+    for i, (ax, (nc, cell)) in enumerate(zip(axes, panels, strict=True)):
+        plotting.plot_heatmap(cell, "num_series", "length", column, ax=ax, limits=limits,
+                              title=f"NC = {nc:g}{row_title}", colorbar=i == len(panels) - 1)
+        if i:
+            ax.set_ylabel("")
 
 
 def capacity() -> None:
@@ -31,16 +45,22 @@ def capacity() -> None:
     keys = ["num_series", "length", "context_size", "noise_var"]
     chaotic = (runs.max_lyapunov > THRESHOLD).groupby([runs[k] for k in keys]).mean() * 100
     summary = aggregate(runs, keys).merge(chaotic.rename("chaotic_percent").reset_index())
-    for column, name in HEAT.items():
-        limits = _limits(summary[column], column)
-        for (nc, noise), cell in summary.groupby(["context_size", "noise_var"]):
-            if column != "nonperiodic_fraction_mean" and noise > 0:
-                continue  # noise enters only the periodicity (Sec. 4.3)
-            title = f"NC = {nc:g}" + (f", noise ρ² = {noise:g}" if noise > 0 else "")
-            fig = plotting.plot_heatmap(cell, "num_series", "length", column, title=title,
-                                        limits=limits)
-            part = f"_noise{noise:g}" if column == "nonperiodic_fraction_mean" else ""
-            plotting.save_figure(fig, DOCS / f"capacity_{name}{part}_NC{nc:g}.png")
+    ncs, noises = summary.context_size.nunique(), sorted(summary.noise_var.unique())
+    quiet = summary[summary.noise_var == 0]
+    fig, axes = plt.subplots(len(FIG14), ncs, figsize=(4.2 * ncs, 3.5 * len(FIG14)),
+                             constrained_layout=True, squeeze=False)
+    for row, column in zip(axes, FIG14, strict=True):
+        _heat_row(row, quiet, column, _limits(quiet[column], column), "")
+    fig.suptitle(f"Fig. 14: closed-loop error and chaotic networks\n{NETWORKS}")
+    plotting.save_figure(fig, DOCS / "capacity_fig14.png")
+    fig, axes = plt.subplots(len(noises), ncs, figsize=(4.2 * ncs, 3.5 * len(noises)),
+                             constrained_layout=True, squeeze=False)
+    for row, noise in zip(axes, noises, strict=True):
+        _heat_row(row, summary[summary.noise_var == noise], FIG16, (0.0, 1.0),
+                  f", noise ρ² = {noise:g}")
+    fig.suptitle("Fig. 16: share of nonperiodic samples (L/R sequence without a period ≤ 100)"
+                 f" under noise of variance ρ² on the input\n{NETWORKS}")
+    plotting.save_figure(fig, DOCS / "capacity_fig16.png")
 
 
 def scatters() -> None:

@@ -346,10 +346,11 @@ def _column_label(column: str) -> str:
 
 
 def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "", ax=None,
-                 limits: tuple[float, float] | None = None):
+                 limits: tuple[float, float] | None = None, colorbar: bool = True):
     """NT × LT phase plot of one column (paper Figs. 14 and 16), the value written in each cell;
     a missing cell stays blank and says "not run". `limits`: the colour range, shared by the
-    panels compared."""
+    panels compared; `colorbar=False` leaves the colour bar to a neighbouring panel of that
+    range."""
     grid = table.pivot_table(index=y, columns=x, values=value, aggfunc="mean")
     if ax is None:
         fig, ax = plt.subplots(figsize=(4.6, 3.6), constrained_layout=True)
@@ -373,7 +374,8 @@ def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "
     ax.set_ylabel(HEAT_LABELS.get(y, y))
     ax.spines[["top", "right"]].set_visible(True)
     ax.set_title(title)
-    ax.figure.colorbar(mesh, ax=ax, label=_column_label(value))
+    if colorbar:
+        ax.figure.colorbar(mesh, ax=ax, label=_column_label(value))
     return ax.figure
 
 

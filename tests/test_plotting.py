@@ -92,4 +92,8 @@ def test_a_heatmap_writes_each_cell_and_names_the_cells_not_run():
                                 limits=(0.005, 0.05))
     texts = {(t.get_position(), t.get_text()) for t in fig.axes[0].texts}
     assert texts == {((0, 0), "0.01"), ((0, 1), "0.02"), ((1, 0), "0.03"), ((1, 1), "not run")}
+    assert len(fig.axes) == 2  # the panel and its colour bar
+    fig = plotting.plot_heatmap(cells, "num_series", "length", "E_closed_mean",
+                                limits=(0.005, 0.05), colorbar=False)
+    assert len(fig.axes) == 1  # a panel in a row whose neighbour carries the bar
     plt.close("all")
