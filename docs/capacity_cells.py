@@ -26,11 +26,15 @@ and the networks with a majority of nonperiodic samples, and E^closed.
 
 import re
 import sys
+from math import comb
 from pathlib import Path
 
 import pandas as pd
 
 from moex.report import to_markdown
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from junction import spearman  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent
 COLUMNS = ["run", "E_closed", "max_lyapunov", "max_lyapunov_se", "switch_prob",
@@ -41,6 +45,12 @@ THRESHOLD = 1e-4  # the grid tables' λ_max threshold for "chaotic"
 SAMPLES = 50  # closed-loop samples per network, from 50 random initial states (Sec. 3.2.1)
 FIRST_TRAINING = ["capacity_summary.csv", "capacity_nc20_summary.csv"]
 OUTCOMES = ["max_lyapunov", "switch_prob", "nonperiodic_fraction"]
+STAY = 0.02  # switching probability below this: the network stays on one curve
+SMALL = 1250  # NT·LT up to which a cell has the least data (NT 2 at LT ≤ 500, NT 5 at LT 250)
+LARGE = 10_000  # NT·LT from which Fig. 14a's row counts the networks that still embed their data
+# E^closed below this: the network replays its training series from its trained initial state
+# (Sec. 4.2's "embedded in initial states"); per network the values cluster below 10⁻⁴ and near 0.1
+EMBEDS = 1e-2
 # NT 20 cells trained before the grid's NT 20 sweeps, by `nt20` mode: file -> LT (NC 10, 20, 30
 # at LT 1000; NC 10 at LT 250)
 NT20_CELLS = {"capacity_nt20_summary.csv": 1000, "capacity_nt20_lt250_summary.csv": 250}
@@ -79,11 +89,14 @@ def collect_grid(report_dir: Path) -> pd.DataFrame:
 
 
 def zero_band(table: pd.DataFrame) -> float:
-    """The largest noiseless λ_max of a network whose every sample was judged periodic: how far
-    from 0 the estimator puts exponents that should be 0 or negative (limit cycles). Only
-    networks whose samples were all judged (`periodicity_samples` recorded and `SAMPLES`) count."""
+    """The largest noiseless λ_max of a network whose every sample was judged periodic and that
+    switches between the curves: how far from 0 the estimator puts exponents that should be 0
+    or negative (limit cycles). Only networks whose samples were all judged
+    (`periodicity_samples` recorded and `SAMPLES`) count. A network that stays on one curve
+    writes one symbol for ever, periodic whatever its dynamics, so it does not count: some of
+    those are chaotic (λ_max up to 5·10⁻³ with an L/R sequence of one letter)."""
     periodic = table[(table.noise_var == 0) & (table.nonperiodic_fraction == 0)
-                     & (table.periodicity_samples == SAMPLES)]
+                     & (table.periodicity_samples == SAMPLES) & (table.switch_prob >= STAY)]
     return float(periodic.max_lyapunov.max())
 
 
@@ -98,7 +111,7 @@ def summary(table: pd.DataFrame) -> pd.DataFrame:
             "λ_max > 2 s.e.": int((cell.max_lyapunov > 2 * cell.max_lyapunov_se).sum()),
             "λ_max > 10⁻⁴": int((cell.max_lyapunov > THRESHOLD).sum()),
             "switching": f"{cell.switch_prob.mean():.3f} ± {cell.switch_prob.std():.3f}",
-            "stay (< 0.02)": int((cell.switch_prob < 0.02).sum()),
+            "stay (< 0.02)": int((cell.switch_prob < STAY).sum()),
             "nonperiodic share": round(cell.nonperiodic_fraction.mean(), 3),
             "mostly nonperiodic": int((cell.nonperiodic_fraction > 0.5).sum()),
             "E^closed": round(cell.E_closed.mean(), 4)})
@@ -133,9 +146,13 @@ def replication(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def _mostly_nonperiodic(table: pd.DataFrame, noise: float) -> int | str:
-    """Networks with a majority of nonperiodic samples at one noise level, "–" if not run."""
+    """Networks with a majority of nonperiodic samples at one noise level, "–" if not run;
+    "n/m" where only m networks had a sample long enough to judge (100 laps)."""
     at = table.nonperiodic_fraction[table.noise_var == noise]
-    return int((at > 0.5).sum()) if len(at) else "–"
+    if not len(at):
+        return "–"
+    count, judged = int((at > 0.5).sum()), int(at.notna().sum())
+    return count if judged == len(at) else f"{count}/{judged}"
 
 
 def collect_window(root: Path) -> pd.DataFrame:
@@ -192,7 +209,8 @@ CELL_TABLES = {
     "E^closed, mean ± sd": (True, _e_closed),
     "λ_max > 10⁻⁴ (in brackets > 0), of 10": (True, _chaotic),
     "switching probability, mean ± sd (data 0.5)": (True, _switching),
-    "mostly nonperiodic at ρ² = 0 → 10⁻⁴ → 10⁻³, of 10": (False, _nonperiodic),
+    "mostly nonperiodic at ρ² = 0 → 10⁻⁴ → 10⁻³, of 10 (n/m: of the m networks with a sample "
+    "long enough to judge)": (False, _nonperiodic),
 }
 
 
@@ -209,6 +227,184 @@ def cell_tables(table: pd.DataFrame) -> str:
             for (nc, nt), cell in rows.groupby(["context_size", "num_series"])])
         parts.append(f"{title}:\n\n{to_markdown(frame)}")
     return "\n".join(parts)
+
+
+def fisher_p(a: int, b: int, c: int, d: int) -> float:
+    """Fisher's exact test, two-sided, of the 2 × 2 table [[a, b], [c, d]]: the probability,
+    with the margins fixed, of a table no more likely than this one."""
+    row, col, n = a + b, a + c, a + b + c + d
+
+    def prob(x: int) -> float:
+        return comb(col, x) * comb(n - col, row - x) / comb(n, row)
+
+    observed = prob(a)
+    return min(1.0, sum(prob(x) for x in range(max(0, row + col - n), min(row, col) + 1)
+                        if prob(x) <= observed * (1 + 1e-9)))
+
+
+def embedding(table: pd.DataFrame) -> pd.DataFrame:
+    """Per NC, the networks without noise split by whether they embed their training data
+    (E^closed < `EMBEDS`): how many are chaotic (λ_max > 10⁻⁴) and how many stay on one curve
+    (switching < 0.02), with Fisher's exact p between the two groups."""
+    quiet = table[table.noise_var == 0]
+    rows = []
+    for nc, part in quiet.groupby("context_size"):
+        embeds = part.E_closed < EMBEDS
+        row = {"NC": int(nc)}
+        for name, flags in (("chaotic", part.max_lyapunov > THRESHOLD),
+                            ("stay on one curve", part.switch_prob < STAY)):
+            yes, no = int(flags[embeds].sum()), int(flags[~embeds].sum())
+            n_yes, n_no = int(embeds.sum()), int((~embeds).sum())
+            row[f"{name}: embed"] = f"{yes} / {n_yes}"
+            row[f"{name}: do not"] = f"{no} / {n_no}"
+            row[f"{name}: p"] = f"{fisher_p(yes, n_yes - yes, no, n_no - no):.2g}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def cell_means(table: pd.DataFrame) -> pd.DataFrame:
+    """One row per cell without noise: its data NT·LT, mean E^closed, and the shares of its
+    networks that are chaotic (λ_max > 10⁻⁴) and that stay on one curve (switching < 0.02)."""
+    quiet = table[table.noise_var == 0]
+    cells = quiet.groupby(CELL).agg(
+        E_closed=("E_closed", "mean"),
+        chaotic=("max_lyapunov", lambda v: (v > THRESHOLD).mean()),
+        stay=("switch_prob", lambda v: (v < STAY).mean())).reset_index()
+    cells["data"] = cells.num_series * cells.length
+    return cells
+
+
+def data_trend(cells: pd.DataFrame, column: str) -> dict[int, tuple[float, float]]:
+    """Per NC: Spearman's ρ between the cells' `column` and their data NT·LT, with a permutation
+    p over cells (cells, not networks, are the units: a cell's networks share their data and
+    experts)."""
+    return {int(nc): spearman(part.data.to_numpy(), part[column].to_numpy())
+            for nc, part in cells.groupby("context_size")}
+
+
+def chaos_against_data(table: pd.DataFrame) -> pd.DataFrame:
+    """Per NC, Fig. 14b's two trends: networks chaotic (λ_max > 10⁻⁴) in the cells with the
+    least data (NT·LT ≤ `SMALL`), and Spearman's ρ of a cell's chaotic share against NT·LT over
+    the cells that embed their data (mean E^closed < `EMBEDS`) and over those that do not."""
+    cells, quiet = cell_means(table), table[table.noise_var == 0]
+    small = quiet[quiet.num_series * quiet.length <= SMALL]
+    rows = []
+    for nc, part in cells.groupby("context_size"):
+        few = small[small.context_size == nc]
+        row = {"NC": int(nc), f"chaotic, NT·LT ≤ {SMALL}":
+               f"{(few.max_lyapunov > THRESHOLD).sum()} of {len(few)}"}
+        for name, side in (("embed", part.E_closed < EMBEDS), ("do not", part.E_closed >= EMBEDS)):
+            rho, p = spearman(part.data[side].to_numpy(), part.chaotic[side].to_numpy())
+            row[f"ρ over cells that {name} (cells)"] = f"{rho:+.2f}, p {p:.2g} ({side.sum()})"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _per_nc(stats: dict, fmt, unit: str = "") -> str:
+    return (" / ".join(fmt(v) for v in stats.values()) + unit + " at NC "
+            + " / ".join(map(str, stats)))
+
+
+def _trend(stats: dict) -> str:
+    return _per_nc(stats, lambda v: f"{v[0]:+.2f} (p {v[1]:.2g})")
+
+
+def _fig14a(table: pd.DataFrame, cells: pd.DataFrame, most: dict) -> dict:
+    trend = data_trend(cells, "E_closed")
+    quiet = table[table.noise_var == 0]
+    large = quiet[quiet.num_series * quiet.length >= LARGE]
+    embed = {int(nc): p for nc, p in large.groupby("context_size")}
+    reproduced = all(rho > 0 and p < 0.05 for rho, p in trend.values())
+    return {"paper": "Fig. 14a", "claim": "E^closed grows with NT and LT and falls with NC",
+            "moex": f"E^closed against NT·LT over cells, Spearman ρ {_trend(trend)}; networks "
+                    f"that embed their data (E^closed < 10⁻²) among the "
+                    f"{len(next(iter(embed.values())))} with NT·LT ≥ {LARGE}: "
+                    + _per_nc(embed, lambda p: f"{(p.E_closed < EMBEDS).sum()}")
+                    + f"; with the most data (NT {most['nt']}, LT {most['lt']}) E^closed "
+                    + _per_nc(most["cells"], lambda c: f"{c.E_closed.mean():.3f}"),
+            "verdict": "reproduced" if reproduced else "differs, cause open"}
+
+
+def _fig14b(table: pd.DataFrame, cells: pd.DataFrame, most: dict) -> dict:
+    split = embedding(table).set_index("NC")
+    stays = "; ".join(
+        f"NC {nc}: {r['stay on one curve: do not'].replace(' / ', ' of ')} against "
+        f"{r['stay on one curve: embed'].replace(' / ', ' of ')} that embed it "
+        f"(p {r['stay on one curve: p']})" for nc, r in split.iterrows())
+    chaos = data_trend(cells[cells.E_closed < EMBEDS], "chaotic")
+    nc10 = cells[(cells.context_size == 10) & (cells.num_series >= 10) & (cells.length >= 1000)]
+    nc10_chaotic = (nc10.chaotic * 10).round().astype(int)
+    quiet = table[table.noise_var == 0]
+    few = {int(nc): c for nc, c in quiet[quiet.num_series * quiet.length <= SMALL]
+           .groupby("context_size")}
+    few_chaotic = [int((c.max_lyapunov > THRESHOLD).sum()) for c in few.values()]
+    reproduced = nc10_chaotic.max() <= 3 and (nc10.stay >= 0.5).any()
+    larger_nc_needs_more = few_chaotic == sorted(few_chaotic, reverse=True) and \
+        few_chaotic[0] > few_chaotic[-1]
+    return {"paper": "Fig. 14b", "claim": "chaos appears as NT and LT grow, with more data needed "
+                                         "at larger NC; with NC = 10 networks stay non-chaotic "
+                                         "even with much data",
+            "moex": "NC = 10 with NT ≥ 10 and LT ≥ 1000: λ_max > 10⁻⁴ in "
+                    + ", ".join(map(str, nc10_chaotic)) + " of 10 networks, "
+                    f"{int(round(nc10.stay.mean() * len(nc10) * 10))} of {10 * len(nc10)} stay "
+                    f"on one curve; with the most data (NT {most['nt']}, LT {most['lt']}) NC 20 "
+                    f"and 30 do the same: chaotic "
+                    + _per_nc(most["cells"], lambda c: f"{(c.max_lyapunov > THRESHOLD).sum()}",
+                              " of 10")
+                    + ", on one curve "
+                    + _per_nc(most["cells"], lambda c: f"{(c.switch_prob < STAY).sum()}", " of 10")
+                    + f". Networks that do not embed their data (E^closed ≥ 10⁻²) stay on one "
+                    f"curve: {stays}. The chaotic share against NT·LT, Spearman ρ over the "
+                    f"cells whose mean E^closed is below 10⁻²: {_trend(chaos)}; over the "
+                    f"others: {_trend(data_trend(cells[cells.E_closed >= EMBEDS], 'chaotic'))}. "
+                    f"With the least data (NT·LT ≤ {SMALL}) chaotic "
+                    + _per_nc(few, lambda c: f"{(c.max_lyapunov > THRESHOLD).sum()}",
+                              f" of {len(next(iter(few.values())))}"),
+            "verdict": ("partly reproduced: NC = 10 stays non-chaotic with much data, for the "
+                        "paper's reason (too little memory for the data), which NC = 20 and 30 "
+                        "reach too with more data; chaos growing with the data: a trend only "
+                        "while the data is embedded, not significant at 10 networks per cell; "
+                        + ("more data needed at larger NC: yes" if larger_nc_needs_more else
+                           "more data needed at larger NC: not seen (as many chaotic networks "
+                           "with the least data at NC 30 as at NC 10)")) if reproduced
+            else "differs, cause open"}
+
+
+def _fig16(table: pd.DataFrame) -> dict:
+    smallest = table[(table.num_series == table.num_series.min())
+                     & (table.length == table.length.min())]
+    small = {int(nc): c for nc, c in smallest.groupby("context_size")}
+    per_cell = [(_mostly_nonperiodic(c, 1e-3), _mostly_nonperiodic(c, 0))
+                for _, c in table.groupby(CELL)]
+    per_cell = [pair for pair in per_cell if all(isinstance(n, int) for n in pair)]
+    raised = sum(after >= before for after, before in per_cell)
+    contradicted = all(_mostly_nonperiodic(c, 1e-3) > 5 for c in small.values())
+    return {"paper": "Fig. 16", "claim": "noise makes well-trained networks nonperiodic; "
+                                        "small-data networks stay periodic",
+            "moex": f"ρ² = 10⁻³ raises or keeps the count of mostly nonperiodic networks in "
+                    f"{raised} of the {len(per_cell)} cells whose every network could be judged "
+                    f"at both levels; in the smallest cell (NT "
+                    f"{int(smallest.num_series.iloc[0])}, LT {int(smallest.length.iloc[0])}) "
+                    + _per_nc(small, lambda c: f"{_mostly_nonperiodic(c, 0)} → "
+                                               f"{_mostly_nonperiodic(c, 1e-3)}", " of 10")
+                    + "; the same on 10 000 instead of 100 000 steps per sample",
+            "verdict": ("first half reproduced; second **contradicted** at every NC, under both "
+                        "periodicity rules and both window lengths, cause open") if contradicted
+            else "reproduced"}
+
+
+def figure_rows(table: pd.DataFrame) -> pd.DataFrame:
+    """The verdict rows of Figs. 14a, 14b and 16 (REPRODUCTION.md's figure table), from the
+    grid's per-network table."""
+    cells = cell_means(table)
+    top = cells[cells.data == cells.data.max()].iloc[0]
+    quiet = table[table.noise_var == 0]
+    most = {"nt": int(top.num_series), "lt": int(top.length),
+            "cells": {int(nc): c for nc, c in quiet[
+                (quiet.num_series == top.num_series) & (quiet.length == top.length)]
+                .groupby("context_size")}}
+    return pd.DataFrame([_fig14a(table, cells, most), _fig14b(table, cells, most),
+                         _fig16(table)])
 
 
 if __name__ == "__main__":

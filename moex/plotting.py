@@ -337,12 +337,12 @@ HEAT_LABELS = {"positive_percent": r"share of networks with $\lambda_{\max} > 0$
                "num_series": "number of series NT", "length": "length of a series LT"}
 
 
-def _column_label(column: str) -> str:
-    """`E_closed_mean` -> the metric's label with "(mean over networks)"."""
+def _column_label(column: str, sep: str = " ") -> str:
+    """`E_closed_mean` -> the metric's label, `sep`, "(mean over networks)"."""
     if column in HEAT_LABELS:
         return HEAT_LABELS[column]
     base = column.removesuffix("_mean")
-    return f"{label(base)} (mean over networks)" if base != column else label(column)
+    return f"{label(base)}{sep}(mean over networks)" if base != column else label(column)
 
 
 def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "", ax=None,
@@ -375,7 +375,7 @@ def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "
     ax.spines[["top", "right"]].set_visible(True)
     ax.set_title(title)
     if colorbar:
-        ax.figure.colorbar(mesh, ax=ax, label=_column_label(value))
+        ax.figure.colorbar(mesh, ax=ax, label=_column_label(value, sep="\n"))
     return ax.figure
 
 

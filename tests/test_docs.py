@@ -84,6 +84,11 @@ def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
     assert cells.to_markdown(cells.replication(table)) in text
     window = pd.read_csv(ROOT / "docs" / "capacity_window10k_summary.csv")
     assert cells.to_markdown(cells.window_table(window, table)) in text
+    assert cells.to_markdown(cells.embedding(table)) in text
+    assert cells.to_markdown(cells.chaos_against_data(table)) in text
+    rows = cells.to_markdown(cells.figure_rows(table)).splitlines()[2:]
+    assert [row.split(" | ")[0] for row in rows] == ["| Fig. 14a", "| Fig. 14b", "| Fig. 16"]
+    assert all(row in text.splitlines() for row in rows)  # the figure verdicts' rows
 
 
 def test_new_cells_join_the_grid_and_a_network_twice_is_refused():
@@ -100,13 +105,46 @@ def test_new_cells_join_the_grid_and_a_network_twice_is_refused():
         cells.merge_cells([grid, cell])
 
 
+def test_fishers_exact_test_gives_the_textbook_p_values():
+    cells = _script("capacity_cells")
+    assert np.isclose(cells.fisher_p(3, 1, 1, 3), 34 / 70)  # Fisher's tea-tasting table
+    assert np.isclose(cells.fisher_p(10, 0, 0, 10), 2 / 184756)  # the two extreme tables
+    assert cells.fisher_p(5, 5, 5, 5) == 1.0
+    assert np.isclose(cells.fisher_p(1, 9, 10, 0), cells.fisher_p(10, 0, 1, 9))
+
+
+def test_the_embedding_split_counts_networks_on_each_side_of_the_threshold():
+    cells = _script("capacity_cells")
+    table = pd.DataFrame({"context_size": 10, "noise_var": [0, 0, 0, 0, 1e-3],
+                          "E_closed": [1e-6, 1e-5, 0.1, 0.12, 0.1],
+                          "max_lyapunov": [3e-3, -1e-3, 2e-3, 5e-5, 2e-3],
+                          "switch_prob": [0.4, 0.5, 0.0, 0.01, 0.0]})
+    row = cells.embedding(table).iloc[0]  # the noisy row does not count
+    assert (row["chaotic: embed"], row["chaotic: do not"]) == ("1 / 2", "1 / 2")
+    assert (row["stay on one curve: embed"], row["stay on one curve: do not"]) == ("0 / 2",
+                                                                                  "2 / 2")
+    assert float(row["stay on one curve: p"]) == round(cells.fisher_p(0, 2, 2, 0), 2)
+
+
+def test_the_data_trend_is_spearmans_rho_per_nc_with_a_permutation_p():
+    cells = _script("capacity_cells")
+    frame = pd.DataFrame({"context_size": [10] * 4 + [30] * 4, "data": [1, 2, 3, 4] * 2,
+                          "chaotic": [0.1, 0.2, 0.3, 0.4, 0.4, 0.3, 0.2, 0.1]})
+    trend = cells.data_trend(frame, "chaotic")
+    assert trend[10][0] == pytest.approx(1) and trend[30][0] == pytest.approx(-1)
+    # 2 of the 4! = 24 orderings are as extreme as a perfect rank order
+    assert trend[10][1] == pytest.approx(2 / 24, abs=0.01)
+
+
 def test_the_zero_band_is_the_largest_exponent_of_an_all_periodic_network():
     cells = _script("capacity_cells")
-    table = pd.DataFrame({"noise_var": [0, 0, 0, 1e-3, 0],
-                          "nonperiodic_fraction": [0, 0, 0.5, 0, 0],
-                          "max_lyapunov": [-1e-3, 2e-6, 5e-3, 9e-3, 7e-5],
-                          "periodicity_samples": [50, 50, 50, 50, float("nan")]})
-    # not the nonperiodic network, not the noisy row, not a network whose samples were not counted
+    table = pd.DataFrame({"noise_var": [0, 0, 0, 1e-3, 0, 0],
+                          "nonperiodic_fraction": [0, 0, 0.5, 0, 0, 0],
+                          "max_lyapunov": [-1e-3, 2e-6, 5e-3, 9e-3, 7e-5, 4e-3],
+                          "periodicity_samples": [50, 50, 50, 50, float("nan"), 50],
+                          "switch_prob": [0.5, 0.9, 0.4, 0.5, 0.5, 0.0]})
+    # not the nonperiodic network, not the noisy row, not a network whose samples were not
+    # counted, not one that stays on one curve (one symbol for ever: periodic, yet chaotic)
     assert cells.zero_band(table) == 2e-6
 
 
