@@ -59,11 +59,13 @@ def phase1_error(state) -> np.ndarray:
 
 
 def spearman(a: np.ndarray, b: np.ndarray, permutations: int = 20000) -> tuple[float, float]:
+    """Spearman's rank correlation and its two-sided permutation p (b's ranks shuffled)."""
     ra, rb = pd.Series(a).rank().to_numpy(), pd.Series(b).rank().to_numpy()
     rho = np.corrcoef(ra, rb)[0, 1]
     rng = np.random.default_rng(0)
     null = np.array([np.corrcoef(ra, rng.permutation(rb))[0, 1] for _ in range(permutations)])
-    return rho, (np.abs(null) >= abs(rho)).mean()
+    # the observed order counts as one of the permutations, so p is never 0
+    return rho, ((np.abs(null) >= abs(rho)).sum() + 1) / (permutations + 1)
 
 
 def main(run_dir: str) -> None:

@@ -17,6 +17,8 @@ import pandas as pd
 from moex.report import PAPER_TABLE1, PAPER_TABLE2, wilson_interval
 
 DOCS = Path(__file__).resolve().parent
+
+
 def _distance(values: pd.Series, paper: float, digits: str = ".3f") -> str:
     values = values.dropna()
     return (f"{values.mean():{digits}} ± {values.std():{digits}} ({len(values)}), "

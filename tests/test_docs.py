@@ -134,6 +134,8 @@ def test_the_data_trend_is_spearmans_rho_per_nc_with_a_permutation_p():
     assert trend[10][0] == pytest.approx(1) and trend[30][0] == pytest.approx(-1)
     # 2 of the 4! = 24 orderings are as extreme as a perfect rank order
     assert trend[10][1] == pytest.approx(2 / 24, abs=0.01)
+    # no shuffle of 30 ranks matches a perfect order: p is the observed order's 1 in 100, not 0
+    assert cells.spearman(np.arange(30), np.arange(30), permutations=99)[1] == 0.01
 
 
 def test_the_zero_band_is_the_largest_exponent_of_an_all_periodic_network():
