@@ -86,9 +86,38 @@ def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
     assert cells.to_markdown(cells.window_table(window, table)) in text
     assert cells.to_markdown(cells.embedding(table)) in text
     assert cells.to_markdown(cells.chaos_against_data(table)) in text
-    rows = cells.to_markdown(cells.figure_rows(table)).splitlines()[2:]
+    arms = pd.read_csv(ROOT / "docs" / "fig16_arms.csv")
+    assert cells.to_markdown(_script("fig16_arms").table(arms)) in text
+    rows = cells.to_markdown(cells.figure_rows(table, arms)).splitlines()[2:]
     assert [row.split(" | ")[0] for row in rows] == ["| Fig. 14a", "| Fig. 14b", "| Fig. 16"]
     assert all(row in text.splitlines() for row in rows)  # the figure verdicts' rows
+
+
+def test_the_fig16_arms_table_counts_each_arm_against_its_baseline(tmp_path):
+    arms = _script("fig16_arms")
+    sweep = tmp_path / "nc10"
+    (sweep / "0" / "evaluate" / "noise0.001").mkdir(parents=True)
+    (sweep / "1" / "evaluate" / "noise0.001").mkdir(parents=True)
+    pd.DataFrame({"folder": ["0", "1"], "overrides": [
+        f"p05_arm={arm} task.num_series=2 model.gating.context_size=10"
+        for arm in ("baseline", "c_code")]}).to_csv(sweep / "jobs.csv", index=False)
+
+    def runs(nonperiodic, lyapunov, switching):
+        return pd.DataFrame({"run": range(4), "E_closed": 1e-6, "max_lyapunov": lyapunov,
+                             "switch_prob": switching, "nonperiodic_fraction": nonperiodic,
+                             "periodicity_samples": 50})
+    runs([0.9, 0.1, 0, 0], [1e-3, 0, 0, 0], 0.5).to_csv(sweep / "0" / "metrics.csv")
+    runs([1, 1, 0.8, 0.2], [1e-3, 0, 0, 0], 0.5).to_csv(
+        sweep / "0" / "evaluate" / "noise0.001" / "metrics.csv")
+    runs([0, 0, 0, 0], [0, 0, 0, 0], [1, 1, 1, 0]).to_csv(sweep / "1" / "metrics.csv")
+    runs([0, 0, 0, 0.6], [0, 0, 0, 0], 1).to_csv(
+        sweep / "1" / "evaluate" / "noise0.001" / "metrics.csv")
+    frame = arms.table(arms.collect([sweep])).set_index("arm")
+    assert frame.loc["baseline", "mostly nonperiodic, ρ² = 0 → 10⁻³"] == "1 → 3"
+    assert frame.loc["c_code", "mostly nonperiodic, ρ² = 0 → 10⁻³"] == "0 → 1"
+    p = _script("capacity_cells").fisher_p(1, 3, 3, 1)
+    assert frame.loc["c_code", "p against baseline (10⁻³)"] == f"{p:.2g}"
+    assert (frame.loc["baseline", "λ_max > 10⁻⁴"], frame.loc["c_code", "stay (< 0.02)"]) == (1, 1)
 
 
 def test_new_cells_join_the_grid_and_a_network_twice_is_refused():
