@@ -314,7 +314,10 @@ def _fig14a(table: pd.DataFrame, cells: pd.DataFrame, most: dict) -> dict:
     quiet = table[table.noise_var == 0]
     large = quiet[quiet.num_series * quiet.length >= LARGE]
     embed = {int(nc): p for nc, p in large.groupby("context_size")}
-    reproduced = all(rho > 0 and p < 0.05 for rho, p in trend.values())
+    embedded = [int((p.E_closed < EMBEDS).sum()) for p in embed.values()]
+    # grows with the data at every NC, and more networks embed the large data as NC grows
+    reproduced = all(rho > 0 and p < 0.05 for rho, p in trend.values()) and \
+        embedded == sorted(embedded) and embedded[0] < embedded[-1]
     return {"paper": "Fig. 14a", "claim": "E^closed grows with NT and LT and falls with NC",
             "moex": f"E^closed against NT·LT over cells, Spearman ρ {_trend(trend)}; networks "
                     f"that embed their data (E^closed < 10⁻²) among the "
