@@ -145,7 +145,7 @@ def replication(table: pd.DataFrame) -> pd.DataFrame:
     }])
 
 
-def _mostly_nonperiodic(table: pd.DataFrame, noise: float) -> int | str:
+def mostly_nonperiodic(table: pd.DataFrame, noise: float) -> int | str:
     """Networks with a majority of nonperiodic samples at one noise level, "–" if not run;
     "n/m" where only m networks had a sample long enough to judge (100 laps)."""
     at = table.nonperiodic_fraction[table.noise_var == noise]
@@ -183,7 +183,7 @@ def window_table(window: pd.DataFrame, grid: pd.DataFrame) -> pd.DataFrame:
         row = dict(zip(["NC", "NT", "LT"], values, strict=True))
         for noise in (0, 1e-3):
             row[f"ρ² = {noise:g}: 100 000 → 10 000 steps"] = (
-                f"{_mostly_nonperiodic(full, noise)} → {_mostly_nonperiodic(cell, noise)}")
+                f"{mostly_nonperiodic(full, noise)} → {mostly_nonperiodic(cell, noise)}")
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -201,7 +201,7 @@ def _switching(c: pd.DataFrame) -> str:
 
 
 def _nonperiodic(c: pd.DataFrame) -> str:
-    return " → ".join(str(_mostly_nonperiodic(c, v)) for v in (0, 1e-4, 1e-3))
+    return " → ".join(str(mostly_nonperiodic(c, v)) for v in (0, 1e-4, 1e-3))
 
 
 # title -> (which evaluations, the cell's entry): Fig. 14's quantities without noise, Fig. 16's
@@ -282,15 +282,21 @@ def data_trend(cells: pd.DataFrame, column: str) -> dict[int, tuple[float, float
             for nc, part in cells.groupby("context_size")}
 
 
+def _least_data(table: pd.DataFrame) -> dict[int, pd.DataFrame]:
+    """Per NC, the networks without noise of the cells with the least data (NT·LT ≤ `SMALL`)."""
+    quiet = table[table.noise_var == 0]
+    return {int(nc): c for nc, c in quiet[quiet.num_series * quiet.length <= SMALL]
+            .groupby("context_size")}
+
+
 def chaos_against_data(table: pd.DataFrame) -> pd.DataFrame:
     """Per NC, Fig. 14b's two trends: networks chaotic (λ_max > 10⁻⁴) in the cells with the
     least data (NT·LT ≤ `SMALL`), and Spearman's ρ of a cell's chaotic share against NT·LT over
     the cells that embed their data (mean E^closed < `EMBEDS`) and over those that do not."""
-    cells, quiet = cell_means(table), table[table.noise_var == 0]
-    small = quiet[quiet.num_series * quiet.length <= SMALL]
+    few_by_nc = _least_data(table)
     rows = []
-    for nc, part in cells.groupby("context_size"):
-        few = small[small.context_size == nc]
+    for nc, part in cell_means(table).groupby("context_size"):
+        few = few_by_nc[int(nc)]
         row = {"NC": int(nc), f"chaotic, NT·LT ≤ {SMALL}":
                f"{(few.max_lyapunov > THRESHOLD).sum()} of {len(few)}"}
         for name, side in (("embed", part.E_closed < EMBEDS), ("do not", part.E_closed >= EMBEDS)):
@@ -335,13 +341,15 @@ def _fig14b(table: pd.DataFrame, cells: pd.DataFrame, most: dict) -> dict:
         f"{r['stay on one curve: embed'].replace(' / ', ' of ')} that embed it "
         f"(p {r['stay on one curve: p']})" for nc, r in split.iterrows())
     chaos = data_trend(cells[cells.E_closed < EMBEDS], "chaotic")
-    nc10 = cells[(cells.context_size == 10) & (cells.num_series >= 10) & (cells.length >= 1000)]
-    nc10_chaotic = (nc10.chaotic * 10).round().astype(int)
     quiet = table[table.noise_var == 0]
-    few = {int(nc): c for nc, c in quiet[quiet.num_series * quiet.length <= SMALL]
-           .groupby("context_size")}
+    much = quiet[(quiet.context_size == 10) & (quiet.num_series >= 10) & (quiet.length >= 1000)]
+    by_cell = much.groupby(["num_series", "length"])
+    nc10_chaotic = by_cell.max_lyapunov.apply(lambda v: int((v > THRESHOLD).sum()))
+    nc10_stay = much.switch_prob < STAY
+    few = _least_data(table)
     few_chaotic = [int((c.max_lyapunov > THRESHOLD).sum()) for c in few.values()]
-    reproduced = nc10_chaotic.max() <= 3 and (nc10.stay >= 0.5).any()
+    reproduced = nc10_chaotic.max() <= 3 and \
+        (nc10_stay.groupby([much.num_series, much.length]).mean() >= 0.5).any()
     larger_nc_needs_more = few_chaotic == sorted(few_chaotic, reverse=True) and \
         few_chaotic[0] > few_chaotic[-1]
     return {"paper": "Fig. 14b", "claim": "chaos appears as NT and LT grow, with more data needed "
@@ -349,7 +357,7 @@ def _fig14b(table: pd.DataFrame, cells: pd.DataFrame, most: dict) -> dict:
                                          "even with much data",
             "moex": "NC = 10 with NT ≥ 10 and LT ≥ 1000: λ_max > 10⁻⁴ in "
                     + ", ".join(map(str, nc10_chaotic)) + " of 10 networks, "
-                    f"{int(round(nc10.stay.mean() * len(nc10) * 10))} of {10 * len(nc10)} stay "
+                    f"{nc10_stay.sum()} of {len(much)} stay "
                     f"on one curve; with the most data (NT {most['nt']}, LT {most['lt']}) NC 20 "
                     f"and 30 do the same: chaotic "
                     + _per_nc(most["cells"], lambda c: f"{(c.max_lyapunov > THRESHOLD).sum()}",
@@ -398,11 +406,11 @@ def _fig16(table: pd.DataFrame, arms: pd.DataFrame) -> dict:
     smallest = table[(table.num_series == table.num_series.min())
                      & (table.length == table.length.min())]
     small = {int(nc): c for nc, c in smallest.groupby("context_size")}
-    per_cell = [(_mostly_nonperiodic(c, 1e-3), _mostly_nonperiodic(c, 0))
+    per_cell = [(mostly_nonperiodic(c, 1e-3), mostly_nonperiodic(c, 0))
                 for _, c in table.groupby(CELL)]
     per_cell = [pair for pair in per_cell if all(isinstance(n, int) for n in pair)]
     raised = sum(after >= before for after, before in per_cell)
-    contradicted = all(_mostly_nonperiodic(c, 1e-3) > 5 for c in small.values())
+    contradicted = all(mostly_nonperiodic(c, 1e-3) > 5 for c in small.values())
     counts = arms_at_noise(arms)
     changed = counts[counts.arm != "baseline"]
     base = counts[counts.arm == "baseline"]
@@ -412,8 +420,8 @@ def _fig16(table: pd.DataFrame, arms: pd.DataFrame) -> dict:
                     f"{raised} of the {len(per_cell)} cells whose every network could be judged "
                     f"at both levels; in the smallest cell (NT "
                     f"{int(smallest.num_series.iloc[0])}, LT {int(smallest.length.iloc[0])}) "
-                    + _per_nc(small, lambda c: f"{_mostly_nonperiodic(c, 0)} → "
-                                               f"{_mostly_nonperiodic(c, 1e-3)}", " of 10")
+                    + _per_nc(small, lambda c: f"{mostly_nonperiodic(c, 0)} → "
+                                               f"{mostly_nonperiodic(c, 1e-3)}", " of 10")
                     + "; the same on 10 000 instead of 100 000 steps per sample; that cell "
                     "retrained on the same seeds with one change each ("
                     + ", ".join(ARMS[a] for a in sorted(changed.arm.unique())) + ") at NC "

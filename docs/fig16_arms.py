@@ -26,7 +26,7 @@ import pandas as pd
 from moex.report import to_markdown
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from capacity_cells import STAY, THRESHOLD, arms_at_noise  # noqa: E402
+from capacity_cells import STAY, THRESHOLD, arms_at_noise, mostly_nonperiodic  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent
 NOISE = 1e-3
@@ -63,7 +63,7 @@ def table(runs: pd.DataFrame) -> pd.DataFrame:
             rows.append({
                 "NC": int(nc), "arm": arm, "networks": int(counts.networks),
                 "mostly nonperiodic, ρ² = 0 → 10⁻³":
-                    f"{(quiet.nonperiodic_fraction > 0.5).sum()} → {int(counts.mostly)}",
+                    f"{mostly_nonperiodic(quiet, 0)} → {int(counts.mostly)}",
                 "p against baseline (10⁻³)": "–" if arm == "baseline" else f"{counts.p:.2g}",
                 "λ_max > 10⁻⁴": int((quiet.max_lyapunov > THRESHOLD).sum()),
                 "stay (< 0.02)": int((quiet.switch_prob < STAY).sum()),
