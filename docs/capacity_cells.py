@@ -449,13 +449,12 @@ def figure_rows(table: pd.DataFrame, arms: pd.DataFrame) -> pd.DataFrame:
                          _fig16(table, arms)])
 
 
-if __name__ == "__main__":
-    mode, source = sys.argv[1], Path(sys.argv[2])
+def main(mode: str, source: Path) -> None:
     if mode == "window":
         table = collect_window(source)
         table.to_csv(DOCS / "capacity_window10k_summary.csv", index=False)
         print(to_markdown(window_table(table, pd.read_csv(DOCS / "capacity_grid_summary.csv"))))
-        sys.exit()
+        return
     if mode in ("grid", "add"):
         name = "capacity_grid_summary.csv"
         table = (collect_grid(source) if mode == "grid" else
@@ -469,3 +468,11 @@ if __name__ == "__main__":
         name = f"capacity_nt20{'' if length == '1000' else f'_lt{length}'}_summary.csv"
     table.to_csv(DOCS / name, index=False)
     print(to_markdown(summary(table)))
+
+
+if __name__ == "__main__":
+    try:
+        main(sys.argv[1], Path(sys.argv[2]))
+    except (FileNotFoundError, ValueError) as error:  # a missing folder, a network twice
+        print(f"capacity_cells.py {sys.argv[1]}: {error}", file=sys.stderr)
+        sys.exit(2)

@@ -74,5 +74,10 @@ def table(runs: pd.DataFrame) -> pd.DataFrame:
 
 if __name__ == "__main__":
     if len(sys.argv) > 1:
-        collect([Path(a) for a in sys.argv[1:]]).to_csv(DOCS / "fig16_arms.csv", index=False)
+        try:
+            runs = collect([Path(a) for a in sys.argv[1:]])
+        except FileNotFoundError as error:  # a sweep not finished, or a job not evaluated
+            print(f"fig16_arms.py: {error}", file=sys.stderr)
+            sys.exit(2)
+        runs.to_csv(DOCS / "fig16_arms.csv", index=False)
     print(to_markdown(table(pd.read_csv(DOCS / "fig16_arms.csv"))))

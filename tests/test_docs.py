@@ -1,6 +1,8 @@
 """REPRODUCTION.md quotes the tables that scripts in docs/ recompute from the CSVs."""
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -132,6 +134,17 @@ def test_new_cells_join_the_grid_and_a_network_twice_is_refused():
     pd.testing.assert_frame_equal(added, expected)
     with pytest.raises(ValueError, match=r"\(10, 2, 250\)"):
         cells.merge_cells([grid, cell])
+
+
+def test_adding_a_network_twice_exits_2_with_one_line_and_leaves_the_csv(tmp_path):
+    grid = ROOT / "docs" / "capacity_grid_summary.csv"
+    before = grid.read_bytes()
+    pd.read_csv(grid).head(1).to_csv(tmp_path / "summary.csv", index=False)
+    done = subprocess.run([sys.executable, str(ROOT / "docs" / "capacity_cells.py"), "add",
+                           str(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.count("\n") == 1 and "networks appear twice" in done.stderr
+    assert grid.read_bytes() == before
 
 
 def test_fishers_exact_test_gives_the_textbook_p_values():
