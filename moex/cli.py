@@ -58,6 +58,7 @@ verbs:
   train      train both phases on a task, evaluate, and write a run folder
   evaluate   recompute metrics.csv, samples.npz and figures of a run folder (run_dir=...)
   generate   closed-loop samples from random initial states (run_dir=... steps=... noise_var=...)
+  import     networks trained by the authors' C tools (mregn) as a moex run folder (source=...)
   report     tables and phase plots of a multirun folder (moex report outputs/multirun/<date>)
 
 examples:
@@ -67,6 +68,7 @@ examples:
   moex evaluate run_dir=outputs/lissajous2/2026-11-24_12-00-00 eval.noise_var=0.001
   moex generate run_dir=outputs/lissajous2/2026-11-24_12-00-00 steps=10000 noise_var=0.001
   moex train -m experiment=paper_table2 hydra/launcher=joblib
+  moex import source=[runs/net*] task=lissajous2 task.switch_prob=0.5
   moex report outputs/multirun/2026-11-24_12-00-00
 """
 
@@ -287,9 +289,10 @@ VERBS = {
     "train": ("config", _job(pipeline.run_train, "train")),
     "evaluate": ("evaluate", _job(pipeline.run_evaluate, "evaluate")),
     "generate": ("generate", _job(pipeline.run_generate, "generate")),
+    "import": ("import", _job(pipeline.run_import, "import")),
 }
 VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
-               "generate": pipeline.load_run}
+               "generate": pipeline.load_run, "import": pipeline.check_import}
 
 
 def _latest_run(task: str) -> Path:

@@ -108,10 +108,28 @@ class GenerateConfig(RunFolder):
         check(self.noise_var >= 0, f"noise_var={self.noise_var} must be >= 0")
 
 
+MIN_VARIANCE = 0.001  # the C code's compile-time floor of every expert's variance
+
+
+@dataclass
+class ImportConfig(Config):
+    """`moex import`: the C tools' save files of one design as a run folder of R networks."""
+
+    source: list[str] = field(default_factory=list)  # folders (globs) holding mre.dat + gn.dat,
+    # or rnn.dat: one network each, all trained on the data of `task` with data seed `seed`
+    min_variance: float = MIN_VARIANCE  # the MIN_VARIANCE the C tools were compiled with
+    out_dir: str = ""  # instead of outputs/imported/<task>/<date>
+
+    def __post_init__(self):
+        super().__post_init__()
+        check(self.min_variance > 0, f"min_variance={self.min_variance} must be > 0")
+
+
 def register_configs() -> None:
     ConfigStore.instance().store(name="base_config", node=Config)
     ConfigStore.instance().store(name="base_evaluate", node=EvaluateConfig)
     ConfigStore.instance().store(name="base_generate", node=GenerateConfig)
+    ConfigStore.instance().store(name="base_import", node=ImportConfig)
 
 
 def config_from_dict(data: dict) -> Config:

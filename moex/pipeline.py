@@ -13,12 +13,13 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import budget, checkpoint, io, plotting, run_page
+from moex import budget, checkpoint, importer, io, plotting, run_page
 from moex.closed_loop import generate, never, random_state, trained_state
 from moex.config import (
     Config,
     EvaluateConfig,
     GenerateConfig,
+    ImportConfig,
     RunFolder,
     config_from_dict,
     paper_eval_sizes,
@@ -435,3 +436,27 @@ def _log_summary(history: pd.DataFrame) -> None:
         values = group[column]
         log.info("%s: final %s mean %.3g (min %.3g, max %.3g) over %d runs", phase, column,
                  values.mean(), values.min(), values.max(), len(values))
+
+
+def check_import(cfg: ImportConfig) -> None:
+    """Before anything is written: the task's data and every source file read and matched."""
+    importer.import_networks(cfg, load_task(cfg))
+
+
+def run_import(cfg: ImportConfig, out_dir: Path, stop=never) -> checkpoint.Checkpoint:
+    """Networks trained by the authors' C tools as one finished run folder (checkpoint.pt,
+    imported_from.csv), then evaluated as a training run is (unless eval.enabled=false)."""
+    out_dir = Path(out_dir)
+    dataset = load_task(cfg)
+    run_cfg, record = importer.import_networks(cfg, dataset)
+    folders = importer.network_folders(cfg.source)
+    log.info("importing %d networks of the C tools (%s) on task %s into %s", run_cfg.num_runs,
+             "gating network alone" if record.beta is None else "mixture", cfg.task.name, out_dir)
+    record.save(out_dir / checkpoint.NAME)
+    importer.write_provenance(out_dir, folders)
+    if run_cfg.eval.enabled:
+        evaluate_run(run_cfg, dataset, record.experts, record.beta, record.gating, out_dir,
+                     record.failed, get_backend(run_cfg.backend, run_cfg.device), stop)
+    else:
+        run_page.write(out_dir, run_cfg, None, f"moex import {out_dir.name}")
+    return record
