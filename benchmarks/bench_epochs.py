@@ -29,44 +29,52 @@ from moex.tasks import TaskConfig
 from moex.train import train_experts, train_gating
 
 
-def _clock(fn, steps: int) -> tuple[float, float]:
+def _clock(fn, steps: int, sync: bool) -> tuple[float, float]:
     start, start_cpu = time.perf_counter(), time.process_time()
     fn(steps)
+    if sync:
+        torch.cuda.synchronize()
     return time.perf_counter() - start, time.process_time() - start_cpu
 
 
-def _time(fn, steps: int, repeats: int, base: int = 5) -> tuple[float, float]:
+def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tuple[float, float]:
     """(wall, cpu) seconds per epoch: (time of base + steps epochs - time of base epochs) / steps,
-    which leaves out the set-up of a training call; the best of `repeats` such pairs."""
-    fn(base)  # warm-up: numba compilation (or loading the cache), allocator
+    which leaves out the set-up of a training call; the best of `repeats` such pairs. The
+    warm-up runs both lengths, so every kernel is compiled at the timed sizes first."""
+    fn(base)  # warm-up: numba / Triton compilation (or loading the cache), allocator
+    fn(base + steps)
     wall = cpu = float("inf")
     for _ in range(repeats):
-        short, long = _clock(fn, base), _clock(fn, base + steps)
+        short, long = _clock(fn, base, sync), _clock(fn, base + steps, sync)
         wall = min(wall, (long[0] - short[0]) / steps)
         cpu = min(cpu, (long[1] - short[1]) / steps)
     return wall, cpu
 
 
 def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
-          context_size: int, dtype: str, device: str = "cpu") -> list[dict]:
+          context_size: int, dtype: str, device: str = "cpu", series: int = 0,
+          length: int = 0) -> list[dict]:
+    """Rows of ms per network-epoch; `series` and `length` (0: the task's) shrink the data."""
+    chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
-    torch.set_num_threads(1 if get_backend(backend).name == "cpu" else threads)
+    torch.set_num_threads(1 if chosen.name == "cpu" else threads)
     numba.set_num_threads(threads)
     cfg = Config(task=TaskConfig(name=task))
     if task == "reber":
         cfg.task.num_series, cfg.task.length = 4, 500
         cfg.model.num_experts, cfg.model.gating.epsilon = 7, 0.1
+    cfg.task.num_series = series or cfg.task.num_series
+    cfg.task.length = length or cfg.task.length
     cfg.model.gating.context_size = context_size
     dtype = getattr(torch, dtype)
     data = load_task(cfg)
     series = torch.as_tensor(data.series, dtype=dtype)
     S, _, D = series.shape
     gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, runs)]
-    chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     results = []
 
     def record(name, fn):
-        wall, cpu = _time(fn, steps, repeats)
+        wall, cpu = _time(fn, steps, repeats, sync=chosen.device.startswith("cuda"))
         results.append({"task": task, "phase": name, "runs": runs, "backend": backend,
                         "threads": threads, "context_size": context_size,
                         "wall_ms": 1e3 * wall / runs, "cpu_ms": 1e3 * cpu / runs})
@@ -109,6 +117,8 @@ def main():
     parser.add_argument("--device", default="cpu", help="for reference and gpu: cpu or cuda")
     parser.add_argument("--context-sizes", type=int, nargs="+", default=[15])
     parser.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    parser.add_argument("--series", type=int, default=0, help="series per network (0: task's)")
+    parser.add_argument("--length", type=int, default=0, help="steps per series (0: task's)")
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
@@ -122,7 +132,7 @@ def main():
             for threads in args.threads:
                 for size in args.context_sizes:
                     bench(args.task, runs, backend, threads, args.steps, args.repeats, size,
-                          args.dtype, args.device)
+                          args.dtype, args.device, args.series, args.length)
 
 
 if __name__ == "__main__":

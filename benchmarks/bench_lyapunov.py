@@ -25,10 +25,10 @@ def bench(runs: int, samples: int, steps: int, threads: int, backend: str, devic
           repeats: int = 3) -> float:
     """Seconds per closed-loop step (with one tangent vector) for runs × samples trajectories,
     the best of `repeats` blocks of `steps` steps."""
-    # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
-    torch.set_num_threads(1 if get_backend(backend).name == "cpu" else threads)
-    numba.set_num_threads(threads)
     backend = get_backend(backend, device)
+    # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
+    torch.set_num_threads(1 if backend.name == "cpu" else threads)
+    numba.set_num_threads(threads)
     cfg = Config()
     gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, runs)]
     home = device if backend.name == "reference" else "cpu"
@@ -36,13 +36,13 @@ def bench(runs: int, samples: int, steps: int, threads: int, backend: str, devic
     gating = {k: v.to(home) for k, v in init_gating(cfg.model, 10, 2, gens).items()}
     generator = torch.Generator().manual_seed(0)
     state = random_state(experts, gating, samples, 2, 1, generator)
-    with torch.no_grad():  # warm-up: compile (or load the cached kernel) outside the timing
-        closed_loop_lyapunov(experts, gating, state, 2, 0, generator, backend=backend)
+    with torch.no_grad():  # warm-up at the timed length: every chunk size compiled before
+        closed_loop_lyapunov(experts, gating, state, steps, 0, generator, backend=backend)
         best = float("inf")
         for _ in range(repeats):  # a shared machine's noise only ever adds time
             start = time.perf_counter()
             closed_loop_lyapunov(experts, gating, state, steps, 0, generator, backend=backend)
-            if device == "cuda":
+            if device.startswith("cuda"):
                 torch.cuda.synchronize()
             best = min(best, time.perf_counter() - start)
         return best / steps

@@ -9,6 +9,7 @@ if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from moex.config import Config
+from moex.kernels import REGISTRY, Backend, available
 from moex.model import ExpertsConfig, GatingConfig, ModelConfig
 from moex.tasks import TaskConfig
 from moex.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
@@ -33,17 +34,25 @@ def generators(seeds):
     return [torch.Generator().manual_seed(s) for s in seeds]
 
 
-FAST_BACKENDS = ("cpu", "gpu")  # every backend the law tests hold to the reference
+# the backends that run slowly here (gpu without CUDA: Triton's interpreter), by capability
+INTERPRETED = tuple(name for name in REGISTRY
+                    if (here := available(name)[0]) is not None and here.caps.interpreted)
 
 
-def fast_backend(name: str):
-    """The named backend on its device (gpu: CUDA, or Triton's interpreter on the CPU); skipped,
-    with the reason, where it cannot run."""
-    from moex.kernels import _gpu_module, get_backend
+def backend_params(reference: bool = True, slow_interpreted: bool = False) -> list:
+    """Params of the `backend` fixture (with `indirect=True`): every backend of the registry
+    (`moex.kernels.REGISTRY`), the reference too unless a test compares against it; with
+    `slow_interpreted`, a backend interpreted here (gpu without CUDA) is marked slow."""
+    return [pytest.param(name, id=name, marks=pytest.mark.slow
+                         if slow_interpreted and name in INTERPRETED else ())
+            for name in REGISTRY if reference or name != "reference"]
 
-    if name == "gpu":
-        gpu, why = _gpu_module()
-        if gpu is None:
-            pytest.skip(f"backend gpu: Triton is not installed ({why})")
-        return get_backend("gpu", "cuda" if torch.cuda.is_available() else "cpu")
-    return get_backend(name)
+
+@pytest.fixture(params=backend_params())
+def backend(request) -> Backend:
+    """Each backend on the device it runs on here (gpu: CUDA, else Triton's interpreter); where
+    one cannot run (Triton missing), its tests are skipped with the reason."""
+    chosen, why = available(request.param)
+    if chosen is None:
+        pytest.skip(f"backend {request.param} cannot run here: {why}")
+    return chosen

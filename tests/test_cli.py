@@ -328,11 +328,12 @@ def test_shell_completion_installs_and_completes_the_keys_of_each_verb(tmp_path)
 def test_every_task_trains_and_evaluates_on_the_gpu_backend(task, tmp_path):
     """backend=gpu end to end (Triton's interpreter without CUDA: 40-110 s a task): both phases,
     the evaluation's closed loop with its tangent, symbols and every output file."""
-    from moex.kernels import _gpu_module
+    from moex.kernels import available
 
-    if _gpu_module()[0] is None:
-        pytest.skip("backend gpu: Triton is not installed")
-    device = "cuda" if torch.cuda.is_available() else "cpu"
+    gpu, why = available("gpu")
+    if gpu is None:
+        pytest.skip(f"backend gpu cannot run here: {why}")
+    device = gpu.device
     done = _moex(["train", f"task={task}", "task.num_series=2", "task.length=40",
                   "task.num_test_series=1", "train.experts.steps=2", "train.gating.steps=2",
                   "num_runs=2", "backend=gpu", f"device={device}", "eval.num_samples=2",

@@ -13,7 +13,6 @@ from moex import objectives
 from moex.closed_loop import closed_loop_lyapunov, generate, random_state, trained_state
 from moex.config import Config
 from moex.evaluate import EvalConfig, _train_block_kl, evaluate, phase2_targets
-from moex.kernels import get_backend
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward
 from moex.pipeline import initial_parameters, load_task, run_train
@@ -25,7 +24,7 @@ from moex.train import (
     train_experts,
     train_gating,
 )
-from tests.conftest import fast_backend
+from tests.conftest import backend_params
 
 QUICK = EvalConfig(num_samples=3, lyapunov_steps=400, transient=50, plot_steps=100)
 
@@ -125,8 +124,7 @@ def test_tracking_during_training(tmp_path):
     np.testing.assert_allclose(last, _train_block_kl(targets, closed["gates"], cfg.eval))
 
 
-@pytest.mark.parametrize("backend", ["reference", "cpu", pytest.param(
-    "gpu", marks=pytest.mark.slow)])  # (gpu: 600 steps, about 2 min in Triton's interpreter)
+@pytest.mark.parametrize("backend", backend_params(slow_interpreted=True), indirect=True)
 def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backend):
     """With every weight and bias zero, each potential decays as u_n = (1 - ε) u_{n-1} and the
     outputs and gates are constant: the largest exponent is ln(1 - min ε) exactly, here that of
@@ -143,9 +141,8 @@ def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backen
     # (a long transient: the experts' faster decay must leave the tangents first)
     lam = closed_loop_lyapunov(experts, gating, state, 200, 400,
                                torch.Generator().manual_seed(1),
-                               num_exponents=2 if backend != "gpu" else 1,
-                               backend=get_backend(backend) if backend != "gpu"
-                               else fast_backend("gpu"))
+                               num_exponents=1 if backend.caps.interpreted else 2,
+                               backend=backend)
     torch.testing.assert_close(lam, torch.full_like(lam, math.log(1 - 0.07)), rtol=0,
                                atol=1e-10)
 

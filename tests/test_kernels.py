@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from moex.closed_loop import closed_loop_lyapunov, generate, random_state
-from moex.kernels import get_backend, reference
+from moex.kernels import REGISTRY, get_backend, reference
 from moex.metrics.lyapunov import initial_tangents, reorthonormalise
 from moex.model import ModelConfig, closed_loop_step, init_experts, init_gating
 from moex.tasks import TaskConfig, make_task
@@ -21,15 +21,10 @@ from moex.train import (
     train_experts,
     train_gating,
 )
-from tests.conftest import FAST_BACKENDS, fast_backend, generators
+from tests.conftest import INTERPRETED, backend_params, generators
 
 REFERENCE, COMPILED = get_backend("reference"), get_backend("cpu")
 TOLERANCE = {torch.float64: 1e-10, torch.float32: 1e-5}
-
-
-@pytest.fixture(params=FAST_BACKENDS)
-def backend(request):
-    return fast_backend(request.param)
 
 
 def _on(params: dict, device) -> dict:
@@ -152,25 +147,27 @@ def test_cpu_kernels_give_the_same_bits_on_any_number_of_threads(R):
 
 
 def _trajectory_cases():
-    """Every combination on the cpu backend; on the gpu backend (in Triton's interpreter without
-    CUDA, ~30-70 s a case) two in the default suite, covering both forms, both rates and both
-    precisions, the other six marked slow."""
+    """Every combination on each backend compared with the reference; on a backend interpreted
+    here (gpu in Triton's interpreter, ~30-70 s a case) two in the default suite, covering both
+    forms, both rates and both precisions, the other six marked slow."""
     cases = []
-    for name in FAST_BACKENDS:
+    for param in backend_params(reference=False):
+        name = param.values[0]
         for dtype in (torch.float64, torch.float32):
             for form in ("paper", "mregn"):
                 for adaptive in (False, True):
-                    quick = name == "cpu" or (dtype, form, adaptive) in (
+                    quick = name not in INTERPRETED or (dtype, form, adaptive) in (
                         (torch.float64, "paper", True), (torch.float32, "mregn", False))
                     cases.append(pytest.param(name, dtype, form, adaptive,
+                                              id=f"{name}-{dtype}-{form}-{adaptive}",
                                               marks=() if quick else pytest.mark.slow))
     return cases
 
 
-@pytest.mark.parametrize("name, dtype, form, adaptive", _trajectory_cases())
-def test_training_trajectories_of_both_phases_match(name, dtype, form, adaptive):
-    backend = fast_backend(name)
-    steps = 12 if name == "cpu" else 6  # (Triton's interpreter is slow)
+@pytest.mark.parametrize("backend, dtype, form, adaptive", _trajectory_cases(),
+                         indirect=["backend"])
+def test_training_trajectories_of_both_phases_match(backend, dtype, form, adaptive):
+    steps = 6 if backend.caps.interpreted else 12
     task = make_task(TaskConfig(num_series=2, length=40), seed=0)
     series = torch.as_tensor(task.series, dtype=dtype)
     model = ModelConfig(learn_time_constants=True)
@@ -242,23 +239,33 @@ def _closed_loop_model(K, D, delay, dtype):
 
 
 def _closed_loop_cases():
-    """(K, D, delay, k tangents, uniform gates): every case on cpu in both precisions; on gpu
-    (slow in the interpreter) each feature once in float64 and one case in float32."""
+    """(K, D, delay, k tangents, uniform gates): on each backend compared with the reference,
+    every case in both precisions, and without tangents; on a backend interpreted here (slow)
+    each feature once in float64 and one case in float32."""
     one = [(2, 2, 1, 1, False), (3, 2, 2, 1, False), (4, 0, 1, 1, False), (3, 2, 1, 1, True)]
     several = [(3, 2, 2, 3, False), (4, 0, 1, 2, False), (3, 2, 1, 2, True)]
+    no_tangent = [(2, 2, 1, 0, False)]
     precisions = [(torch.float64, 1e-10), (torch.float32, 1e-4)]
-    return ([("cpu", *c, *p) for c in one + several for p in precisions]
-            + [("gpu", *c, *precisions[0]) for c in one + several + [(2, 2, 1, 0, False)]]
-            + [("gpu", *several[0], *precisions[1])])
+    cases = []
+    for param in backend_params(reference=False):
+        name = param.values[0]
+        if name in INTERPRETED:
+            chosen = [(c, precisions[0]) for c in one + several + no_tangent] + [
+                (several[0], precisions[1])]
+        else:
+            chosen = [(c, p) for c in one + several + no_tangent for p in precisions]
+        cases += [pytest.param(name, *c, *p, id=f"{name}-{'-'.join(map(str, c))}-{p[0]}")
+                  for c, p in chosen]
+    return cases
 
 
-@pytest.mark.parametrize("name, K, D, delay, k, uniform, dtype, tol", _closed_loop_cases())
-def test_closed_loop_kernel_matches_reference(name, K, D, delay, k, uniform, dtype, tol,
+@pytest.mark.parametrize("backend, K, D, delay, k, uniform, dtype, tol", _closed_loop_cases(),
+                         indirect=["backend"])
+def test_closed_loop_kernel_matches_reference(backend, K, D, delay, k, uniform, dtype, tol,
                                               steps=40):
     """Outputs, gates, potentials, next state, tangents (up to the sign QR leaves free) and the
     log growth of the compiled closed loop equal the reference, with noise, without experts
     (symbolic tasks), with the C tool's uniform gates in the Jacobian, and without tangents."""
-    backend = fast_backend(name)
     experts, gating, state = _closed_loop_model(K, D, delay, dtype)
     tangents = torch.linalg.qr(torch.randn(state.flat().shape + (k,), dtype=dtype))[0] if k \
         else None
@@ -321,14 +328,12 @@ def fixed_point():
     return experts, gating, fixed, torch.stack(jacobians)
 
 
-@pytest.mark.parametrize("name", ("reference",) + FAST_BACKENDS)
-def test_exponents_at_a_fixed_point_are_benettins_qr_of_its_jacobian(name, fixed_point, k=2,
+def test_exponents_at_a_fixed_point_are_benettins_qr_of_its_jacobian(backend, fixed_point, k=2,
                                                                      transient=3, steps=12):
     """Lyapunov law on every backend: at a fixed point the tangent map is the constant Jacobian
     J, so the estimated spectrum is exactly (1/n) Σ ln |R_ii| of the QR iteration Q ← qr(J Q)
     from the same initial tangents (the transient's steps not counted)."""
     experts, gating, fixed, J = fixed_point
-    backend = REFERENCE if name == "reference" else fast_backend(name)
     lam = closed_loop_lyapunov(experts, gating, fixed, steps, transient,
                                torch.Generator().manual_seed(0), num_exponents=k, backend=backend)
     q = initial_tangents(fixed.flat(), k, torch.Generator().manual_seed(0))[:, 0]  # (2, dim, k)
@@ -376,7 +381,7 @@ def test_backend_choice(monkeypatch):
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("name", ["reference", "gpu"])
+@pytest.mark.parametrize("name", [n for n in REGISTRY if n != "cpu"])  # those that run on CUDA
 def test_cuda_backends_match_cpu(name):
     """On a real GPU: the reference and the Triton kernels (compiled, not interpreted) give the
     cpu backend's statistics and gradients on both phases."""

@@ -1,29 +1,32 @@
 """Backends: where the time loops of training and evaluation run.
 
-Three backends, each a module with the same names (the `Problem` protocol below and two
-functions):
+Three backends (`REGISTRY`), each a module with the same names (`BackendModule`): the two training
+problems (`Problem`), a closed loop and a symbol readout, torch tensors in and out (the symbol
+readout: numpy), each honouring the device the `Backend` binds it to:
 
 - `ExpertProblem(inputs, targets, model, phase, num_runs, device)`: phase 1 (Eqs. 9-13);
 - `GatingProblem(gate_targets, inputs, model, phase, seeds, device)`: phase 2 (Eqs. 14-16);
-- `closed_loop(experts, gating, state, steps, noise, tangents, count)`: the autonomous mixture
-  (Sec. 2.2) with Lyapunov tangent vectors;
-- `nearest_symbols(points, prototypes, prototype_symbols)`: the symbol of each generated point.
+- `closed_loop(experts, gating, state, steps, noise, tangents, count, ..., device)`: the
+  autonomous mixture (Sec. 2.2) with Lyapunov tangent vectors;
+- `nearest_symbols(points, prototypes, prototype_symbols, device)`: the symbol of each point.
 
 `reference` is the model's equations in PyTorch with autograd (any device); it is the oracle the
-tests hold the others to. `cpu` is the compiled numba implementation; `gpu` runs both training
-phases as Triton kernels (CUDA, or Triton's interpreter on a CPU). The training loop
-(`moex.train`) keeps parameters, gradients and momentum on the problem's `device` and is the
-same for all three. The choice is made once, by `get_backend`, and passed down.
+tests hold the others to. `cpu` (package `cpu/`) is the compiled numba implementation; `gpu`
+(package `gpu/`, module for module the same) runs as Triton kernels (CUDA, or Triton's
+interpreter on a CPU). Each declares its `Capabilities`. The training loop (`moex.train`) keeps
+parameters, gradients and momentum on the problem's `device` and is the same for all three. The
+choice is made once, by `get_backend`, and passed down; `available(name)` says whether and where
+a backend runs here (the tests' one `backend` fixture is built from it).
 """
 
 from dataclasses import dataclass
-from types import ModuleType
 from typing import Protocol
 
 import numpy as np
 import torch
 
 from moex.errors import check
+from moex.model import ClosedLoopRun, ClosedLoopState
 
 BACKENDS = ("auto", "reference", "cpu", "gpu", "compiled")
 ALIASES = {"compiled": "cpu"}  # the cpu backend's name before the GPU backend existed
@@ -50,12 +53,37 @@ class Problem(Protocol):
 
 
 @dataclass(frozen=True)
+class Capabilities:
+    """What a backend can do, so that callers and tests size themselves from it."""
+
+    float32: bool = True  # computes in float32 as well as float64
+    interpreted: bool = False  # runs slowly here (Triton's interpreter): tests shrink their sizes
+    threads: bool = False  # parallel over numba's threads (`moex.kernels.cpu.threads`)
+
+
+class BackendModule(Protocol):
+    """What each backend module (`reference`, `cpu`, `gpu`) defines, with the same names."""
+
+    ExpertProblem: type  # (inputs, targets, model, phase, num_runs, device) -> Problem
+    GatingProblem: type  # (gate_targets, inputs, model, phase, seeds, device) -> Problem
+
+    def closed_loop(self, experts: dict, gating: dict, state: ClosedLoopState, steps: int,
+                    noise: torch.Tensor | None = None, tangents: torch.Tensor | None = None,
+                    count: bool = False, uniform_gates: bool = False, potentials: bool = True,
+                    device: str = "cpu") -> ClosedLoopRun: ...
+
+    def nearest_symbols(self, points: np.ndarray, prototypes: np.ndarray,
+                        prototype_symbols: np.ndarray, device: str = "cpu") -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
 class Backend:
     """A backend module bound to a device; `name` is `reference`, `cpu` or `gpu`."""
 
     name: str
     device: str
-    module: ModuleType
+    module: BackendModule
+    caps: Capabilities = Capabilities()
 
     def expert_problem(self, inputs, targets, model, phase, num_runs) -> Problem:
         return self.module.ExpertProblem(inputs, targets, model, phase, num_runs, self.device)
@@ -63,11 +91,18 @@ class Backend:
     def gating_problem(self, gate_targets, inputs, model, phase, seeds) -> Problem:
         return self.module.GatingProblem(gate_targets, inputs, model, phase, seeds, self.device)
 
-    def closed_loop(self, *args, **kwargs):
-        return self.module.closed_loop(*args, **kwargs)
+    def closed_loop(self, experts: dict, gating: dict, state: ClosedLoopState, steps: int,
+                    noise: torch.Tensor | None = None, tangents: torch.Tensor | None = None,
+                    count: bool = False, uniform_gates: bool = False,
+                    potentials: bool = True) -> ClosedLoopRun:
+        """`steps` closed-loop steps on this backend's device (results where `state` is)."""
+        return self.module.closed_loop(experts, gating, state, steps, noise, tangents, count,
+                                       uniform_gates, potentials, device=self.device)
 
-    def nearest_symbols(self, points, prototypes, prototype_symbols):
-        return self.module.nearest_symbols(points, prototypes, prototype_symbols)
+    def nearest_symbols(self, points: np.ndarray, prototypes: np.ndarray,
+                        prototype_symbols: np.ndarray) -> np.ndarray:
+        return self.module.nearest_symbols(points, prototypes, prototype_symbols,
+                                           device=self.device)
 
 
 def _gpu_module():
@@ -76,6 +111,9 @@ def _gpu_module():
     except ImportError as error:  # triton missing
         return None, str(error)
     return gpu, ""
+
+
+REGISTRY = ("reference", "cpu", "gpu")  # every backend; `available` says which run here
 
 
 def get_backend(name: str = "auto", device: str = "cpu") -> Backend:
@@ -96,10 +134,21 @@ def get_backend(name: str = "auto", device: str = "cpu") -> Backend:
         check(gpu is not None, f"backend=gpu needs Triton ({why}); pip install triton")
         check(gpu.available(device), f"backend=gpu needs device=cuda (device={device}); "
               f"Triton's interpreter runs it on the CPU when TRITON_INTERPRET=1")
-        return Backend("gpu", device, gpu)
+        return Backend("gpu", device, gpu,
+                       Capabilities(interpreted=gpu.INTERPRET and not device.startswith("cuda")))
     from moex.kernels import cpu
 
-    return Backend("cpu", device, cpu)
+    return Backend("cpu", device, cpu, Capabilities(threads=True))
+
+
+def available(name: str) -> tuple[Backend | None, str]:
+    """Backend `name` on the device it runs on here (gpu: CUDA if present, else Triton's
+    interpreter when TRITON_INTERPRET=1), or (None, why it cannot run here)."""
+    device = "cuda" if name == "gpu" and torch.cuda.is_available() else "cpu"
+    try:
+        return get_backend(name, device), ""
+    except ValueError as error:
+        return None, str(error)
 
 
 def input_noise(seeds: list[int], step: int, shape: tuple, variance: float, dtype) -> np.ndarray:

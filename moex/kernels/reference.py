@@ -139,7 +139,8 @@ class GatingProblem(_Problem):
 def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
                 state: ClosedLoopState, steps: int, noise: torch.Tensor | None = None,
                 tangents: torch.Tensor | None = None, count: bool = False,
-                uniform_gates: bool = False, potentials: bool = True) -> ClosedLoopRun:
+                uniform_gates: bool = False, potentials: bool = True,
+                device: str = "cpu") -> ClosedLoopRun:
     """`steps` closed-loop steps (`moex.model.closed_loop_step`) with tangent vectors
     re-orthonormalised by QR after every step (Benettin et al. 1980).
 
@@ -147,6 +148,7 @@ def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor
         experts, gating, state: as for `closed_loop_step`.
         noise: (R, N, steps, D) noise added to x_m at each step, or None.
         tangents: (R, N, dim, k) tangent vectors in the layout of `state.flat()`, or None.
+        device: unused: the reference computes where the tensors of `state` are.
         count: sum ln |R_vv| of every QR step into the returned growth.
         uniform_gates: see `closed_loop_step`.
         potentials: record the gating potentials u^g (else None is returned in their place).
@@ -168,4 +170,7 @@ def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor
     return ClosedLoopRun(state, y, g, u_g if potentials else None, tangents, growth)
 
 
-nearest_symbols = symbolize_nearest
+def nearest_symbols(points: np.ndarray, prototypes: np.ndarray, prototype_symbols: np.ndarray,
+                    device: str = "cpu") -> np.ndarray:
+    """`moex.metrics.symbols.symbolize_nearest` itself (numpy, on the CPU whatever the device)."""
+    return symbolize_nearest(points, prototypes, prototype_symbols)

@@ -15,7 +15,7 @@ leaky RNN's forward pass and BPTT over a block of lanes, with the derivation), `
 (parameters to lanes and back, work arrays), `phases` (phase 1 and phase 2: the objectives, the
 problem classes), `closed_loop` (the autonomous mixture with Lyapunov tangents), `symbols`
 (nearest-point readout), `warm` (a first run's helper process that compiles the later kernels
-while the run trains). The GPU backend (`moex.kernels.gpu`) mirrors `rnn` and `phases`.
+while the run trains). The GPU backend (`moex.kernels.gpu`) mirrors it module for module.
 """
 
 from moex.kernels.cpu.closed_loop import closed_loop

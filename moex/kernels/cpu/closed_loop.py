@@ -324,7 +324,7 @@ def _check_shapes(experts, gating, state) -> None:
 
 def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
                 count: bool = False, uniform_gates: bool = False,
-                potentials: bool = True) -> ClosedLoopRun:
+                potentials: bool = True, device: str = "cpu") -> ClosedLoopRun:
     """`moex.kernels.reference.closed_loop` in one compiled call per thread: same arguments and
     results.
 

@@ -34,7 +34,7 @@ def _nearest(lo, hi, points, prototypes, symbols, out):  # pragma: no cover
 
 
 def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
-                    prototype_symbols: np.ndarray) -> np.ndarray:
+                    prototype_symbols: np.ndarray, device: str = "cpu") -> np.ndarray:
     """`moex.metrics.symbols.symbolize_nearest` compiled: (..., T, D) -> (..., T) symbols."""
     D = points.shape[-1]
     flat = np.asarray(points, np.float64).reshape(-1, D)

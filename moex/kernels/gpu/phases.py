@@ -1,93 +1,17 @@
-"""GPU backend (Triton): both training phases with the time loops in `moex.kernels.gpu_rnn`.
-
-A training step is the forward kernel (every lane of every run), the phase's objective on the
-outputs o_t and its gradient ∂L/∂o_t — the reference's own functions (`moex.objectives`) under
-autograd, with no time loop — then the backward kernel and a sum of the per-lane gradients over
-each network's lanes. Parameters, gradients and the optimiser state stay on the device; only the
-per-run statistics (R values) reach the host.
-
-The closed loop with its Lyapunov tangents (generation, λ_max or a spectrum) is one Triton kernel
-per chunk of steps (`moex.kernels.gpu_closed`), as is the symbol readout (nearest prototype). With
-`TRITON_INTERPRET=1` Triton runs the kernels on the CPU (slowly), which is how the tests check
-them without a GPU.
+"""The two training phases of the GPU backend (Triton): a step is the forward kernel of
+`moex.kernels.gpu.rnn` over every lane of every run (`moex.kernels.gpu.lanes`), the phase's
+objective on the outputs o_t and its gradient ∂L/∂o_t — the reference's own functions
+(`moex.objectives`) under autograd, with no time loop — then the backward kernel and a sum of the
+per-lane gradients over each network's lanes. Parameters, gradients and the optimiser state stay
+on the device; the per-run statistics (R values) are device tensors the host reads when it logs.
 """
-
-import os
 
 import numpy as np
 import torch
-import triton
 
 from moex import objectives
 from moex.kernels import input_noise
-from moex.kernels.gpu_closed import closed_loop_kernel, grid, nearest_kernel
-from moex.kernels.gpu_rnn import rnn_backward, rnn_forward
-from moex.model import ClosedLoopRun
-
-INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
-LANE_BUDGET = 2048  # weight-tile entries per program: BL · HP², the registers a tile may take
-
-
-def available(device: str) -> bool:
-    """The kernels run on CUDA, or anywhere in Triton's interpreter."""
-    return INTERPRET or (device.startswith("cuda") and torch.cuda.is_available())
-
-
-def _pow2(n: int) -> int:
-    return triton.next_power_of_2(max(n, 1))
-
-
-class _Net:
-    """One leaky RNN per network (B networks) and its lanes: which network, input row and u_0 row
-    each lane reads, and the buffers the two kernels fill."""
-
-    def __init__(self, num_lanes, T, NI, H, NO, net, xrow, u0row, learn_eps, sums, dtype, device):
-        self.L, self.T, self.NI, self.H, self.NO = num_lanes, T, NI, H, NO
-        self.learn_eps, self.sums = learn_eps, sums
-
-        def index(x):
-            return torch.as_tensor(np.asarray(x), dtype=torch.int64, device=device)
-
-        self.net, self.xrow, self.u0row = index(net), index(xrow), index(u0row)
-        self.pad = dict(NIP=_pow2(NI), HP=_pow2(H), NOP=_pow2(NO))
-        self.block = max(1, min(32, LANE_BUDGET // self.pad["HP"] ** 2))
-
-        def empty(*shape):
-            return torch.zeros(shape, dtype=dtype, device=device)
-
-        self.O, self.C = empty(num_lanes, T, NO), empty(num_lanes, T, H)
-        self.U = empty(num_lanes, T, H) if learn_eps else empty(1)
-        self.S = empty(num_lanes, 2, H) if sums else empty(1)
-        self.grads = (empty(num_lanes, H, NI), empty(num_lanes, H, H), empty(num_lanes, NO, H),
-                      empty(num_lanes, H), empty(num_lanes, NO), empty(num_lanes, H),
-                      empty(num_lanes, H))
-
-    def _launch(self, kernel, *args, **flags):
-        grid = (triton.cdiv(self.L, self.block),)
-        kernel[grid](*args, self.L, T=self.T, NI=self.NI, H=self.H, NO=self.NO, BL=self.block,
-                     **self.pad, **flags)
-
-    def forward(self, X, w, u0, keep):
-        """O (L, T, NO); with `keep` also the histories the backward pass reads."""
-        self._launch(rnn_forward, X, self.xrow, self.net, self.u0row, w["w_in"], w["w_rec"],
-                     w["w_out"], w["b_c"], w["b_o"], w["eps"], u0, self.O, self.C, self.U,
-                     self.S, KEEP_C=keep, KEEP_U=keep and self.learn_eps, KEEP_SUMS=self.sums)
-        return self.O
-
-    def backward(self, dO, X, w, u0):
-        """Per-lane gradients (w_in, w_rec, w_out, b_c, b_o, ε, u_0) for ∂L/∂O = dO."""
-        self._launch(rnn_backward, dO.contiguous(), X, self.xrow, self.net, self.u0row,
-                     w["w_in"], w["w_rec"], w["w_out"], w["b_c"], w["eps"], u0, self.C, self.U,
-                     *self.grads, LEARN_EPS=self.learn_eps)
-        return self.grads
-
-
-def _weights(params: dict, lead: int) -> dict:
-    """Contiguous weights (B, ...) and ε = 1/τ of the B networks in the first `lead` axes."""
-    out = {k: params[k].flatten(0, lead - 1).contiguous()
-           for k in ("w_in", "w_rec", "w_out", "b_c", "b_o")}
-    out["eps"] = (1 / params["tau"]).flatten(0, lead - 1).contiguous()
-    return out
+from moex.kernels.gpu.lanes import Net, weights
 
 
 def _attraction(u0, sums, count, floor):
@@ -146,13 +70,13 @@ class ExpertProblem(_Problem):
         self.targets = torch.as_tensor(np.ascontiguousarray(targets), device=self.device).to(dtype)
         lane = np.arange(R * K * S)
         r, k, s = lane // (K * S), lane // S % K, lane % S
-        self.rnn = _Net(len(lane), T, D, M, D, r * K + k, s, (r * S + s) * K + k,
+        self.rnn = Net(len(lane), T, D, M, D, r * K + k, s, (r * S + s) * K + k,
                         model.learn_time_constants, phase.attraction, dtype, self.device)
 
     def _call(self, params, grads, active):
         R, S, T, K, D, M = self.shape
         want = grads is not None
-        w, u0 = _weights(params, 2), params["u0"].contiguous()
+        w, u0 = weights(params, 2), params["u0"].contiguous()
         out = self.rnn.forward(self.X, w, u0, want)
         with torch.enable_grad() if want else torch.no_grad():
             o = out.view(R, K, S, T, D).detach().requires_grad_(want)
@@ -216,7 +140,7 @@ class GatingProblem(_Problem):
         self.X = self.clean.clone()
         self.entropy = torch.xlogy(self.targets, self.targets).sum((1, 2, 3))
         lane = np.arange(R * S)
-        self.rnn = _Net(len(lane), T_g, K + D, H, K, lane // S, lane, lane,
+        self.rnn = Net(len(lane), T_g, K + D, H, K, lane // S, lane, lane,
                         model.learn_time_constants, phase.attraction, dtype, self.device)
 
     def resample(self, step: int) -> None:
@@ -232,7 +156,7 @@ class GatingProblem(_Problem):
     def _call(self, params, grads, active):
         R, S, T_g, K, D, H = self.shape
         want = grads is not None
-        w, u0 = _weights(params, 1), params["u0"].contiguous()
+        w, u0 = weights(params, 1), params["u0"].contiguous()
         out = self.rnn.forward(self.X, w, u0, want)
         with torch.enable_grad() if want else torch.no_grad():
             o = out.view(R, S, T_g, K).detach().requires_grad_(want)
@@ -261,78 +185,3 @@ class GatingProblem(_Problem):
             for name in grads:
                 self._write(grads, name, net[name], active)
         return {n: v.detach() for n, v in stats.items()}
-
-
-_NET = ("w_in", "w_rec", "w_out", "b_c", "b_o")
-
-
-def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
-                count: bool = False, uniform_gates: bool = False,
-                potentials: bool = True) -> ClosedLoopRun:
-    """`moex.kernels.reference.closed_loop` as one kernel launch: same arguments and results (on
-    the device of `state`)."""
-    num_tangents = 0 if tangents is None else tangents.shape[-1]
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    home, dtype = state.gates.device, state.gates.dtype
-    R, N, TAU, K = state.gates.shape
-    D, H = state.inputs.shape[-1], state.gating_u.shape[-1]
-    M = state.experts_u.shape[-1] if experts else 0
-    dummy = torch.zeros(1, dtype=dtype, device=device)
-
-    def put(x):  # a contiguous copy on the device (kernels write into some of them)
-        x = x.detach().to(device=device, dtype=dtype).contiguous().clone()
-        return x if x.numel() else dummy
-
-    def weights(net):
-        if not net:
-            return [dummy] * 6
-        return [put(net[n]) for n in _NET] + [put(1 / net["tau"])]
-
-    parts = [put(x) for x in (state.experts_u, state.gating_u, state.inputs, state.gates)]
-    sizes = [K * M, H, TAU * D, TAU * K]
-    # tangents (R, N, dim, KT) -> per piece (R, N, KT, size): one vector's piece is contiguous
-    vec = ([put(p.transpose(-1, -2)) for p in tangents.split(sizes, dim=-2)] if num_tangents
-           else [dummy] * 4)
-    out_y = torch.zeros((R, N, steps, D), dtype=dtype, device=device)
-    out_g = torch.zeros((R, N, steps, K), dtype=dtype, device=device)
-    out_u = torch.zeros((R, N, steps, H), dtype=dtype, device=device) if potentials else dummy
-    growth = torch.zeros((R, N, num_tangents), dtype=dtype, device=device)
-    pad = {name: _pow2(size) for name, size in (("KP", K), ("MP", M), ("DP", D), ("HP", H),
-                                                 ("TP", TAU), ("KTP", num_tangents))}
-    per_lane = max(pad["KP"] * pad["MP"] * max(pad["MP"], pad["DP"]), pad["HP"] ** 2)
-    samples = max(1, min(16, 8192 // (per_lane * pad["KTP"])))  # per program (a power of 2)
-    closed_loop_kernel[grid(R, N, samples)](
-        *weights(experts), *weights(gating), *parts, *vec,
-        put(noise) if noise is not None else dummy, out_y, out_g, out_u, growth, N,
-        STEPS=steps, K=K, M=M, D=D, H=H, TAU=TAU, BN=samples * pad["KTP"],
-        KT=max(num_tangents, 1), EXPERTS=bool(experts), TANGENT=bool(num_tangents),
-        NOISY=noise is not None, COUNT=bool(count and num_tangents),
-        UNIFORM=bool(uniform_gates), KEEP_U=bool(potentials), **pad)
-
-    def back(x, shape):
-        return x.reshape(shape).to(home) if x is not dummy else torch.zeros(shape, dtype=dtype)
-
-    nxt = type(state)(back(parts[0], state.experts_u.shape), back(parts[1], (R, N, H)),
-                      back(parts[2], (R, N, TAU, D)), back(parts[3], (R, N, TAU, K)))
-    new_tangents = None
-    if num_tangents:
-        new_tangents = torch.cat([back(v, (R, N, num_tangents, size)).transpose(-1, -2)
-                                  for v, size in zip(vec, sizes, strict=True)], -2)
-    return ClosedLoopRun(nxt, back(out_y, (R, N, steps, D)), back(out_g, (R, N, steps, K)),
-                         back(out_u, (R, N, steps, H)) if potentials else None, new_tangents,
-                         growth.to(home))
-
-
-def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
-                    prototype_symbols: np.ndarray) -> np.ndarray:
-    """`moex.metrics.symbols.symbolize_nearest` as one kernel: (..., T, D) -> (..., T)."""
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    D = points.shape[-1]
-    flat = torch.as_tensor(np.ascontiguousarray(points, np.float64).reshape(-1, D), device=device)
-    proto = torch.as_tensor(np.ascontiguousarray(prototypes, np.float64), device=device)
-    symbols = torch.as_tensor(np.asarray(prototype_symbols, np.int64), device=device)
-    out = torch.empty(len(flat), dtype=torch.int64, device=device)
-    P, block = len(proto), 128
-    nearest_kernel[(triton.cdiv(len(flat), block),)](flat, proto, symbols, out, len(flat), P=P,
-                                                     D=D, PP=_pow2(P), DP=_pow2(D), BLOCK=block)
-    return out.cpu().numpy().reshape(points.shape[:-1])

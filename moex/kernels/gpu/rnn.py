@@ -1,6 +1,6 @@
 """The leaky RNN of Eqs. 1-3 / 5-8, teacher forced, as two Triton kernels: the forward pass and
-its backward pass (BPTT). Both training phases of the GPU backend (`moex.kernels.gpu`) are these
-two kernels with the phase's objective between them.
+its backward pass (BPTT). Both training phases of the GPU backend (`moex.kernels.gpu.phases`) are
+these two kernels with the phase's objective between them.
 
 Layout (the same lanes as the CPU backend, `moex.kernels.cpu`): every independent recurrence is a
 *lane* — an (expert, series) pair of a run in phase 1, a series of a run in phase 2. A program

@@ -20,10 +20,13 @@ are re-orthonormalised after every step by modified Gram-Schmidt among the slots
 QR decomposition); ln |R_ii| is tangent i's growth (Benettin et al. 1980).
 """
 
+import torch
 import triton
 import triton.language as tl
 
-from moex.kernels.gpu_rnn import _tanh
+from moex.kernels.gpu.lanes import launched, pow2
+from moex.kernels.gpu.rnn import _tanh
+from moex.model import ClosedLoopRun
 
 
 @triton.jit
@@ -228,23 +231,65 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
             tl.store(GROWTH + trow, grown, mask=tok)
 
 
-@triton.jit
-def nearest_kernel(X, PROTO, SYM, OUT, n, P: tl.constexpr, D: tl.constexpr, PP: tl.constexpr,
-                   DP: tl.constexpr, BLOCK: tl.constexpr):
-    """OUT[i] = SYM[argmin_p ‖X[i] - PROTO[p]‖²] for a block of points X (n, D); ties go to the
-    first prototype, as on the CPU."""
-    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    ok = i < n
-    p, d = tl.arange(0, PP), tl.arange(0, DP)
-    x = tl.load(X + i[:, None].to(tl.int64) * D + d[None, :], mask=ok[:, None] & (d < D)[None, :],
-                other=0.0)
-    proto = tl.load(PROTO + p[:, None] * D + d[None, :], mask=(p < P)[:, None] & (d < D)[None, :],
-                    other=0.0)
-    diff = x[:, None, :] - proto[None, :, :]
-    dist = tl.where((p < P)[None, :], tl.sum(diff * diff, axis=2), float("inf"))
-    best = tl.argmin(dist, axis=1, tie_break_left=True)
-    tl.store(OUT + i, tl.load(SYM + best, mask=ok, other=0), mask=ok)
-
-
 def grid(num_runs: int, num_samples: int, block: int) -> tuple[int, int]:
     return num_runs, triton.cdiv(num_samples, block)
+
+
+_NET = ("w_in", "w_rec", "w_out", "b_c", "b_o")
+
+
+def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
+                count: bool = False, uniform_gates: bool = False,
+                potentials: bool = True, device: str = "cpu") -> ClosedLoopRun:
+    """`moex.kernels.reference.closed_loop` as one kernel launch: same arguments and results (on
+    the device of `state`)."""
+    num_tangents = 0 if tangents is None else tangents.shape[-1]
+    device = torch.device(device)
+    home, dtype = state.gates.device, state.gates.dtype
+    R, N, TAU, K = state.gates.shape
+    D, H = state.inputs.shape[-1], state.gating_u.shape[-1]
+    M = state.experts_u.shape[-1] if experts else 0
+    dummy = torch.zeros(1, dtype=dtype, device=device)
+
+    def put(x):  # a contiguous copy on the device (kernels write into some of them)
+        x = x.detach().to(device=device, dtype=dtype).contiguous().clone()
+        return x if x.numel() else dummy
+
+    def weights(net):
+        if not net:
+            return [dummy] * 6
+        return [put(net[n]) for n in _NET] + [put(1 / net["tau"])]
+
+    parts = [put(x) for x in (state.experts_u, state.gating_u, state.inputs, state.gates)]
+    sizes = [K * M, H, TAU * D, TAU * K]
+    # tangents (R, N, dim, KT) -> per piece (R, N, KT, size): one vector's piece is contiguous
+    vec = ([put(p.transpose(-1, -2)) for p in tangents.split(sizes, dim=-2)] if num_tangents
+           else [dummy] * 4)
+    out_y = torch.zeros((R, N, steps, D), dtype=dtype, device=device)
+    out_g = torch.zeros((R, N, steps, K), dtype=dtype, device=device)
+    out_u = torch.zeros((R, N, steps, H), dtype=dtype, device=device) if potentials else dummy
+    growth = torch.zeros((R, N, num_tangents), dtype=dtype, device=device)
+    pad = {name: pow2(size) for name, size in (("KP", K), ("MP", M), ("DP", D), ("HP", H),
+                                                 ("TP", TAU), ("KTP", num_tangents))}
+    per_lane = max(pad["KP"] * pad["MP"] * max(pad["MP"], pad["DP"]), pad["HP"] ** 2)
+    samples = max(1, min(16, 8192 // (per_lane * pad["KTP"])))  # per program (a power of 2)
+    launched("closed_loop", closed_loop_kernel[grid(R, N, samples)](
+        *weights(experts), *weights(gating), *parts, *vec,
+        put(noise) if noise is not None else dummy, out_y, out_g, out_u, growth, N,
+        STEPS=steps, K=K, M=M, D=D, H=H, TAU=TAU, BN=samples * pad["KTP"],
+        KT=max(num_tangents, 1), EXPERTS=bool(experts), TANGENT=bool(num_tangents),
+        NOISY=noise is not None, COUNT=bool(count and num_tangents),
+        UNIFORM=bool(uniform_gates), KEEP_U=bool(potentials), **pad))
+
+    def back(x, shape):
+        return x.reshape(shape).to(home) if x is not dummy else torch.zeros(shape, dtype=dtype)
+
+    nxt = type(state)(back(parts[0], state.experts_u.shape), back(parts[1], (R, N, H)),
+                      back(parts[2], (R, N, TAU, D)), back(parts[3], (R, N, TAU, K)))
+    new_tangents = None
+    if num_tangents:
+        new_tangents = torch.cat([back(v, (R, N, num_tangents, size)).transpose(-1, -2)
+                                  for v, size in zip(vec, sizes, strict=True)], -2)
+    return ClosedLoopRun(nxt, back(out_y, (R, N, steps, D)), back(out_g, (R, N, steps, K)),
+                         back(out_u, (R, N, steps, H)) if potentials else None, new_tangents,
+                         growth.to(home))

@@ -1,0 +1,30 @@
+"""GPU backend (Triton), module for module the CPU backend's (`moex.kernels.cpu`):
+
+- `rnn`: the leaky RNN's teacher-forced forward and BPTT kernels (derivation inside);
+- `lanes`: the lane layout, the kernels' launches and their compiled registers and spills;
+- `phases`: `ExpertProblem` (phase 1) and `GatingProblem` (phase 2) around those kernels;
+- `closed_loop`: the autonomous mixture with its Lyapunov tangents, one launch per chunk;
+- `symbols`: the nearest-prototype symbol of generated points, one launch.
+
+With `TRITON_INTERPRET=1` (set before this package is imported) Triton runs every kernel on the
+CPU, slowly: that is how the tests check them without a GPU.
+"""
+
+import os
+
+import torch
+
+from moex.kernels.gpu.closed_loop import closed_loop
+from moex.kernels.gpu.lanes import kernel_report
+from moex.kernels.gpu.phases import ExpertProblem, GatingProblem
+from moex.kernels.gpu.symbols import nearest_symbols
+
+INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
+
+__all__ = ["ExpertProblem", "GatingProblem", "available", "closed_loop", "kernel_report",
+           "nearest_symbols"]
+
+
+def available(device: str) -> bool:
+    """The kernels run on CUDA, or anywhere in Triton's interpreter."""
+    return INTERPRET or (device.startswith("cuda") and torch.cuda.is_available())
