@@ -53,7 +53,7 @@ def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tu
 
 def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
           context_size: int, dtype: str, device: str = "cpu", series: int = 0,
-          length: int = 0) -> list[dict]:
+          length: int = 0, base: int = 5) -> list[dict]:
     """Rows of ms per network-epoch; `series` and `length` (0: the task's) shrink the data."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
@@ -74,7 +74,7 @@ def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats:
     results = []
 
     def record(name, fn):
-        wall, cpu = _time(fn, steps, repeats, sync=chosen.device.startswith("cuda"))
+        wall, cpu = _time(fn, steps, repeats, base, sync=chosen.device.startswith("cuda"))
         results.append({"task": task, "phase": name, "runs": runs, "backend": backend,
                         "threads": threads, "context_size": context_size,
                         "wall_ms": 1e3 * wall / runs, "cpu_ms": 1e3 * cpu / runs})
@@ -120,7 +120,10 @@ def main():
     parser.add_argument("--series", type=int, default=0, help="series per network (0: task's)")
     parser.add_argument("--length", type=int, default=0, help="steps per series (0: task's)")
     parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--base", type=int, default=5, help="epochs of the subtracted run")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--kernels", action="store_true",
+                        help="then print each compiled Triton kernel's registers and spills")
     args = parser.parse_args()
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
     print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {args.dtype}")
@@ -132,7 +135,23 @@ def main():
             for threads in args.threads:
                 for size in args.context_sizes:
                     bench(args.task, runs, backend, threads, args.steps, args.repeats, size,
-                          args.dtype, args.device, args.series, args.length)
+                          args.dtype, args.device, args.series, args.length, args.base)
+    if args.kernels:
+        print_kernels()
+
+
+def print_kernels() -> None:
+    """Registers, spills and warps of every Triton kernel this process compiled (CUDA only)."""
+    from moex.kernels import available
+
+    gpu, why = available("gpu")
+    rows = gpu.module.kernel_report() if gpu is not None else []
+    print("| kernel | registers | spills | warps |\n|---|---|---|---|")
+    for row in rows:
+        print(f"| {row['kernel']} | {row['registers']} | {row['spills']} | {row['num_warps']} |")
+    if not rows:
+        print(f"| (none compiled: {why or 'the kernels ran in Triton' + chr(39) + 's interpreter'})"
+              " | | | |")
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ import time
 
 import numba
 import torch
+from bench_epochs import print_kernels  # (benchmarks/ is the script's folder)
 
 from moex.closed_loop import closed_loop_lyapunov, random_state
 from moex.config import Config
@@ -56,14 +57,20 @@ def main():
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--backends", nargs="+", default=["reference", "cpu"])
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--kernels", action="store_true",
+                        help="then print each compiled Triton kernel's registers and spills")
     args = parser.parse_args()
     print("| networks x samples | device | backend | threads | ms per step | s per 100 000 steps |")
     print("|---|---|---|---|---|---|")
     for backend in args.backends:
         for threads in args.threads:
-            per_step = bench(args.runs, args.samples, args.steps, threads, backend, args.device)
+            per_step = bench(args.runs, args.samples, args.steps, threads, backend, args.device,
+                             args.repeats)
             print(f"| {args.runs} x {args.samples} | {args.device} | {backend} | {threads} | "
                   f"{1e3 * per_step:.3f} | {per_step * 100_000:.0f} |", flush=True)
+    if args.kernels:
+        print_kernels()
 
 
 if __name__ == "__main__":

@@ -1,41 +1,110 @@
 #!/usr/bin/env bash
-# Everything the GPU backend's issue measures, in one run of about 5 minutes on one GPU (its
-# timeouts add up to 5.6 min):
-#   1. the `gpu` test suite (Triton kernels compiled, not interpreted, against the CPU backend);
-#   2. ms per network-epoch of both phases, backend=gpu, for a Table 2 batch (90 networks) and
-#      900 networks, float64 and float32, beside backend=cpu on all of the machine's cores;
-#   3. the closed loop with one Lyapunov tangent, 90 networks x 50 samples, extrapolated to the
+# Everything the GPU backend is measured by, in one run on one GPU (its timeouts add up to about
+# 9 minutes; a first compile of every kernel is most of it), or on the CPU at toy sizes (--smoke,
+# Triton's interpreter) so that CI runs the same script and it never reaches a GPU untried:
+#   0. pre-flight: imports, versions, the GPU's name;
+#   1. the gpu-parametrised tests compiled on CUDA (law tests, float32, closed loop, symbols,
+#      trajectories: every test id that holds "gpu");
+#   2. ms per network-epoch of both phases, backend=gpu, 90 networks (a Table 2 batch) and 900,
+#      float64 and float32, beside backend=cpu on all cores, with each kernel's registers/spills;
+#   3. warps per program and lanes per program (MOEX_GPU_WARPS, MOEX_GPU_LANE_BUDGET) swept at
+#      90 networks;
+#   4. the closed loop with one Lyapunov tangent, 90 networks x 50 samples, extrapolated to the
 #      paper's 100 000 steps, backend=gpu beside backend=cpu on all cores;
-#   4. Table 2 end to end at a tenth of the paper's training (3 jobs one after another) and the
-#      evaluation at full length, so the full run's time is 10x the training part + evaluation.
-# Usage: bash benchmarks/gpu_session.sh [OUT_DIR]  (writes gpu_session.md there; default .)
-# Needs moex importable (pip install -e ., or PYTHONPATH=. with Hydra installed beside torch).
+#   5. Table 2 end to end at a tenth of the paper's training, full evaluation (wall seconds).
+# Usage: bash benchmarks/gpu_session.sh [--smoke] [--only 0,1,2,3,4,5] OUT_DIR
+# Writes OUT_DIR/gpu_session.md (the log) and OUT_DIR/sections.csv (section, seconds, exit code);
+# scratch run folders go to a temporary folder that is removed at the end.
 set -uo pipefail
-out=${1:-.}
-mkdir -p "$out"
-log="$out/gpu_session.md"
+here=$(cd "$(dirname "$0")/.." && pwd)
+smoke=0; only=0,1,2,3,4,5; out=""
+while [ $# -gt 0 ]; do
+  case $1 in
+    --smoke) smoke=1 ;;
+    --only) only=$2; shift ;;
+    -h|--help) sed -n 2,19p "$0"; exit 0 ;;
+    -*) echo "gpu_session.sh: unknown option $1 (--smoke, --only LIST)" >&2; exit 2 ;;
+    *) out=$1 ;;
+  esac
+  shift
+done
+[ -n "$out" ] || { echo "usage: bash benchmarks/gpu_session.sh [--smoke] [--only 0,...,5] OUT_DIR" >&2; exit 2; }
+mkdir -p "$out" && out=$(cd "$out" && pwd)
+log="$out/gpu_session.md"; csv="$out/sections.csv"
+scratch=$(mktemp -d); trap 'rm -rf "$scratch"' EXIT
+cd "$scratch"  # whatever a tool leaves in its working folder (pytest caches) goes with it
+export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}"
 py=${PYTHON:-python3}
 cores=$(nproc)
+if [ $smoke = 1 ]; then  # the CPU, Triton's interpreter, toy sizes: every section, in ~2 min
+  export TRITON_INTERPRET=1
+  device=cpu; runs="2"; big=""; f32runs=2; size="--series 2 --length 20 --steps 1 --repeats 1 --base 1"
+  lyap="--runs 2 --samples 2 --steps 5 --repeats 1"; lyap_cpu="$lyap"
+  sweep_warps="4"; sweep_budget="2048"; t=300
+  table2="task.num_series=2 task.length=30 num_runs=2 train.experts.steps=2 train.gating.steps=2 eval=quick eval.num_samples=2 eval.lyapunov_steps=20 eval.transient=5 eval.plot_steps=20 task.switch_prob=0.5"
+  tests=(-m "not gpu" -k "gpu and closed_loop_kernel_leaves")
+else
+  device=cuda; runs="90"; big="900"; f32runs=90; size="--steps 20 --repeats 2"
+  lyap="--runs 90 --samples 50 --steps 1000 --repeats 2"; lyap_cpu="--runs 90 --samples 50 --steps 200 --repeats 1"
+  sweep_warps="2 4 8"; sweep_budget="1024 2048 4096"; t=1
+  table2="train.experts.steps=3000 train.gating.steps=1000"
+  tests=(-m "gpu or not slow" -k "gpu")
+fi
+wanted() { [[ ",$only," == *",$1,"* ]]; }
+echo "section,seconds,exit_code" > "$csv"
+section() {  # number, title, timeout (s), command...
+  local n=$1 title=$2 limit=$3; shift 3
+  wanted "$n" || return 0
+  echo "## $n. $title"
+  local start=$(date +%s%N)
+  timeout "$limit" "$@"; local code=$?
+  local ms=$(( ($(date +%s%N) - start) / 1000000 ))
+  local took=$(printf '%d.%03d' $((ms / 1000)) $((ms % 1000)))
+  [ $code = 124 ] && echo "(timed out after $limit s)"
+  printf '%s s, exit %s\n\n' "$took" "$code"
+  echo "$n,$took,$code" >> "$csv"
+}
+epochs() {
+  $py "$here/benchmarks/bench_epochs.py" --backends gpu --device $device --threads 1 $size "$@"
+}
 {
-  echo "# GPU session $(date -u +%FT%TZ)"
-  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-  $py -c 'import torch, triton; print("torch", torch.__version__, "triton", triton.__version__)'
-  echo "## 1. gpu tests"
-  timeout 60 $py -m pytest -q -o addopts="" -m gpu tests/test_kernels.py 2>&1 | tail -5
-  echo "## 2. epochs (best of 2, 20 epochs each)"
-  timeout 60 $py benchmarks/bench_epochs.py --backends gpu --device cuda --runs 90 900 \
-      --threads 1 --steps 20 --repeats 2
-  timeout 25 $py benchmarks/bench_epochs.py --backends gpu --device cuda --runs 90 \
-      --threads 1 --steps 20 --repeats 2 --dtype float32
-  timeout 45 $py benchmarks/bench_epochs.py --backends cpu --runs 90 --threads "$cores" \
-      --steps 5 --repeats 1
-  echo "## 3. closed loop with one tangent"
-  timeout 25 $py benchmarks/bench_lyapunov.py --runs 90 --samples 50 --steps 1000 \
-      --threads 1 --backends gpu --device cuda
-  timeout 30 $py benchmarks/bench_lyapunov.py --runs 90 --samples 50 --steps 200 \
-      --threads "$cores" --backends cpu
-  echo "## 4. Table 2 at 1/10 of the training, full evaluation (wall time)"
-  /usr/bin/time -f "%e s wall" timeout 90 $py -c 'from moex.cli import main; main()' train -m experiment=paper_table2 \
-      backend=gpu device=cuda train.experts.steps=3000 train.gating.steps=1000 \
-      hydra.sweep.dir="$out/table2_tenth" 2>&1 | grep -E "s wall|λ_max positive|Error" || true
+  echo "# GPU session $(date -u +%FT%TZ)$([ $smoke = 1 ] && echo ' (smoke: CPU, Triton interpreter, toy sizes)')"
+  section 0 "pre-flight" $((30 * t + 30)) $py -c '
+import platform, torch, triton, numba, hydra, moex
+from moex.kernels import REGISTRY, available
+print("python", platform.python_version(), "torch", torch.__version__, "triton",
+      triton.__version__, "numba", numba.__version__, "hydra", hydra.__version__)
+print("GPU:", torch.cuda.get_device_name() if torch.cuda.is_available() else "none (CPU)")
+for name in REGISTRY:
+    b, why = available(name)
+    print(f"backend {name}:", f"{b.device}, {b.caps}" if b else why)'
+  section 1 "gpu tests" $((120 * t + 60)) \
+      $py -m pytest -q -p no:cacheprovider -o addopts="" "${tests[@]}" "$here/tests"
+  section 2 "epochs: ms per network-epoch" $((240 * t + 120)) bash -c "
+      $(declare -f epochs); py=$py; here=$here; device=$device; size='$size'
+      epochs --runs $runs $big --kernels
+      epochs --runs $f32runs --dtype float32
+      $py $here/benchmarks/bench_epochs.py --backends cpu --runs $runs --threads $cores $size"
+  section 3 "warps x lanes per program (phase 1 and 2, float64, $runs networks)" \
+      $((150 * t + 60)) bash -c "
+      $(declare -f epochs); py=$py; here=$here; device=$device; size='$size'
+      for w in $sweep_warps; do for b in $sweep_budget; do
+        echo \"warps \$w, lane budget \$b:\"
+        MOEX_GPU_WARPS=\$w MOEX_GPU_LANE_BUDGET=\$b epochs --runs $runs | tail -3
+      done; done"
+  section 4 "closed loop with one tangent" $((120 * t + 60)) bash -c "
+      $py $here/benchmarks/bench_lyapunov.py $lyap --threads 1 --backends gpu --device $device --kernels
+      $py $here/benchmarks/bench_lyapunov.py $lyap_cpu --threads $cores --backends cpu"
+  section 5 "Table 2 end to end: a tenth of the training, full evaluation" $((180 * t + 120)) \
+      bash -c "cd $scratch && $py -c 'from moex.cli import main; main()' train -m \
+      experiment=paper_table2 backend=gpu device=$device $table2 \
+      hydra.sweep.dir=$scratch/table2 > $scratch/table2.log 2>&1; code=\$?
+      grep -E 'λ_max positive|sweep folder|rror' $scratch/table2.log
+      cp $scratch/table2/jobs.csv $out/table2_jobs.csv
+      head -1 \$(ls $scratch/table2/*/metrics.csv | head -1) > $out/table2_metrics.csv
+      for m in $scratch/table2/*/metrics.csv; do tail -n +2 \$m; done >> $out/table2_metrics.csv
+      exit \$code"
 } 2>&1 | tee "$log"
+failed=$(awk -F, 'NR > 1 && $3 != 0' "$csv" | wc -l)
+echo "gpu_session.sh: $(($(wc -l < "$csv") - 1)) sections, $failed failed; log $log"
+[ "$failed" = 0 ]

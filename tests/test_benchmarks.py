@@ -1,0 +1,37 @@
+"""The GPU session script runs end to end on the CPU (`--smoke`: Triton's interpreter, toy sizes),
+so that it never reaches a GPU untried: every section ends with exit 0 and writes its numbers."""
+
+import csv
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_gpu_session_script_smoke_runs_every_section(tmp_path):
+    env = {**os.environ, "PYTHON": sys.executable, "TRITON_INTERPRET": "1"}
+    done = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_session.sh"), "--smoke",
+                           str(tmp_path)], capture_output=True, text=True, timeout=900, env=env,
+                          cwd=tmp_path)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
+    with open(tmp_path / "sections.csv") as f:
+        sections = list(csv.DictReader(f))
+    assert [s["section"] for s in sections] == ["0", "1", "2", "3", "4", "5"]
+    assert all(s["exit_code"] == "0" and float(s["seconds"]) > 0 for s in sections)
+    log = (tmp_path / "gpu_session.md").read_text()
+    number = r"\d+\.\d+"
+    assert re.search(r"backend gpu: cpu, Capabilities\(.*interpreted=True", log)
+    assert re.search(r"\d+ passed", log)  # section 1 ran its test
+    for phase in ("phase 1, fixed rate", "phase 1, adaptive rate", "phase 2, adaptive rate"):
+        # float64 and float32 on gpu, the cpu baseline, and the sweep's one setting
+        assert len(re.findall(rf"\| {phase} \| 2 \| \w+ \| \d \| 15 \| {number} \| {number} \|",
+                              log)) == 4, phase
+    assert len(re.findall(rf"\| 2 x 2 \| cpu \| \w+ \| \d \| {number} \| \d+ \|", log)) == 2
+    assert "registers" in log and "λ_max positive in" in log
+    metrics = (tmp_path / "table2_metrics.csv").read_text().splitlines()
+    assert metrics[0].startswith("run,") and len(metrics) == 3  # header + 2 networks
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "gpu_session.md", "sections.csv", "table2_jobs.csv", "table2_metrics.csv"]
