@@ -192,6 +192,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     for k, v in params.items():
         views[k].copy_(v)
     lr_scale = torch.ones(R, dtype=torch.float64, device=device)
+    ones = torch.ones_like(lr_scale)  # per-run factors of the adaptive rule (float64, exact)
     failed, rows, start = torch.zeros(R, dtype=torch.bool, device=device), [], 0
     if hooks.resume:
         state = hooks.resume
@@ -222,7 +223,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         problem.resample(step)
         stats = statistics(problem.value_and_grad(net, grads, ~failed))
         failed |= ~(torch.isfinite(stats["objective"]) & torch.isfinite(grad.sum(1)))
-        grad[failed] = 0.0
+        grad.masked_fill_(failed[:, None], 0.0)  # (masks, never boolean indexing: no host sync)
         # ---- the step Δθ: Eq. 17 keeps Δθ in the buffer, the C code the sum of raw gradients
         if paper_form:
             torch.mul(velocity, momentum, out=trial)
@@ -235,34 +236,37 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
             torch.mul(velocity, rate, out=delta)
             delta *= lr_scale[:, None]
         retries = torch.zeros(R, dtype=torch.int64, device=device)
-        # ---- adaptive rate: each run shrinks its own step until r <= r_th (Sec. 2.1.4)
+        # ---- adaptive rate: each run shrinks its own step until r <= r_th (Sec. 2.1.4); the
+        # host reads one flag per trial (whether any run is still rejected), nothing else
         pending = ~failed if adaptive else torch.zeros_like(failed)
         base = stats[criterion]
-        for _ in range(rule.adaptive.max_retries if bool(pending.any()) else 0):
+        for _ in range(rule.adaptive.max_retries if adaptive else 0):
             torch.add(theta, delta, out=trial)
             ratio = statistics(problem.value(trial_net, pending))[criterion] / base
             rejected = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
-            lr_scale[pending & (ratio < 1)] *= rule.adaptive.increase
+            lr_scale.mul_(ones.fill_(1.0).masked_fill_(pending & (ratio < 1),
+                                                       rule.adaptive.increase))
             pending = rejected
             if not bool(pending.any()):
                 break
             # a retry shrinks the whole step, momentum included: with the momentum term left
             # whole (a strict reading of Sec. 2.1.4) r can stay above r_th for every α, and the
             # rate collapsed to 0.7^1000 in a measured two-Lissajous run
-            lr_scale[rejected] *= rule.adaptive.decrease
-            delta[rejected] *= rule.adaptive.decrease
+            shrink = ones.fill_(1.0).masked_fill_(rejected, rule.adaptive.decrease)  # x·1 = x
+            lr_scale.mul_(shrink)
+            delta.mul_(shrink.to(delta.dtype)[:, None])
             retries += rejected
         # ---- update; give up the step of runs still rejected, roll back non-finite runs
         if not adaptive:
             torch.add(theta, delta, out=trial)
             failed |= ~torch.isfinite(trial.sum(1))
-        frozen = pending | failed
-        delta[frozen] = 0.0
+        frozen = (pending | failed)[:, None]
+        delta.masked_fill_(frozen, 0.0)
         theta += delta
         if paper_form:
             velocity.copy_(delta)
         else:
-            velocity[frozen] = 0.0
+            velocity.masked_fill_(frozen, 0.0)
         if "tau" in views:
             views["tau"].clamp_(min=1.0)  # ε <= 1, as in the C code
         tracked = hooks.monitor_every > 0 and (step % hooks.monitor_every == 0
