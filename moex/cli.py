@@ -28,7 +28,7 @@ from omegaconf import OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from moex import checkpoint, config, pipeline, report
+from moex import checkpoint, config, pipeline, provenance, report
 from moex.config import EvaluateConfig, register_configs
 from moex.errors import ConfigError, Interrupted, check
 from moex.io import atomic_write, write_csv
@@ -252,7 +252,9 @@ def _job(run, verb: str):
             _sweeps.add(Path(hydra_cfg.sweep.dir).resolve())
             _write_job_index(Path(hydra_cfg.sweep.dir))
         try:
-            with logging_redirect_tqdm(), pipeline.StopRequest() as stop:
+            with logging_redirect_tqdm(), pipeline.StopRequest() as stop, provenance.recorded(
+                    out_dir, verb, getattr(cfg, "backend", None), getattr(cfg, "device", None),
+                    getattr(cfg, "precision", None)):
                 run(cfg, out_dir, stop)
         except ConfigError as exc:
             log.error("%s", exc)

@@ -147,7 +147,7 @@ def import_networks(cfg: ImportConfig, dataset: Dataset) -> tuple[Config, checkp
     return run_cfg, record
 
 
-def provenance(folders: list[Path]) -> list[dict]:
+def sources(folders: list[Path]) -> list[dict]:
     """Each imported file with its sha256 and the C tool's epoch count and adaptive rate."""
     rows = []
     for folder in folders:
@@ -213,5 +213,5 @@ def export_run(record: checkpoint.Checkpoint, r: int, templates: dict, out_dir: 
     return written
 
 
-def write_provenance(out_dir: Path, folders: list[Path]) -> None:
-    io.write_csv(out_dir / "imported_from.csv", provenance(folders))
+def write_sources(out_dir: Path, folders: list[Path]) -> None:
+    io.write_csv(out_dir / "imported_from.csv", sources(folders))

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import budget, checkpoint, importer, io, plotting, run_page
+from moex import budget, checkpoint, importer, io, plotting, provenance, run_page
 from moex.closed_loop import generate, never, random_state, trained_state
 from moex.config import (
     Config,
@@ -159,6 +159,7 @@ def run_train(cfg: Config, out_dir: Path,
         log.info("resuming %s from its %s phase", path, saved.phase)
     dtype = getattr(torch, cfg.precision)
     backend = get_backend(cfg.backend, cfg.device)
+    provenance.note(backend=backend.name)
     dataset = load_task(cfg)
     series = torch.as_tensor(dataset.series, dtype=dtype)
     S, L, D = series.shape
@@ -205,9 +206,10 @@ def run_train(cfg: Config, out_dir: Path,
             done = torch.load(cached, map_location="cpu", weights_only=True)
             experts, beta, record.experts_rows = done["experts"], done["beta"], done["rows"]
         else:
-            experts, beta, record.experts_rows = train_experts(
-                experts, series, cfg.model, cfg.train.experts, cfg.train, hooks("experts"),
-                backend)
+            with provenance.part("phase 1"):
+                experts, beta, record.experts_rows = train_experts(
+                    experts, series, cfg.model, cfg.train.experts, cfg.train, hooks("experts"),
+                    backend)
             if cached is not None:
                 io.atomic_write(cached, lambda tmp: torch.save(
                     {"experts": _cpu(experts), "beta": _cpu(beta),
@@ -223,10 +225,11 @@ def run_train(cfg: Config, out_dir: Path,
             return track_metrics(experts, gate_targets, gating_params, series, delay, cfg.eval,
                                  track_rng, backend)
 
-    gating, gating_rows = train_gating(
-        gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
-        hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend,
-        seeds=run_seeds(cfg.seed, cfg.num_runs))
+    with provenance.part("phase 2"):
+        gating, gating_rows = train_gating(
+            gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
+            hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend,
+            seeds=run_seeds(cfg.seed, cfg.num_runs))
     history = pd.DataFrame(record.experts_rows + gating_rows)
     failed = history.groupby("run")["failed"].any().reindex(range(cfg.num_runs), fill_value=False)
     for run in np.flatnonzero(failed.to_numpy()):
@@ -255,7 +258,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
     """
     generator = evaluation_generator(cfg)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"), provenance.part("evaluation"):
         rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg.eval,
                                  generator, backend, cfg.train.gating.target_temperature, stop)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
@@ -377,6 +380,8 @@ def load_run(tool: RunFolder) -> TrainedRun:
     if isinstance(tool, GenerateConfig):
         budget.check_generate(cfg, tool.steps, tool.num_samples)
     backend = get_backend(cfg.backend, cfg.device)
+    provenance.note(backend=backend.name, device=cfg.device, precision=cfg.precision,
+                    run_dir=str(tool.run_dir))
     dataset = task_of_run(cfg.task, cfg.seed, saved.series.numpy(), Scale(
         **saved.scale_arrays()), min_length=cfg.model.delay + 2)
     return TrainedRun(cfg, saved, dataset, backend)
@@ -453,7 +458,7 @@ def run_import(cfg: ImportConfig, out_dir: Path, stop=never) -> checkpoint.Check
     log.info("importing %d networks of the C tools (%s) on task %s into %s", run_cfg.num_runs,
              "gating network alone" if record.beta is None else "mixture", cfg.task.name, out_dir)
     record.save(out_dir / checkpoint.NAME)
-    importer.write_provenance(out_dir, folders)
+    importer.write_sources(out_dir, folders)
     if run_cfg.eval.enabled:
         evaluate_run(run_cfg, dataset, record.experts, record.beta, record.gating, out_dir,
                      record.failed, get_backend(run_cfg.backend, run_cfg.device), stop)

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from moex import io, plotting
+from moex import io, plotting, provenance
 from moex.errors import ConfigError, check
 from moex.metrics.table import REPORTED
 
@@ -99,6 +99,7 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
             evaluated = _flatten({"eval": _read(eval_config, yaml.safe_load, dict)})
             add(f"{name}/evaluate/{folder.name}", folder, {**config, **evaluated},
                 choices, {"status": "done"} if (folder / io.METRICS).exists() else {})
+    _tell_repeats_apart(found)
     varying = varying_settings([settings for _, _, settings, _ in found])
     runs, jobs = [], []
     for name, folder, settings, status in found:
@@ -108,7 +109,9 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
         if state == "done" and not metrics_path.exists():
             state = "missing metrics"
         jobs.append({"job": name, **columns, "status": state,
-                     "error": status.get("error", ""), "path": str(folder)})
+                     "error": status.get("error", ""),
+                     "provenance": provenance.exactness_key(provenance.read(folder)),
+                     "path": str(folder)})
         if metrics_path.exists():
             metrics = _read(metrics_path, lambda text: pd.read_csv(StringIO(text)), pd.DataFrame)
             check("run" in metrics, f"{metrics_path} has no run column, so it is not a moex "
@@ -116,6 +119,24 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
             runs.append(metrics.assign(job=name, **columns))
     return (pd.concat(runs, ignore_index=True) if runs else pd.DataFrame(), pd.DataFrame(jobs),
             [_columns(varying)[k] for k in varying])
+
+
+def _tell_repeats_apart(found: list) -> None:
+    """A re-evaluation with the settings of the evaluation it repeats (or of another re-evaluation
+    of the same job) holds the same networks: pooled, they would count twice. Where that happens,
+    every job gets the setting `evaluation` (`training`, or the re-evaluation's `evaluate/<date>`)
+    so that each stays a row of its own."""
+    def trained_in(folder: Path) -> Path:
+        return folder.parent.parent if folder.parent.name == "evaluate" else folder
+
+    seen: dict = {}
+    for _, folder, settings, _ in found:
+        key = (trained_in(folder), repr(sorted(settings.items())))
+        seen[key] = seen.get(key, 0) + 1
+    if max(seen.values(), default=1) > 1:
+        for _, folder, settings, _ in found:
+            settings["evaluation"] = ("training" if trained_in(folder) == folder
+                                      else f"evaluate/{folder.name}")
 
 
 def _read(path: Path, parse, kind: type):
@@ -248,6 +269,11 @@ def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, 
     folders = [Path(folders)] if isinstance(folders, str | Path) else [Path(f) for f in folders]
     sweep_dir = Path(out_dir) if out_dir is not None else folders[0]
     runs, jobs, keys = gather(folders)
+    if len(jobs):  # each distinct machine/versions record as a letter: jobs with another letter
+        # were produced elsewhere and need not agree bit for bit (provenance.json says how)
+        labels = {k: chr(ord("A") + i) for i, k in enumerate(pd.unique(
+            jobs["provenance"][jobs["provenance"] != ""]))}
+        jobs["provenance"] = jobs["provenance"].map(lambda k: labels.get(k, "not recorded"))
     out = {"jobs": jobs}
     if len(jobs):
         _write_table(sweep_dir, "jobs", jobs.drop(columns=["path"]))
@@ -350,6 +376,11 @@ def main(argv: list[str] | None = None) -> None:
     if jobs.empty:
         parser.exit(2, f"moex: error: {' '.join(map(str, args.folders))} holds no job folder "
                        f"(.hydra/config.yaml)\n")
+    recorded = jobs.loc[jobs["provenance"] != "not recorded", "provenance"]
+    if recorded.nunique() > 1:
+        print(f"moex: warning: the jobs come from {recorded.nunique()} different machines or "
+              f"package versions (column provenance of tables/jobs.csv; each folder's "
+              f"provenance.json): their numbers are comparable, not bit-identical")
     for _, job in jobs[jobs["status"] != "done"].iterrows():
         print(f"job {job['job']}: {job['status']} {job['error']}".rstrip())
     for name in ("table1", "table2", "p05_study", "summary"):

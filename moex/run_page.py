@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from moex import io
+from moex import io, provenance
 from moex.metrics.table import METRICS, REPORTED
 from moex.report import to_markdown
 
@@ -37,7 +37,8 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
         lines += ["## Figures", ""]
         lines += [f"![{p.stem.replace('_', ' ')}]({io.FIGURES}/{p.name})" + "\n"
                   for p in figures]
-    lines += ["The whole configuration: `.hydra/config.yaml` (training) and "
+    lines += [provenance.summary_line(provenance.records(out_dir)), "",
+              "The whole configuration: `.hydra/config.yaml` (training) and "
               "`eval_config.yaml` (a re-evaluation).", ""]
     path = out_dir / NAME
     return io.atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines)))

@@ -5,6 +5,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from moex.report import aggregate, report, to_markdown, wilson_interval
 from tests.test_cli import TINY
@@ -161,6 +162,26 @@ def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
                 ).stat().st_size > 0
 
 
+def test_a_re_evaluation_at_the_same_settings_is_never_pooled_with_what_it_repeats(tmp_path):
+    """Two run folders A and B of one setting, and A re-evaluated at the same evaluation
+    settings: A and B pool (4 different networks); the re-evaluation is a row of its own (2), so
+    no network counts twice in a group."""
+    config = ("task:\n  name: lissajous2\n  switch_prob: 0.5\nmodel:\n  gating:\n"
+              "    context_size: 15\neval:\n  noise_var: 0.0\n  num_samples: 50\n")
+    for job, lam in (("A", [0.1, 0.2]), ("B", [0.3, 0.4])):
+        _fake_job(tmp_path / job, config, {"max_lyapunov": lam, "E_g": [0.01, 0.02]})
+    again = tmp_path / "A" / "evaluate" / "2026-12-02_10-00-00"
+    again.mkdir(parents=True)
+    pd.DataFrame({"run": [0, 1], "max_lyapunov": [0.1, 0.2], "E_g": [0.01, 0.02],
+                  "failed": [False, False]}).to_csv(again / "metrics.csv", index=False)
+    (again / "eval_config.yaml").write_text("noise_var: 0.0\nnum_samples: 50\n")
+    out = report([tmp_path / "A", tmp_path / "B"], tmp_path / "out")
+    summary = out["summary"].set_index("evaluation")
+    assert summary.loc["training", "num_runs"] == 4
+    assert summary.loc["training", "max_lyapunov_mean"] == pytest.approx(0.25)
+    assert summary.loc["evaluate/2026-12-02_10-00-00", "num_runs"] == 2
+
+
 def test_report_of_table1_tabulates_per_context_size_and_plots_each_network(tmp_path):
     for job, nc in enumerate([10, 20]):
         _fake_job(tmp_path / str(job),
@@ -234,5 +255,23 @@ def test_report_compares_runs_from_different_folders(tmp_path):
     assert out.returncode == 0, out.stderr
     summary = pd.read_csv(tmp_path / "both" / "tables" / "by_setting.csv")
     assert summary["context_size"].tolist() == [5, 6]
+    # provenance: both folders say what produced them, the same machine and versions
+    record = json.loads((tmp_path / "nc5" / "provenance.json").read_text())[-1]
+    assert record["verb"] == "train" and record["backend"] == "cpu"
+    assert record["versions"]["torch"] == torch.__version__ and record["cpu"]
+    assert set(record["seconds"]) == {"phase 1", "phase 2", "evaluation"}
+    assert "Provenance" in (tmp_path / "nc5" / "report.md").read_text()
+    assert "warning" not in out.stdout
+    assert set(pd.read_csv(tmp_path / "both" / "tables" / "jobs.csv")["provenance"]) == {"A"}
+    # a folder from other package versions: a warning and another letter
+    records = json.loads((tmp_path / "nc6" / "provenance.json").read_text())
+    records[-1]["versions"]["numba"] = "0.0.1"
+    (tmp_path / "nc6" / "provenance.json").write_text(json.dumps(records))
+    again = subprocess.run(MOEX + ["report", str(tmp_path / "nc5"), str(tmp_path / "nc6"),
+                                   "--out", str(tmp_path / "both"), "--format", "svg"],
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0 and "2 different machines or package versions" in again.stdout
+    assert pd.read_csv(tmp_path / "both" / "tables" / "jobs.csv")["provenance"].tolist() == [
+        "A", "B"]
     assert set(pd.read_csv(tmp_path / "both" / "summary.csv")["job"]) == {"nc5", "nc6"}
     assert not list((tmp_path / "both" / "figures").glob("*.png"))  # svg only, if any figure
