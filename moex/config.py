@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from moex.errors import check
 from moex.evaluate import EvalConfig
-from moex.kernels import BACKENDS
+from moex.kernels import BACKENDS, get_backend
 from moex.model import ModelConfig
 from moex.plotting import PlotConfig
 from moex.tasks import TaskConfig
@@ -50,6 +50,8 @@ class Config:
               f"{torch.__version__}); use device=cpu")
         check(self.backend in BACKENDS,
               f"backend={self.backend!r}; choose one of {', '.join(BACKENDS[:4])}")
+        if self.backend == "gpu":  # refused before a run folder exists, not when training starts
+            get_backend(self.backend, self.device)
 
 
 # every EvalConfig key, optional: what `moex evaluate` overrides in the run's own eval config

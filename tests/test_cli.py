@@ -343,3 +343,15 @@ def test_every_task_trains_and_evaluates_on_the_gpu_backend(task, tmp_path):
     metrics = pd.read_csv(tmp_path / "run" / "metrics.csv")
     assert len(metrics) == 2 and metrics["max_lyapunov"].notna().all()
     assert not metrics["failed"].any()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks a machine without CUDA")
+def test_backend_gpu_without_cuda_is_refused_and_writes_nothing(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    done = subprocess.run(MOEX + ["train", "backend=gpu", f"hydra.run.dir={tmp_path / 'run'}"],
+                          cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        "moex: error: backend=gpu needs device=cuda and a CUDA device (device=cpu); use "
+        "backend=cpu (or auto) on this machine"]
+    assert list(tmp_path.iterdir()) == []

@@ -375,7 +375,7 @@ def test_backend_choice(monkeypatch):
 
     monkeypatch.setattr(gpu, "INTERPRET", False)
     if not torch.cuda.is_available():
-        with pytest.raises(ValueError, match="backend=gpu needs device=cuda"):
+        with pytest.raises(ValueError, match="backend=gpu needs device=cuda and a CUDA device"):
             get_backend("gpu", "cpu")
 
 

@@ -132,8 +132,8 @@ def get_backend(name: str = "auto", device: str = "cpu") -> Backend:
     if name == "gpu":
         gpu, why = _gpu_module()
         check(gpu is not None, f"backend=gpu needs Triton ({why}); pip install triton")
-        check(gpu.available(device), f"backend=gpu needs device=cuda (device={device}); "
-              f"Triton's interpreter runs it on the CPU when TRITON_INTERPRET=1")
+        check(gpu.available(device), f"backend=gpu needs device=cuda and a CUDA device "
+              f"(device={device}); use backend=cpu (or auto) on this machine")
         return Backend("gpu", device, gpu,
                        Capabilities(interpreted=gpu.INTERPRET and not device.startswith("cuda")))
     from moex.kernels import cpu
