@@ -30,7 +30,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 from moex import checkpoint, config, pipeline, provenance, report
 from moex.config import EvaluateConfig, register_configs
-from moex.errors import ConfigError, Interrupted, check
+from moex.errors import ConfigError, Interrupted, check, closest_first
 from moex.io import atomic_write, write_csv
 
 log = logging.getLogger("moex")
@@ -77,14 +77,27 @@ def _allowed_keys(config_name: str, key: str) -> str:
     """The keys allowed beside an unknown `key`, closest spelling first."""
     parent, _, leaf = key.rpartition(".")
     try:
-        node = compose(config_name)
-        node = OmegaConf.select(node, parent) if parent else node
+        root = compose(config_name)
+        node = OmegaConf.select(root, parent) if parent else root
+        if not OmegaConf.is_dict(node):  # the parent itself is misspelt: the closest full keys
+            paths = _dotted(OmegaConf.to_container(root, resolve=False))
+            close = difflib.get_close_matches(key, paths, n=3, cutoff=0.6)
+            return f"; did you mean {' or '.join(close)}?" if close else ""
         keys = [str(k) for k in node.keys()]
-    except Exception:  # the parent itself is unknown or not a node: nothing to list
+    except Exception:  # nothing to compose against: nothing to list
         return ""
     ranked = difflib.get_close_matches(leaf, keys, n=len(keys), cutoff=0)
     names = [f"{parent}.{k}" if parent else k for k in ranked + sorted(set(keys) - set(ranked))]
     return f"; allowed keys: {', '.join(names)}"
+
+
+def _dotted(tree: dict, prefix: str = "") -> list[str]:
+    """Every leaf key of a nested config as a dotted path."""
+    paths = []
+    for k, v in tree.items():
+        path = f"{prefix}{k}"
+        paths += _dotted(v, f"{path}.") if isinstance(v, dict) and v else [path]
+    return paths
 
 
 def _one_line(exc: BaseException, config_name: str) -> str:
@@ -101,8 +114,8 @@ def _one_line(exc: BaseException, config_name: str) -> str:
     if "Could not find" in first and "Available options" in text:
         group, option = first.split("'")[-2].rsplit("/", 1)
         listing = text.split("Available options")[1].split("Config search path")[0]
-        options = listing.strip().splitlines()[1:]
-        return f"{group}={option} is unknown; choose one of {', '.join(o.strip() for o in options)}"
+        options = closest_first(option, [o.strip() for o in listing.strip().splitlines()[1:]])
+        return f"{group}={option} is unknown; choose one of {', '.join(options)}"
     full_key = getattr(exc, "full_key", None)
     if full_key and full_key not in first:
         return f"{full_key}: {first}"

@@ -28,3 +28,10 @@ def check_range(key: str, value: float, low: float, high: float, *, low_open=Fal
 
 def check_positive(key: str, value: float) -> None:
     check(value > 0, f"{key}={value} must be positive")
+
+
+def closest_first(word: str, choices) -> list[str]:
+    """`choices` ordered by their likeness to `word` (the closest spelling first)."""
+    import difflib
+
+    return sorted(choices, key=lambda c: -difflib.SequenceMatcher(None, word, c).ratio())

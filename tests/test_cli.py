@@ -355,3 +355,13 @@ def test_backend_gpu_without_cuda_is_refused_and_writes_nothing(tmp_path):
         "moex: error: backend=gpu needs device=cuda and a CUDA device (device=cpu); use "
         "backend=cpu (or auto) on this machine"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_misspelt_choices_and_keys_get_the_closest_first(tmp_path):
+    task = _moex(["train", "task=lisajous2"], tmp_path)
+    assert task.returncode == 2
+    assert "task=lisajous2 is unknown; choose one of lissajous2, lissajous9, " in task.stderr
+    key = _moex(["train", "train.expert.steps=3"], tmp_path)
+    assert key.returncode == 2
+    assert "unknown key train.expert.steps; did you mean train.experts.steps" in key.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -121,6 +121,23 @@ def test_csv_task(tmp_path):
         make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
 
 
+def test_an_unknown_task_lists_the_closest_first():
+    with pytest.raises(ConfigError, match="task.name='lisajous2' is unknown; choose one of "
+                                          "lissajous2, lissajous9, "):
+        TaskConfig(name="lisajous2")
+
+
+def test_empty_npy_arrays_and_folders_named_like_files_are_clean_errors(tmp_path):
+    np.save(tmp_path / "empty.npy", np.zeros((120, 0)))
+    with pytest.raises(ConfigError, match="empty array of shape \\(120, 0\\)"):
+        make_task(TaskConfig(name="csv", path=str(tmp_path / "empty.npy"), length=0), 0)
+    data = tmp_path / "data"
+    (data / "sub.csv").mkdir(parents=True)  # a folder named like a file is not read
+    np.savetxt(data / "s.csv", np.zeros((20, 2)), delimiter=",")
+    assert make_task(TaskConfig(name="csv", path=str(data), length=0), 0).series.shape == (
+        1, 20, 2)
+
+
 def test_data_seed_sets_the_data_apart_from_the_networks():
     from moex.tasks import TaskConfig, make_task
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from moex.errors import check, check_positive, check_range
+from moex.errors import check, check_positive, check_range, closest_first
 from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
 from moex.tasks import files, lissajous, reber
 from moex.tasks.scaling import SCALES, Scale, fit_scale
@@ -46,7 +46,7 @@ class TaskConfig:
 
     def __post_init__(self):
         check(self.name in TASKS, f"task.name={self.name!r} is unknown; choose one of "
-                                  f"{', '.join(sorted(TASKS))}")
+                                  f"{', '.join(closest_first(self.name, TASKS))}")
         check(self.num_series >= 1, f"task.num_series={self.num_series} must be >= 1")
         check(self.num_test_series >= 0,
               f"task.num_test_series={self.num_test_series} must be >= 0")

@@ -69,6 +69,8 @@ def _read_one(path: str, columns: list[str]) -> list[np.ndarray]:
                                    f"got shape {array.shape}")
         check(array.dtype.kind in "iuf", f"task.path: {path} holds {array.dtype} values; give "
                                          f"real numbers (integers or floats)")
+        check(array.size > 0, f"task.path: {path} holds an empty array of shape {array.shape}; "
+                              f"give at least one feature and one step")
         array = array.astype(float)
         return list(array) if array.ndim == 3 else [array]
     return [_read_text(path, columns)]
@@ -86,7 +88,7 @@ def load_series(pattern: str, length: int, min_length: int,
     check(bool(pattern), "task.path is empty: name a CSV/NPY file, a glob or a folder")
     paths = sorted(glob.glob(os.path.join(pattern, "*")) if os.path.isdir(pattern)
                    else glob.glob(pattern))
-    paths = [p for p in paths if p.endswith((".csv", ".txt", ".npy"))]
+    paths = [p for p in paths if p.endswith((".csv", ".txt", ".npy")) and not os.path.isdir(p)]
     check(len(paths) > 0, f"task.path={pattern} matches no .csv, .txt or .npy file")
     sources = [(p, i, s) for p in paths for i, s in enumerate(_read_one(p, list(columns)))]
     for p, i, s in sources:  # every series of a stack, named by its index
