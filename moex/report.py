@@ -2,6 +2,7 @@
 aggregate over runs, and write CSV, Markdown and figures at the multirun root."""
 
 import json
+import time
 from io import StringIO
 from pathlib import Path
 
@@ -357,17 +358,17 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="moex report", description=__doc__)
     parser.add_argument("folders", type=Path, nargs="+",
                         help="run or multirun folders (or any parents of jobs) to compare")
-    parser.add_argument("--out", type=Path, help="where to write the report (required with "
-                                                 "several folders; default: the one folder)")
+    parser.add_argument("--out", type=Path, help="where to write the report (default: the one "
+                                                 "folder; with several, outputs/report/<date>)")
     parser.add_argument("--format", default="png", choices=plotting.FORMATS,
                         help="of the figures (pdf and svg are vector graphics)")
     args = parser.parse_args(argv)
     for folder in args.folders:
         if not folder.is_dir():
             parser.exit(2, f"moex: error: {folder} is not a folder\n")
-    if len(args.folders) > 1 and args.out is None:
-        parser.exit(2, "moex: error: several folders: name the report's folder with --out DIR\n")
     out_dir = args.out or args.folders[0]
+    if len(args.folders) > 1 and args.out is None:  # a dated folder, as every other verb
+        out_dir = Path("outputs", "report", time.strftime("%Y-%m-%d_%H-%M-%S"))
     try:
         out = report(args.folders, out_dir, args.format)
     except ConfigError as exc:

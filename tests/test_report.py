@@ -239,16 +239,20 @@ def test_a_sweep_over_a_config_group_names_the_choice_apart_from_the_setting(tmp
 
 def test_report_compares_runs_from_different_folders(tmp_path):
     """Two single runs trained apart (another gating size each) compared in one report: one
-    row per setting, named by its config key; several folders need --out; svg on request."""
+    row per setting, named by its config key; several folders without --out go to a dated
+    folder; svg on request."""
     for size in (5, 6):
         done = subprocess.run(MOEX + ["train", "task=lissajous2", *TINY,
                                       f"model.gating.context_size={size}",
                                       f"hydra.run.dir={tmp_path / f'nc{size}'}"],
                               capture_output=True, text=True, timeout=600)
         assert done.returncode == 0, done.stderr
-    refused = subprocess.run(MOEX + ["report", str(tmp_path / "nc5"), str(tmp_path / "nc6")],
-                             capture_output=True, text=True, timeout=120)
-    assert refused.returncode == 2 and "--out" in refused.stderr
+    dated = subprocess.run(MOEX + ["report", str(tmp_path / "nc5"), str(tmp_path / "nc6")],
+                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert dated.returncode == 0, dated.stderr
+    written = list((tmp_path / "outputs" / "report").iterdir())
+    assert len(written) == 1 and f"report written to outputs/report/{written[0].name}" in \
+        dated.stdout
     out = subprocess.run(MOEX + ["report", str(tmp_path / "nc5"), str(tmp_path / "nc6"),
                                  "--out", str(tmp_path / "both"), "--format", "svg"],
                          capture_output=True, text=True, timeout=120)
