@@ -3,6 +3,8 @@ paper's settings, then imported into moex run folders (`moex import`) and scored
 
     python docs/mregn_control.py run <bin folder> <out folder> [--networks 20] [--workers 2]
 
+    python docs/mregn_control.py compare <out folder>     # after `moex import` of each design
+
 <bin folder> holds the tools built by `bash tools/build_mregn.sh <mregn checkout> <bin folder>`.
 Each network trains in <out>/<design>/net<seed>/ and is skipped once its `done` file exists, so
 the same command resumes. Designs (paper Secs. 3.1, 3.2.1; the data of moex's seed-0 runs):
@@ -12,6 +14,7 @@ the same command resumes. Designs (paper Secs. 3.1, 3.2.1; the data of moex's se
 """
 
 import argparse
+import math
 import subprocess
 import sys
 import time
@@ -75,15 +78,103 @@ def train_one(design: str, seed: int, bin_dir: Path, out: Path) -> str:
     return f"{folder}: trained in {time.time() - started:.0f} s"
 
 
+# design: (moex's per-network CSV in docs/, its filter, the paper's table and setting, metrics)
+COMPARED = {
+    "reber_nc20": ("table1_summary.csv", ("context_size", 20), ("Table 1", 20),
+                   ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov")),
+    "reber_nc30": ("table1_summary.csv", ("context_size", 30), ("Table 1", 30),
+                   ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov")),
+    "table2_p05": ("table2_summary.csv", ("switch_prob_task", 0.5), ("Table 2", 0.5),
+                   ("switch_prob", "max_lyapunov")),
+    "table2_p025": ("table2_summary.csv", ("switch_prob_task", 0.25), ("Table 2", 0.25),
+                    ("switch_prob", "max_lyapunov")),
+}
+DOCS = Path(__file__).resolve().parent
+
+
+def _difference(a, b, permutations: int = 20000) -> tuple[float, float, float]:
+    """Difference of means a - b, its (Welch) standard error, and the two-sided permutation p of
+    the difference (the observed split counted, so p is never 0; seeded, so reruns agree)."""
+    import numpy as np
+
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    diff = a.mean() - b.mean()
+    se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
+    pooled, rng = np.concatenate([a, b]), np.random.default_rng(0)
+    hits = sum(abs(x[:len(a)].mean() - x[len(a):].mean()) >= abs(diff) - 1e-12
+               for x in (rng.permutation(pooled) for _ in range(permutations)))
+    return diff, se, (hits + 1) / (permutations + 1)
+
+
+def compare(out: Path) -> list[dict]:
+    """One row per (design, metric) whose control was imported and evaluated into
+    <out>/<design>/moex/metrics.csv: moex's networks, the authors' code scored by moex, the paper,
+    the control's distance to moex (Welch's standard error, permutation p) and to the paper: in
+    standard errors of the control's mean alone (the paper's mean taken as exact) and with the
+    paper's sampling error added, assuming its networks spread as the control's (its n: 50 in
+    Table 1, 30 in Table 2)."""
+    import pandas as pd
+
+    from moex.report import PAPER_TABLE1, PAPER_TABLE2
+
+    rows = []
+    for design, (csv, (key, value), (table, setting), metrics) in COMPARED.items():
+        path = out / design / "moex" / "metrics.csv"
+        if not path.exists():
+            continue
+        control = pd.read_csv(path)
+        control = control[~control["failed"].astype(bool)]
+        ours = pd.read_csv(DOCS / csv)
+        ours = ours[(ours[key] == value) & ~ours["failed"].astype(bool)]
+        paper_frame, paper_key, n_paper = ((PAPER_TABLE1, "context_size", 50)
+                                           if table == "Table 1"
+                                           else (PAPER_TABLE2, "switch_prob_task", 30))
+        for metric in (*metrics, "positive_share"):
+            if metric == "positive_share":
+                c, m = (control["max_lyapunov"] > 0) * 100.0, (ours["max_lyapunov"] > 0) * 100.0
+                column = "paper_positive_percent"
+                paper = float(paper_frame.set_index(paper_key).loc[setting, column])
+            else:
+                c, m = control[metric].dropna(), ours[metric].dropna()
+                paper = float(paper_frame.set_index(paper_key).loc[setting, f"paper_{metric}"])
+            diff, se, p = _difference(c, m)
+            se_c = c.std(ddof=1) / math.sqrt(len(c))
+            with_paper = math.sqrt(se_c**2 + c.var(ddof=1) / n_paper)
+            rows.append({"design": design, "metric": metric, "paper": paper,
+                         "moex_mean": m.mean(), "moex_sd": m.std(ddof=1), "moex_n": len(m),
+                         "control_mean": c.mean(), "control_sd": c.std(ddof=1),
+                         "control_n": len(c), "control_minus_moex": diff,
+                         "control_minus_moex_se": se, "permutation_p": p,
+                         "control_vs_paper_se": (c.mean() - paper) / se_c if se_c else math.nan,
+                         "control_vs_paper_se_with_paper_error":
+                             (c.mean() - paper) / with_paper if with_paper else math.nan,
+                         "moex_vs_paper_se":
+                             (m.mean() - paper) / (m.std(ddof=1) / math.sqrt(len(m)))})
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("mode", choices=["run"])
-    parser.add_argument("bin", type=Path)
-    parser.add_argument("out", type=Path)
+    parser.add_argument("mode", choices=["run", "compare"])
+    parser.add_argument("paths", type=Path, nargs="+", help="run: <bin> <out>; compare: <out>")
     parser.add_argument("--designs", nargs="+", default=list(DESIGNS), choices=list(DESIGNS))
     parser.add_argument("--networks", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args(argv)
+    if args.mode == "compare":
+        import pandas as pd
+
+        rows = pd.DataFrame(compare(args.paths[0]))
+        if rows.empty:
+            print(f"mregn_control: nothing imported under {args.paths[0]}/<design>/moex/",
+                  file=sys.stderr)
+            return 2
+        rows.to_csv(DOCS / "mregn_control_summary.csv", index=False)
+        print(rows.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+        return 0
+    if len(args.paths) != 2:
+        parser.error("run needs <bin folder> <out folder>")
+    args.bin, args.out = args.paths
     missing = [t for t in ("rnn-learn", "mre-learn", "gn-learn") if not (args.bin / t).is_file()]
     if missing:
         print(f"mregn_control: {args.bin} lacks {', '.join(missing)}; build them with bash "

@@ -165,7 +165,7 @@ def test_reber_trains_the_gating_network_only(tmp_path):
     ("model.gating.context_size=-3", "model.gating.context_size=-3 must be >= 1"),
     ("model.num_experts=abc", "model.num_experts"),
     ("num_runs=0", "num_runs=0 must be >= 1"),
-    ("hydra/launcher=nope", "hydra/launcher=nope is unknown; choose one of basic, joblib"),
+    ("hydra/launcher=slurn", "hydra/launcher=slurn is unknown; choose one of slurm, "),
     ("plot.run=-2", "plot.run"),
     ("eval.kl_floor=0", "eval.kl_floor=0.0 must be positive"),
     ("eval.kl_form=c", "eval.kl_form='c'; choose paper or mregn"),
