@@ -24,6 +24,7 @@ from pathlib import Path
 import yaml
 
 from moex.config import CONF_DIR
+from moex.errors import check
 from moex.mregn_format import write_targets
 from moex.tasks import TaskConfig, make_task
 
@@ -106,51 +107,72 @@ def _difference(a, b, permutations: int = 20000) -> tuple[float, float, float]:
     return diff, se, (hits + 1) / (permutations + 1)
 
 
-def compare(out: Path) -> list[dict]:
-    """One row per (design, metric) whose control was imported and evaluated into
-    <out>/<design>/moex/metrics.csv: moex's networks, the authors' code scored by moex, the paper,
-    the control's distance to moex (Welch's standard error, permutation p) and to the paper: in
-    standard errors of the control's mean alone (the paper's mean taken as exact) and with the
-    paper's sampling error added, assuming its networks spread as the control's (its n: 50 in
-    Table 1, 30 in Table 2)."""
+def collect(out: Path) -> Path:
+    """Every control network's metrics (<out>/<design>/moex/metrics.csv, written by `moex import`)
+    into docs/mregn_control_networks.csv, one row per network."""
+    import pandas as pd
+
+    frames = [pd.read_csv(out / d / "moex" / "metrics.csv").assign(design=d)
+              for d in COMPARED if (out / d / "moex" / "metrics.csv").exists()]
+    check(bool(frames), f"nothing imported under {out}/<design>/moex/")
+    path = DOCS / "mregn_control_networks.csv"
+    pd.concat(frames, ignore_index=True).to_csv(path, index=False)
+    return path
+
+
+def table():
+    """One row per (design, metric), from docs/mregn_control_networks.csv and moex's per-network
+    CSVs: moex's networks, the authors' code scored by moex, the paper, the control's distance to
+    moex (Welch's standard error, permutation p) and to the paper: in standard errors of the
+    control's mean alone (the paper's mean taken as exact) and with the paper's sampling error
+    added, assuming its networks spread as the control's (its n: 50 in Table 1, 30 in Table 2)."""
     import pandas as pd
 
     from moex.report import PAPER_TABLE1, PAPER_TABLE2
 
+    networks = pd.read_csv(DOCS / "mregn_control_networks.csv")
     rows = []
-    for design, (csv, (key, value), (table, setting), metrics) in COMPARED.items():
-        path = out / design / "moex" / "metrics.csv"
-        if not path.exists():
+    for design, (csv, (key, value), (name, setting), metrics) in COMPARED.items():
+        control = networks[(networks["design"] == design) & ~networks["failed"].astype(bool)]
+        if control.empty:
             continue
-        control = pd.read_csv(path)
-        control = control[~control["failed"].astype(bool)]
         ours = pd.read_csv(DOCS / csv)
         ours = ours[(ours[key] == value) & ~ours["failed"].astype(bool)]
         paper_frame, paper_key, n_paper = ((PAPER_TABLE1, "context_size", 50)
-                                           if table == "Table 1"
+                                           if name == "Table 1"
                                            else (PAPER_TABLE2, "switch_prob_task", 30))
-        for metric in (*metrics, "positive_share"):
-            if metric == "positive_share":
+        paper_row = paper_frame.set_index(paper_key).loc[setting]
+        for metric in (*metrics, "positive_percent"):
+            if metric == "positive_percent":
                 c, m = (control["max_lyapunov"] > 0) * 100.0, (ours["max_lyapunov"] > 0) * 100.0
-                column = "paper_positive_percent"
-                paper = float(paper_frame.set_index(paper_key).loc[setting, column])
             else:
                 c, m = control[metric].dropna(), ours[metric].dropna()
-                paper = float(paper_frame.set_index(paper_key).loc[setting, f"paper_{metric}"])
+            paper = float(paper_row[f"paper_{metric}"])
             diff, se, p = _difference(c, m)
             se_c = c.std(ddof=1) / math.sqrt(len(c))
             with_paper = math.sqrt(se_c**2 + c.var(ddof=1) / n_paper)
             rows.append({"design": design, "metric": metric, "paper": paper,
-                         "moex_mean": m.mean(), "moex_sd": m.std(ddof=1), "moex_n": len(m),
-                         "control_mean": c.mean(), "control_sd": c.std(ddof=1),
-                         "control_n": len(c), "control_minus_moex": diff,
-                         "control_minus_moex_se": se, "permutation_p": p,
+                         "moex": m.mean(), "moex_sd": m.std(ddof=1), "moex_n": len(m),
+                         "control": c.mean(), "control_sd": c.std(ddof=1), "control_n": len(c),
+                         "control_minus_moex": diff, "difference_se": se, "permutation_p": p,
                          "control_vs_paper_se": (c.mean() - paper) / se_c if se_c else math.nan,
-                         "control_vs_paper_se_with_paper_error":
-                             (c.mean() - paper) / with_paper if with_paper else math.nan,
-                         "moex_vs_paper_se":
-                             (m.mean() - paper) / (m.std(ddof=1) / math.sqrt(len(m)))})
-    return rows
+                         "control_vs_paper_se_paper_error":
+                             (c.mean() - paper) / with_paper if with_paper else math.nan})
+    return pd.DataFrame(rows)
+
+
+def markdown(rows) -> str:
+    """The table REPRODUCTION.md and docs/mregn_control.md quote."""
+    lines = ["| design | metric | paper | moex (n) | authors' code, scored by moex (n) | "
+             "code − moex (p) | code − paper, SE (with the paper's error) |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows.itertuples():
+        lines.append(
+            f"| {r.design} | {r.metric} | {r.paper:.4g} | {r.moex:.4g} ± {r.moex_sd:.2g} "
+            f"({r.moex_n}) | {r.control:.4g} ± {r.control_sd:.2g} ({r.control_n}) | "
+            f"{r.control_minus_moex:+.3g} ± {r.difference_se:.2g} (p {r.permutation_p:.2g}) | "
+            f"{r.control_vs_paper_se:+.1f} ({r.control_vs_paper_se_paper_error:+.1f}) |")
+    return "\n".join(lines)
 
 
 def main(argv=None) -> int:
@@ -162,15 +184,10 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args(argv)
     if args.mode == "compare":
-        import pandas as pd
-
-        rows = pd.DataFrame(compare(args.paths[0]))
-        if rows.empty:
-            print(f"mregn_control: nothing imported under {args.paths[0]}/<design>/moex/",
-                  file=sys.stderr)
-            return 2
+        print(f"per-network metrics: {collect(args.paths[0])}")
+        rows = table()
         rows.to_csv(DOCS / "mregn_control_summary.csv", index=False)
-        print(rows.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+        print(markdown(rows))
         return 0
     if len(args.paths) != 2:
         parser.error("run needs <bin folder> <out folder>")

@@ -210,3 +210,15 @@ def test_stays_drawn_from_the_geometric_law_are_at_zero_distance_from_it():
     row = residence.table(stays).iloc[0]
     assert row["total variation from the law"] <= 0.005 and row["networks"] == 4
     assert row["mean laps, completed stays pooled (law 1/P)"].startswith("4.0")
+
+
+def test_the_control_table_is_the_one_the_csvs_give():
+    """The authors' C tools trained on moex's data and scored by moex (docs/mregn_control.py):
+    REPRODUCTION.md and docs/mregn_control.md quote the table the per-network CSVs give."""
+    control = _script("mregn_control")
+    rows = control.table()
+    assert {"reber_nc20", "reber_nc30"} <= set(rows["design"])
+    assert (rows["control_n"] >= 2).all() and rows["permutation_p"].between(0, 1).all()
+    table = control.markdown(rows)
+    assert table in (ROOT / "REPRODUCTION.md").read_text()
+    assert table in (ROOT / "docs" / "mregn_control.md").read_text()
