@@ -173,8 +173,9 @@ def run_train(cfg: Config, out_dir: Path,
             evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
                          saved.failed, backend, stop)
         return saved
-    log.info("task %s: %d series x %d steps, %d features; %d runs on %s/%s, %s backend",
-             cfg.task.name, S, L, D, cfg.num_runs, cfg.device, cfg.precision, backend.name)
+    signal = f"{D} features" if D else f"{len(dataset.symbol_names)} symbols"
+    log.info("task %s: %d series x %d steps of %s; %d runs on %s/%s, %s backend",
+             cfg.task.name, S, L, signal, cfg.num_runs, cfg.device, cfg.precision, backend.name)
     # every draw happens on every start, so resumed and fresh runs see the same generators
     experts, gating = initial_parameters(cfg, S, D, dtype)
     track_rng = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0x7AC)
@@ -391,7 +392,10 @@ def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFram
     """Re-run the evaluation of a finished run from its checkpoint (no retraining) into
     `out_dir`: metrics.csv, samples.npz, figures/ and the evaluation settings used."""
     run = load_run(tool)
-    saved = run.saved
+    saved, ev = run.saved, run.cfg.eval
+    log.info("evaluating %d networks of %s (task %s) at %d samples x %d steps (+%d transient), "
+             "noise variance %g, into %s", run.cfg.num_runs, tool.run_dir, run.cfg.task.name,
+             ev.num_samples, ev.lyapunov_steps, ev.transient, ev.noise_var, out_dir)
     metrics = evaluate_run(run.cfg, run.dataset, saved.experts, saved.beta, saved.gating,
                            Path(out_dir), saved.failed, run.backend, stop)
     io.write_yaml(Path(out_dir) / io.EVAL_SETTINGS, dataclasses.asdict(run.cfg.eval))

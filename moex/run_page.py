@@ -25,12 +25,25 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
              f"NC = {model.gating.context_size}; {train.experts.steps} + {train.gating.steps} "
              f"training steps; {cfg.precision}, backend {cfg.backend} on {cfg.device}.", ""]
     if metrics is not None:
+        ev = cfg.eval
         shown = ["run"] + [c for c in REPORTED if c in metrics] + ["failed"]
-        table = metrics[shown].rename(columns={c: METRICS[c].text for c in shown
-                                               if c in METRICS})
-        lines += ["## Metrics (one row per network)", "", to_markdown(table), "",
+        table = metrics[shown].copy()
+        for column in shown:  # four significant figures; λ_max with its standard error
+            if column in METRICS and table[column].dtype.kind == "f":
+                table[column] = table[column].map(lambda v: f"{v:.4g}")
+        if "max_lyapunov_se" in metrics:
+            table["max_lyapunov"] = [f"{v:.3g} ± {se:.2g}" for v, se in
+                                     zip(metrics["max_lyapunov"], metrics["max_lyapunov_se"],
+                                         strict=True)]
+        table = table.rename(columns={c: METRICS[c].text for c in shown if c in METRICS})
+        lines += ["## Metrics (one row per network)", "",
+                  f"Evaluated on {ev.num_samples} random initial states × {ev.lyapunov_steps} "
+                  f"closed-loop steps per network (after {ev.transient} discarded), noise "
+                  f"variance {ev.noise_var:g}, symbol blocks of length {ev.block_length}.", "",
+                  to_markdown(table), "",
                   "; ".join(f"{METRICS[c].text}: {METRICS[c].meaning}" for c in shown
-                            if c in METRICS) + ".", ""]
+                            if c in METRICS) + "; λ_max ± its standard error (sd of the "
+                  "samples' own exponents / √samples).", ""]
     figures = sorted((out_dir / io.FIGURES).glob("*.*"), key=lambda p: (
         FIGURE_ORDER.index(p.stem) if p.stem in FIGURE_ORDER else len(FIGURE_ORDER), p.name))
     if figures:
@@ -38,7 +51,11 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
         lines += [f"![{p.stem.replace('_', ' ')}]({io.FIGURES}/{p.name})" + "\n"
                   for p in figures]
     lines += [provenance.summary_line(provenance.records(out_dir)), "",
-              "The whole configuration: `.hydra/config.yaml` (training) and "
-              "`eval_config.yaml` (a re-evaluation).", ""]
+              "The whole configuration: " + ("`eval_config.yaml` (this re-evaluation's "
+                                             "settings) and the training folder's "
+                                             "`.hydra/config.yaml`."
+                                             if (out_dir / io.EVAL_SETTINGS).exists() or
+                                             not (out_dir / ".hydra").exists()
+                                             else "`.hydra/config.yaml`."), ""]
     path = out_dir / NAME
     return io.atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(lines)))

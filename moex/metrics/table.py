@@ -29,7 +29,7 @@ METRICS = {m.name: m for m in [
     Metric("block_kl_train", r"block KL $D^{(m)}_{\mathrm{KL}}$, training data",
            "block KL train", "KL of symbol blocks, data against the closed loop (Eq. 21)",
            logged=True, reported=True),
-    Metric("block_kl_test", r"block KL $D^{(m)}_{\mathrm{KL}}$, test data", "test",
+    Metric("block_kl_test", r"block KL $D^{(m)}_{\mathrm{KL}}$, test data", "block KL test",
            "the same against held-out series", logged=True, reported=True),
     Metric("max_lyapunov", r"$\lambda_{\max}$", "λ_max", "largest Lyapunov exponent of the "
            "closed loop, per step (Sec. 4)", "symlog", logged=True, reported=True),
@@ -52,7 +52,7 @@ METRICS = {m.name: m for m in [
            "changing primitive at a primitive's end", logged=True, reported=True),
     Metric("switch_prob_gates", "switching probability (gates)", "switching prob. (gates)",
            "the same read off the winning gate", reported=True),
-    Metric("data_switch_prob", "switching probability of the data", "data",
+    Metric("data_switch_prob", "switching probability of the data", "data switching prob.",
            "the same in the training data", logged=True, reported=True),
     Metric("mean_residence", "mean residence (repetitions)", "mean residence",
            "repetitions of a primitive before a switch", reported=True),
