@@ -50,6 +50,17 @@ class Fitted:
     history: pd.DataFrame
     backend: Backend
 
+    def __repr__(self) -> str:
+        """One line, not the tensors: task, sizes, runs, backend and the last logged errors."""
+        cfg, S, L, D = self.config, *self.dataset.series.shape
+        last = self.history.groupby("phase").tail(1) if len(self.history) else self.history
+        errors = ", ".join(f"{c} {last[c].dropna().mean():.3g}" for c in ("E", "E_g")
+                           if c in last and last[c].notna().any())
+        return (f"Fitted({cfg.num_runs} runs of task {cfg.task.name}: {S} series x {L} steps x "
+                f"{D} features, {cfg.model.num_experts} experts, NC "
+                f"{cfg.model.gating.context_size}, backend {self.backend.name}"
+                f"{'; ' + errors if errors else ''})")
+
     def save(self, run_dir) -> Path:
         """Write a finished run folder (checkpoint.pt, history.csv) that `moex evaluate
         run_dir=...`, `moex generate` and `load` accept; refuses a folder that holds a run."""

@@ -51,6 +51,11 @@ def stop_helper() -> None:
 
 
 def main() -> None:
+    if sys.argv[1:2] in (["--version"], ["-V"]):  # without importing PyTorch and Hydra
+        from importlib import metadata
+
+        print(f"moex {metadata.version('moex')}")
+        return
     precision = helper_precision(sys.argv[1:])
     if precision is not None:
         start_helper(precision)

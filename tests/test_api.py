@@ -52,6 +52,8 @@ def test_fitted_save_gives_a_folder_the_cli_evaluates_and_load_reads_back(tmp_pa
     pd.testing.assert_frame_equal(loaded.evaluate(quick=True), fitted.evaluate(quick=True))
     with pytest.raises(moex.ConfigError, match="already holds a run"):
         fitted.save(folder)
+    shown = repr(fitted)  # one line, not the tensors
+    assert "\n" not in shown and len(shown) < 300 and "2 runs of task csv" in shown
     done = subprocess.run([sys.executable, "-c", "from moex.cli import main; main()", "evaluate",
                            f"run_dir={folder}", "eval=quick", f"out_dir={tmp_path / 'eval'}"],
                           capture_output=True, text=True, timeout=600)

@@ -365,3 +365,13 @@ def test_misspelt_choices_and_keys_get_the_closest_first(tmp_path):
     assert key.returncode == 2
     assert "unknown key train.expert.steps; did you mean train.experts.steps" in key.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_version_answers_without_importing_the_stack(tmp_path):
+    done = _moex(["--version"], tmp_path)
+    assert done.returncode == 0 and done.stdout.startswith("moex ")
+    probe = subprocess.run([sys.executable, "-c", "import sys; sys.argv = ['moex', '--version']; "
+                            "from moex.launch import main; main(); "
+                            "print('torch' in sys.modules, 'hydra' in sys.modules)"],
+                           capture_output=True, text=True, timeout=60)
+    assert probe.stdout.split()[-2:] == ["False", "False"], probe.stdout + probe.stderr
