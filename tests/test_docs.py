@@ -31,10 +31,14 @@ def test_the_tally_counts_each_kind_of_verdict_once():
     verdicts = _script("verdicts")
     frame = pd.DataFrame({"verdict": ["reproduced", "reproduced in the mean only through x",
                                       "differs, cause found: y", "differs, cause partly found: z",
-                                      "differs, cause open", "differs, cause open; with w"]})
-    assert verdicts.tally(frame) == ("Of the table's 6 rows, 2 are reproduced; 4 differ, 1 with "
-                                     "the cause found, 1 with the cause partly found and 2 with "
-                                     "the cause open.")
+                                      "differs, candidate cause (not significant): v",
+                                      "differs, cause open", "differs, cause open; with w"],
+                          "quantity": ["E^g"] * 6 + ["% λ_max > 0"]})
+    assert verdicts.tally(frame) == (
+        "Of the table's 7 rows, 2 are reproduced; 5 differ, 1 with the cause found, 1 with the "
+        "cause partly found, 1 with a candidate cause and 2 with the cause open. Were every mean "
+        "the paper's, the 2-SE rule would still call about 0.3 of the 6 mean rows \"differs\" by "
+        "chance (and each 95 % interval misses in 5 % of cases).")
 
 
 def test_the_one_hot_tables_are_the_ones_the_csvs_give():
