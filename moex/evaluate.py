@@ -137,7 +137,7 @@ def track_metrics(experts, targets, gating, series, delay, cfg: EvalConfig,
     return {"block_kl_train": torch.as_tensor(kl), "max_lyapunov": lam.mean(1).cpu()}
 
 
-def _teacher_forced(experts, beta, gating, dataset: Dataset, series, delay, targets):
+def _teacher_forced(experts, beta, gating, series, delay, targets):
     """E (Sec. 3, with ĝ) per run, or None without experts, and E^g against the phase-2
     targets."""
     R, S, T, K = targets.shape
@@ -197,7 +197,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
     R, K = gating["w_out"].shape[:2]
     S, L, D = series.shape
     targets = phase2_targets(beta, dataset, R, series.dtype, target_temperature)
-    error, error_g = _teacher_forced(experts, beta, gating, dataset, series, delay, targets)
+    error, error_g = _teacher_forced(experts, beta, gating, series, delay, targets)
     # ---- closed loop from the trained initial states (Sec. 4.2)
     closed = generate(experts, gating, trained_state(experts, gating, targets, series, delay),
                       targets.shape[2], backend=backend, should_stop=should_stop)

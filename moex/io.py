@@ -38,10 +38,6 @@ def write_csv(path: Path, rows: list[dict] | pd.DataFrame) -> Path:
     return atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False))
 
 
-def read_csv(path: Path) -> pd.DataFrame:
-    return pd.read_csv(path)
-
-
 def write_yaml(path: Path, data: dict) -> Path:
     text = yaml.safe_dump(data, sort_keys=False)
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))

@@ -64,7 +64,7 @@ def test_imported_mixture_has_the_errors_the_c_tools_logged():
     cfg, record, dataset = _imported("mixture")
     series = record.series
     targets = phase2_targets(record.beta, dataset, 1, series.dtype)
-    error, error_g = _teacher_forced(record.experts, record.beta, record.gating, dataset, series,
+    error, error_g = _teacher_forced(record.experts, record.beta, record.gating, series,
                                      cfg.model.delay, targets)
     mre_log, gn_log = _last_log_row(DATA / "mixture/mre-error.log"), \
         _last_log_row(DATA / "mixture/gn-error.log")
@@ -76,8 +76,8 @@ def test_imported_mixture_has_the_errors_the_c_tools_logged():
 def test_imported_gating_network_has_the_error_rnn_learn_logged():
     cfg, record, dataset = _imported("gating")
     targets = phase2_targets(None, dataset, 1, record.series.dtype)
-    _, error_g = _teacher_forced({}, None, record.gating, dataset, record.series,
-                                 cfg.model.delay, targets)
+    _, error_g = _teacher_forced({}, None, record.gating, record.series, cfg.model.delay,
+                                 targets)
     assert error_g.item() == pytest.approx(_last_log_row(DATA / "gating/error.log").mean(),
                                            rel=1e-5)
 

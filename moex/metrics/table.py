@@ -1,7 +1,7 @@
 """Every metric moex reports, in one table: its column name in metrics.csv / history.csv, the
-paper's symbol as a matplotlib mathtext label, the words the log uses, how figures scale it and
-how runs aggregate. The evaluation, the log, the report and the figures read their names and
-labels from here; adding a metric touches its function and one row."""
+paper's symbol as a matplotlib mathtext label, the words the log uses and how figures scale it.
+The evaluation, the log, the report and the figures read their names and labels from here;
+adding a metric touches its function and one row."""
 
 from dataclasses import dataclass
 
@@ -13,7 +13,6 @@ class Metric:
     text: str  # for the log and Markdown, e.g. "E^g"
     meaning: str
     scale: str = "linear"  # linear | log | symlog (an exponent: its sign matters)
-    aggregate: str = "mean"  # mean over runs | share (a fraction of runs, in percent)
     logged: bool = False  # in the per-run summary line of the log
     reported: bool = False  # a column of `moex report`'s tables
 
@@ -36,7 +35,7 @@ METRICS = {m.name: m for m in [
     Metric("max_lyapunov_noisy", r"$\lambda_{\max}$ with noise", "λ_max with noise",
            "the same with input noise of eval.noise_var", "symlog"),
     Metric("lyapunov_positive", r"share with $\lambda_{\max} > 0$", "λ_max > 0",
-           "whether λ_max > 0", aggregate="share"),
+           "whether λ_max > 0"),
     Metric("max_lyapunov_se", r"standard error of $\lambda_{\max}$", "λ_max s.e.",
            "sd of the samples' own exponents / √samples: |λ_max| below about twice it is not "
            "told apart from 0", "log"),
@@ -70,10 +69,6 @@ METRICS = {m.name: m for m in [
 def label(name: str) -> str:
     """The figure label of a column (the column name itself if it is not a metric)."""
     return METRICS[name].label if name in METRICS else name
-
-
-def text(name: str) -> str:
-    return METRICS[name].text if name in METRICS else name
 
 
 # metrics.csv columns that are settings or bookkeeping, not measurements; lyapunov_k (k >= 2,
