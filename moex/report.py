@@ -289,12 +289,35 @@ def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, 
         if k not in summary:
             summary[k] = runs[k].iloc[0]
     _write_table(sweep_dir, "by_setting", summary)
-    out["summary"] = summary
+    out["summary"], out["keys"] = summary, keys
     for name, table in paper_tables(summary, keys).items():
         _write_table(sweep_dir, name, table)
         out[name] = table
     _figures(sweep_dir, runs, summary, jobs, keys, fmt)
     return out
+
+
+SHOWN = (("E_g", "E^g"), ("block_kl_test", "KL test"), ("switch_prob", "switching"),
+         ("max_lyapunov", "λ_max"))  # the terminal summary's metrics, where a report has them
+
+
+def short_summary(summary: pd.DataFrame, keys: list[str], width: int = 100) -> str:
+    """A few lines for the terminal (≤ `width` columns): per setting, n, the key metrics as
+    mean ± sd and the share with λ_max > 0; the whole tables are in tables/."""
+    import textwrap
+
+    lines = []
+    for row in summary.itertuples(index=False):
+        row = row._asdict()
+        setting = ", ".join(f"{k} {row[k]}" for k in keys if k in row) or "all runs"
+        parts = [f"n {row['num_runs']}"] + [
+            f"{text} {row[f'{m}_mean']:.3g} ± {row[f'{m}_std']:.2g}" for m, text in SHOWN
+            if f"{m}_mean" in row and pd.notna(row[f"{m}_mean"])]
+        if "positive_percent" in row:
+            parts.append(f"{row['positive_percent']:.0f} % chaotic")
+        lines += textwrap.wrap(f"{setting}: {'; '.join(parts)}", width,
+                               subsequent_indent="    ")
+    return "\n".join(lines)
 
 
 def _limits(values: pd.Series, column: str) -> tuple[float, float]:
@@ -384,8 +407,8 @@ def main(argv: list[str] | None = None) -> None:
               f"provenance.json): their numbers are comparable, not bit-identical")
     for _, job in jobs[jobs["status"] != "done"].iterrows():
         print(f"job {job['job']}: {job['status']} {job['error']}".rstrip())
-    for name in ("table1", "table2", "p05_study", "summary"):
-        if name in out:
-            print(to_markdown(out[name]))
+    if "summary" in out:
+        print(short_summary(out["summary"], out.get("keys", [])))
+    written = sorted(str(p.relative_to(out_dir)) for p in Path(out_dir).glob("tables/*.md"))
     print(f"moex: report written to {out_dir} ({(jobs['status'] == 'done').sum()} of "
-          f"{len(jobs)} jobs done)")
+          f"{len(jobs)} jobs done): summary.csv, {', '.join(written)}, figures/")

@@ -43,6 +43,9 @@ def test_tiny_paper_table2_sweep_and_report(launcher, tmp_path):
                          timeout=120)
     assert out.returncode == 0, out.stderr
     assert "failed RuntimeError: boom" in out.stdout and "missing metrics" in out.stdout
+    # the terminal gets a short summary (whole tables are in tables/), every line ≤ 100 columns
+    assert max(len(line) for line in out.stdout.splitlines()[:-1]) <= 100, out.stdout
+    assert "switch_prob_task 0.5: n 2; " in out.stdout and "tables/table2.md" in out.stdout
     table2 = pd.read_csv(sweep / "tables" / "table2.csv")
     assert table2["switch_prob_task"].tolist() == [0.5, 0.25, 0.125]
     assert table2["paper_switch_prob"].tolist() == [0.451033, 0.275999, 0.150866]
