@@ -5,6 +5,7 @@ import hashlib
 import json
 import logging
 import signal
+import textwrap
 import threading
 from pathlib import Path
 
@@ -275,9 +276,11 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
     log.info("λ_max positive in %d of %d runs (mean %.4g)", int((ok["max_lyapunov"] > 0).sum()),
              len(ok), ok["max_lyapunov"].mean())
-    for _, row in ok.iterrows():
-        log.info("run %d: %s", row["run"], ", ".join(
-            f"{name} {row[column]:.4g}" for column, name in LOGGED_METRICS if column in row))
+    for _, row in ok.iterrows():  # lines of at most 110 characters (the terminal shows 120)
+        text = ", ".join(f"{name} {row[column]:.4g}" for column, name in LOGGED_METRICS
+                         if column in row)
+        for line in textwrap.wrap(f"run {row['run']}: {text}", 110, subsequent_indent="    "):
+            log.info("%s", line)
     return metrics
 
 

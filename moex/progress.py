@@ -1,10 +1,11 @@
-"""Progress bars on a terminal (tqdm), none in log files.
+"""Progress bars on a terminal (tqdm), none in log files; the terminal's log line format.
 
 A pseudo-terminal can report a size of 0 × 0 (a session recorded with `script` without a window,
 some CI runners): tqdm then draws an empty bar. `bar` asks `shutil.get_terminal_size`, which falls
 back to $COLUMNS × $LINES or 80 × 24, and passes that size on.
 """
 
+import logging
 import shutil
 
 from tqdm.auto import tqdm
@@ -16,3 +17,18 @@ def bar(iterable=None, **kwargs) -> tqdm:
     settings = {"ncols": columns, "nrows": lines, "disable": None, "mininterval": 1.0,
                 "leave": False}
     return tqdm(iterable, **{**settings, **kwargs})
+
+
+class TerminalFormatter(logging.Formatter):
+    """The terminal's log lines: the time and the message, and the level where it is not INFO
+    (the run folder's log file keeps the full record)."""
+
+    def __init__(self):
+        super().__init__("%(asctime)s %(message)s", "%H:%M:%S")
+
+    def format(self, record: logging.LogRecord) -> str:
+        line = super().format(record)
+        if record.levelno >= logging.WARNING:
+            stamp, _, message = line.partition(" ")
+            line = f"{stamp} {record.levelname.lower()}: {message}"
+        return line
