@@ -290,14 +290,15 @@ LOGGED_METRICS = [(name, METRICS[name].text) for name in LOGGED]
 def _chosen_run(cfg: Config, metrics: pd.DataFrame | None) -> tuple[int, str]:
     """The run the single-run figures show, and a title that says which and why."""
     R = cfg.num_runs
+    runs = f"runs 0-{R - 1}" if R > 1 else "the only run"
     if cfg.plot.run >= 0:  # checked against num_runs with the config (load_task)
-        return cfg.plot.run, f"run {cfg.plot.run} of {R}"
+        return cfg.plot.run, f"run {cfg.plot.run} ({runs}; plot.run)"
     ok = None if metrics is None else metrics[~metrics["failed"].astype(bool)]
     if ok is None or ok["max_lyapunov"].isna().all():
-        return 0, f"run 0 of {R}"
+        return 0, f"run 0 ({runs})"
     run = int(ok.loc[ok["max_lyapunov"].idxmax(), "run"])
     lam = ok["max_lyapunov"].max()
-    return run, f"run {run} of {R} (largest $\\lambda_{{\\max}}$ = {lam:+.1e})"
+    return run, f"run {run} ({runs}; the largest $\\lambda_{{\\max}}$ = {lam:+.1e})"
 
 
 def _run_title(row) -> str:
@@ -320,7 +321,8 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
         fig, axes = plt.subplots(1, 2, figsize=(9, 5), constrained_layout=True, sharex=True,
                                  sharey=True)
         plotting.plot_teaching_data(dataset.scale.to_data(dataset.series[:3]), axes[0],
-                                    f"teaching data ({min(3, len(dataset.series))} series)")
+                                    f"teaching data (series 0-{min(3, len(dataset.series)) - 1}"
+                                    f" of {len(dataset.series)})")
         plotting.plot_trajectory(outputs, gates, axes[1],
                                  f"closed loop, {label}\nlast {len(outputs)} steps")
         plotting.save_figure(fig, figures / "trajectory.png", fmt)

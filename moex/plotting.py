@@ -155,7 +155,7 @@ def plot_trajectory(points: np.ndarray, gates: np.ndarray, ax=None, title: str =
                    label=f"expert {k} ({mask.mean():.0%})")
     _output_axes(ax, points.shape[-1])
     ax.set_title(title)
-    ax.legend(markerscale=4, loc="upper center", bbox_to_anchor=(0.5, -0.14),
+    ax.legend(markerscale=4, loc="upper center", bbox_to_anchor=(0.5, -0.17),
               ncol=min(len(np.unique(winners)), 4), title="winning expert (share of steps)")
     return ax
 
@@ -199,8 +199,9 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
 
 
 def plot_phase_portrait(gating_u: np.ndarray, ax=None, title: str = ""):
-    """Two gating potentials u^g_1 against u^g_2 (paper Figs. 4 and 15), one dot per step; a
-    fixed point or a short cycle is said so in the title."""
+    """The first two gating potentials u^g_0 against u^g_1 (paper Figs. 4 and 15; units counted
+    from 0, as experts and runs are), one dot per step; a fixed point or a short cycle is said so
+    in the title."""
     ax = ax or plt.figure(figsize=(4.2, 4)).gca()
     points = gating_u[:, :2]
     span = np.ptp(points, axis=0).max() if len(points) else 0.0
@@ -209,14 +210,17 @@ def plot_phase_portrait(gating_u: np.ndarray, ax=None, title: str = ""):
                alpha=0.6 if len(points) > 2000 else 1.0, lw=0)
     if span < 1e-9:
         note = f"a fixed point at ({points[0, 0]:.4g}, {points[0, 1]:.4g})"
+        ax.plot(points[:1, 0], points[:1, 1], "o", ms=6, color=OKABE_ITO[0])  # visible alone
         ax.set_xlim(points[0, 0] - 0.1, points[0, 0] + 0.1)
         ax.set_ylim(points[0, 1] - 0.1, points[0, 1] + 0.1)
     elif distinct <= 50:
         note = f"{distinct} distinct points: a cycle"
     else:
         note = f"{len(points)} steps"
-    ax.set_xlabel("$u^g_1$")
-    ax.set_ylabel("$u^g_2$")
+    H = gating_u.shape[-1]
+    ax.xaxis.set_major_locator(plt.MaxNLocator(5))  # tick labels that never overprint
+    ax.set_xlabel(f"$u^g_0$ (gating unit 0 of 0-{H - 1})")
+    ax.set_ylabel("$u^g_1$ (gating unit 1)")
     ax.set_title(f"{title}\n{note}".strip())
     return ax
 
