@@ -305,8 +305,10 @@ def _run_title(row) -> str:
     """A panel title that states the run's facts."""
     if row["failed"]:
         return f"run {row['run']}: failed"
+    data = row.get("data_switch_prob", np.nan)
     return (f"run {row['run']}: $\\lambda_{{\\max}}$ = {row['max_lyapunov']:+.1e}\n"
-            f"switching {row.get('switch_prob', np.nan):.2f}")
+            f"switching {row.get('switch_prob', np.nan):.2f}"
+            + (f" (data {data:.2f})" if np.isfinite(data) else ""))
 
 
 def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,

@@ -287,7 +287,7 @@ def plot_run_trajectories(outputs: np.ndarray, gates: np.ndarray, titles: list[s
         ax.set_aspect("equal")
         ax.set_xlim(-1.05 * reach, 1.05 * reach)
         ax.set_ylim(-1.05 * reach, 1.05 * reach)
-        ax.set_title(title, fontsize=7)
+        ax.set_title(title, fontsize=9)  # as large as the tick labels
     for ax in list(axes.flat)[R:]:
         ax.set_visible(False)
     for ax in axes[-1]:
