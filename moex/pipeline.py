@@ -241,7 +241,8 @@ def run_train(cfg: Config, out_dir: Path,
     record.failed = [bool(f) for f in failed]
     record.save(path)
     io.write_csv(out_dir / io.HISTORY, history)
-    plotting.save_figure(plotting.plot_learning_curves(history),
+    plotting.save_figure(plotting.plot_learning_curves(
+        history, f"learning curves: task {cfg.task.name}, runs 0-{cfg.num_runs - 1}"),
                          out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
     _log_summary(history)
     if not cfg.eval.enabled:

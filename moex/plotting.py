@@ -82,9 +82,11 @@ def plot_history(history: pd.DataFrame, column: str, ax=None):
     data = history.dropna(subset=[column])
     runs = sorted(data["run"].unique())
     colours = palette(len(runs)) if len(runs) <= 8 else None
+    sparse = data.groupby("run").size().max() <= 30 if len(data) else False  # few logged steps
     for i, (run, group) in enumerate(data.groupby("run")):
-        if colours:
-            ax.plot(group["step"], group[column], lw=1, color=colours[i], label=f"run {run}")
+        if colours:  # markers where the steps are few, so that lines are not read as dense data
+            ax.plot(group["step"], group[column], lw=1, color=colours[i], label=f"run {run}",
+                    marker="o" if sparse else None, ms=3)
         else:
             ax.plot(group["step"], group[column], lw=0.5, color="0.65",
                     label=f"each of {len(runs)} runs" if run == runs[0] else None)
@@ -98,23 +100,32 @@ def plot_history(history: pd.DataFrame, column: str, ax=None):
     return ax
 
 
-def plot_learning_curves(history: pd.DataFrame):
+def plot_learning_curves(history: pd.DataFrame, title: str = ""):
     """E of phase 1; E^g, the adaptive rate and, when tracked, the block KL and λ_max of phase 2
-    (paper Figs. 3, 6, 11), at most three panels a row (four as 2 × 2), one legend."""
+    (paper Figs. 3, 6, 11), at most three panels a row (four as 2 × 2), one legend; `title`
+    names the task and runs. The adaptive rate is the factor α/α̃ by which the adaptive rule
+    (Sec. 2.1.4) has scaled the learning rate: it grows by 1.05 per accepted step with a falling
+    error and shrinks by 0.7 per rejected one."""
     panels = [p for p in LEARNING_PANELS if p[1] in history
               and history.loc[history["phase"] == p[0], p[1]].notna().any()]
     cols = 2 if len(panels) == 4 else min(max(len(panels), 1), 3)
     rows = -(-max(len(panels), 1) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.8 * rows + 0.5),
                              constrained_layout=True, squeeze=False)
-    for ax, (phase, column, title) in zip(axes.flat, panels, strict=False):
+    for ax, (phase, column, name) in zip(axes.flat, panels, strict=False):
         plot_history(history[history["phase"] == phase], column, ax=ax)
-        ax.set_title(f"{title}: {label(column)}")
+        ax.set_title(f"{name}: {label(column)}")
     for ax in list(axes.flat)[len(panels):]:
         ax.set_visible(False)
     handles, labels = axes.flat[0].get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 8))
+    if any(column == "lr_scale" for _, column, _ in panels):
+        title = (f"{title}\n" if title else "") + ("α/α̃: the adaptive rule's factor on the "
+                                                  "learning rate (×1.05 after a step that "
+                                                  "lowers the error, ×0.7 per retry)")
+    if title:
+        fig.suptitle(title, fontsize=9)
     return fig
 
 
