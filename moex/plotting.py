@@ -182,8 +182,9 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
         fig, axes = plt.subplots(rows, 1, figsize=(10, 2.2 * rows + 0.6), sharex=True,
                                  constrained_layout=True, squeeze=False)
         axes = list(axes[:, 0]) if rows == 2 else [axes[0, 0], axes[0, 0]]
-    for d in range(outputs.shape[1]):
-        axes[0].plot(outputs[:, d], lw=1, label=f"$y_{{{d + 1}}}$")
+    for d in range(outputs.shape[1]):  # black and grey: the experts' colours mean experts
+        axes[0].plot(outputs[:, d], lw=1, color=("black", "0.55", "0.8")[d % 3],
+                     ls=("-", "-", "--")[d % 3], label=f"$y_{{{d + 1}}}$")
     if outputs.shape[1]:  # the legend beside the panel, never over the signal
         axes[0].set_ylabel("output")
         axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)
@@ -192,9 +193,8 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
                            interpolation="nearest", extent=(-0.5, len(gates) - 0.5, -0.5, K - 0.5))
     axes[1].set_yticks(range(K))
     axes[1].set_ylabel("expert")
-    axes[1].set_xlabel("step")
-    axes[1].figure.colorbar(image, ax=list(dict.fromkeys(axes)), label="gate opening g",
-                            pad=0.01, fraction=0.03)
+    axes[1].set_xlabel(f"step (the last {len(gates)} steps of the sample)")
+    axes[1].figure.colorbar(image, ax=axes[1], label="gate opening g", pad=0.01, fraction=0.03)
     if names:  # every step's symbol in a short window, else the middle of each run of one
         # symbol lasting at least 1/40 of the window (no overlapping labels for flickers)
         steps = range(len(symbols))
@@ -204,8 +204,12 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
             steps = (starts + lengths // 2)[lengths >= len(symbols) / 40]
         for n in steps:
             name = names[symbols[n]] if symbols[n] < len(names) else "–"  # no gate above 0.5
-            axes[1].text(n, K - 0.45, name, ha="center", va="bottom", fontsize=6,
+            axes[1].text(n, K - 0.45, name, ha="center", va="bottom", fontsize=8,
                          color="red" if bad is not None and bad[n] else "black")
+        axes[1].set_title("symbol of each step (the primitive the output is nearest to; red: "
+                          "one the grammar forbids)" if bad is not None else
+                          "symbol of each step (the primitive the output is nearest to: "
+                          + ", ".join(names) + ")", fontsize=8, loc="left", pad=12)
     return axes
 
 
