@@ -340,7 +340,7 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
         ax = plotting.plot_phase_portrait(tail, title=f"gating potentials, {label}")
         plotting.save_figure(ax.figure, figures / "phase_portrait.png", fmt)
     if metrics is not None and dataset.prototypes is not None:
-        pooled = "1 run" if cfg.num_runs == 1 else f"{cfg.num_runs} runs pooled"
+        pooled = "1 run" if cfg.num_runs == 1 else f"averaged over {cfg.num_runs} runs"
         ax = plotting.plot_residence(samples["residence_hist"], switch_prob=dataset.switch_prob,
                                      censored_hist=samples.get("residence_censored_hist"),
                                      title=f"repetitions of a curve before a switch, {pooled}")

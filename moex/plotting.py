@@ -270,7 +270,9 @@ def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = 
     if not both[1:top].any():
         ax.text(0.5, 0.5, "no stay recorded: the closed loop never completed a curve",
                 ha="center", va="center", transform=ax.transAxes)
-    ax.set_xlabel("repetitions of a curve")
+    last = f" (the last bar, {len(k) - 1}: every stay at least as long)" \
+        if top >= len(k) and both[-1] > 0 else ""
+    ax.set_xlabel(f"repetitions of a curve{last}")
     ax.set_ylabel("probability")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_yscale("log")  # always: panels compare; down to a tenth of the rarest count
