@@ -427,17 +427,25 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
                    marker=markers[i // len(colours) % 4], label=str(name), alpha=0.85,
                    edgecolors="none")
     if reference is not None and len(reference.dropna()):
-        level = float(reference.mean())
-        ax.axhline(level, color="black", lw=1, label=f"data ({level:.3f})")
-        if band:
-            ax.axhspan(level - band, level + band, color="grey", alpha=0.2, lw=0,
-                       label=f"±{band:g}")
+        levels = reference.groupby(groups).mean()  # the data's value per group
+        one = levels.nunique() == 1
+        for i, name in enumerate(names):
+            level = float(levels[name]) if name in levels and pd.notna(levels[name]) else None
+            if level is None or (one and i):
+                continue
+            ax.axhline(level, color="black" if one else colours[i % len(colours)], lw=1,
+                       ls="-" if one else "--",
+                       label=f"data ({level:.3f})" if one else f"data of {name} ({level:.3f})")
+            if band:
+                ax.axhspan(level - band, level + band, color="grey", alpha=0.15, lw=0,
+                           label=f"within ±{band:g} of the data" if i == 0 else None)
     ax.axvline(0, color="grey", lw=0.8, ls=":")
     ax.set_xscale("symlog", linthresh=LINTHRESH)
     ax.margins(x=0.08)
     if log_y:
         ax.set_yscale("log")
-    names_of = {"context_size": "NC (context units of the gating RNN)", "arm": "study arm"}
+    names_of = {"context_size": "NC (context units of the gating RNN)", "arm": "study arm",
+                "switch_prob_task": "P (the data's switching probability)"}
     ax.set_xlabel(f"{label(x)} (linear within ±{LINTHRESH:g}, logarithmic beyond)")
     ax.set_ylabel(label(y))
     ax.set_title(f"{label(y)} against {label(x)}, one point per network")

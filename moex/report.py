@@ -349,7 +349,10 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
                                             limits=_limits(summary[column], column))
                 plotting.save_figure(fig, figures / f"heatmap_{column}{suffix}.png", fmt)
     if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
-        fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "arm",
+        # coloured by the study arm, else by the first setting that varies (e.g. P), never one
+        # colour over settings whose data differ
+        group = "arm" if runs["arm"].notna().any() or not keys else keys[0]
+        fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", group,
                                        reference=runs.get("data_switch_prob"), band=NEAR)
         plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png", fmt)
     reber = runs[runs["task"] == "reber"]
