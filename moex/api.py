@@ -112,11 +112,8 @@ class Fitted:
             targets = phase2_targets(self.beta, self.dataset, self.config.num_runs,
                                      self.gating["w_out"].dtype,
                                      self.config.train.gating.target_temperature)
-            state = trained_state({n: v[:, k] if n == "u0" else v for n, v in
-                                   self.experts.items()},
-                                  {n: v[:, k] if n == "u0" else v for n, v in
-                                   self.gating.items()}, targets[:, k],
-                                  torch.as_tensor(self.dataset.series[k]), delay)
+            state = trained_state(self.experts, self.gating, targets,
+                                  torch.as_tensor(self.dataset.series), delay, k)
         with torch.no_grad():
             out = run_closed_loop(self.experts, self.gating, state, steps, noise_var**0.5,
                                   generator, self.backend)

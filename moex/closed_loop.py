@@ -13,14 +13,21 @@ from moex.model import ClosedLoopState
 CHUNK = 500  # closed-loop steps per call of the time loop (bounds the memory of the records)
 
 
-def trained_state(experts, gating, gate_targets, series, delay) -> ClosedLoopState:
-    """The trained initial state of every series (N = S): u_0, and data / ĝ in the delay lines.
+def trained_state(experts, gating, gate_targets, series, delay,
+                  rows: list[int] | None = None) -> ClosedLoopState:
+    """The trained initial state of every series (N = S), or of series `rows[n]` for sample n:
+    u_0, and data / ĝ in the delay lines.
 
     Args:
         experts, gating: trained parameters (experts empty for symbolic tasks).
         gate_targets: (R, S, T, K) the gate estimates the gating RNN was trained on.
         series: (S, L, D) the training series; delay: τ.
+        rows: the series each sample starts from (default: each series once).
     """
+    if rows is not None:
+        experts = {n: v[:, rows] if n == "u0" else v for n, v in experts.items()}
+        gating = {n: v[:, rows] if n == "u0" else v for n, v in gating.items()}
+        gate_targets, series = gate_targets[:, rows], series[rows]
     R = gate_targets.shape[0]
     experts_u = experts["u0"] if experts else series.new_zeros(R, series.shape[0], 0, 0)
     inputs = series[None, :, :delay].expand(R, -1, -1, -1)

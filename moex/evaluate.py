@@ -61,6 +61,9 @@ class EvalConfig:
     # the block KL: `paper` (Eq. 21, model probability kl_floor for a block it lacks) or `mregn`,
     # the authors' C formula (a count of 0.001 for a missing block, plus their second sum)
     kl_form: str = "paper"
+    # where the evaluation's samples start: `random` states (Sec. 4), or `trained`: sample n
+    # from the trained initial state of series n mod S, as the paper does for Fig. 16
+    initial_states: str = "random"
     track_samples: int = 4  # random initial states per network when tracking
     track_steps: int = 5000  # Lyapunov steps per sample when tracking
 
@@ -77,6 +80,8 @@ class EvalConfig:
               f"eval.symbol_rule={self.symbol_rule!r}; choose argmax or threshold")
         check(self.kl_form in ("paper", "mregn"),
               f"eval.kl_form={self.kl_form!r}; choose paper or mregn")
+        check(self.initial_states in ("random", "trained"),
+              f"eval.initial_states={self.initial_states!r}; choose random or trained")
         check_positive("eval.kl_floor", self.kl_floor)
 
     def block_kl(self, data, model) -> float:
@@ -215,7 +220,11 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         if run.gating_u is not None:  # the first sample's last steps, for the figures
             kept.append(tuple(a[:, 0].clone() for a in (run.outputs, run.gates, run.gating_u)))
 
-    state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
+    if cfg.initial_states == "trained":  # sample n from series n mod S's trained state
+        state = trained_state(experts, gating, targets, series, delay,
+                              [n % S for n in range(cfg.num_samples)])
+    else:
+        state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
     uniform = cfg.jacobian_gates == "uniform"
     with torch.no_grad():  # the paper's λ_max is that of the noiseless loop; with noise (which
         # only judges periodicity, Sec. 4.3) a second pass from the same initial states records

@@ -425,9 +425,7 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
         estimates = phase2_targets(saved.beta, dataset, cfg.num_runs,
                                    gating["w_out"].dtype, cfg.train.gating.target_temperature)
         k = [tool.from_series] * tool.num_samples
-        state = trained_state({n: v[:, k] if n == "u0" else v for n, v in experts.items()},
-                              {n: v[:, k] if n == "u0" else v for n, v in gating.items()},
-                              estimates[:, k], saved.series[k], cfg.model.delay)
+        state = trained_state(experts, gating, estimates, saved.series, cfg.model.delay, k)
     with torch.no_grad():
         out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator,
                        run.backend, stop)

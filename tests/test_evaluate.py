@@ -170,3 +170,23 @@ def test_noise_enters_only_the_metrics_it_is_said_to():
     named = set(noisy["noise_enters"].iloc[0].split())
     assert {"switch_prob", "nonperiodic_fraction", "max_lyapunov_noisy"} <= named
     assert not {"max_lyapunov", "E_closed"} & named
+
+
+def test_trained_initial_states_start_each_sample_from_its_series():
+    """eval.initial_states=trained (the paper's Fig. 16 protocol): sample n starts from the
+    trained state of series n mod S, so λ_max is that of closed loops started there, the same
+    as computed directly from those states with the same generator."""
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 4, 5
+    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+                                                      num_test_series=1), model)
+    cfg = dataclasses.replace(QUICK, initial_states="trained", num_samples=4)
+    rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg,
+                                 torch.Generator().manual_seed(0)).rows)
+    series = torch.as_tensor(data.series)
+    state = trained_state(experts, gating, gate_estimates(beta), series, 1, [0, 1, 0, 1])
+    direct = closed_loop_lyapunov(experts, gating, state, cfg.lyapunov_steps, cfg.transient,
+                                  torch.Generator().manual_seed(0))
+    np.testing.assert_allclose(rows["max_lyapunov"], direct.mean(1)[:, 0], rtol=1e-12)
+    with pytest.raises(ValueError, match="eval.initial_states='nope'; choose random or trained"):
+        EvalConfig(initial_states="nope")
