@@ -161,6 +161,11 @@ def table():
     return pd.DataFrame(rows)
 
 
+def _se(value: float) -> str:
+    """A distance in standard errors; n/a where the control's networks do not spread (sd 0)."""
+    return "n/a (sd 0)" if not math.isfinite(value) else f"{value:+.1f}"
+
+
 def markdown(rows) -> str:
     """The table REPRODUCTION.md and docs/mregn_control.md quote."""
     lines = ["| design | metric | paper | moex (n) | authors' code, scored by moex (n) | "
@@ -171,7 +176,7 @@ def markdown(rows) -> str:
             f"| {r.design} | {r.metric} | {r.paper:.4g} | {r.moex:.4g} ± {r.moex_sd:.2g} "
             f"({r.moex_n}) | {r.control:.4g} ± {r.control_sd:.2g} ({r.control_n}) | "
             f"{r.control_minus_moex:+.3g} ± {r.difference_se:.2g} (p {r.permutation_p:.2g}) | "
-            f"{r.control_vs_paper_se:+.1f} ({r.control_vs_paper_se_paper_error:+.1f}) |")
+            f"{_se(r.control_vs_paper_se)} ({_se(r.control_vs_paper_se_paper_error)}) |")
     return "\n".join(lines)
 
 
