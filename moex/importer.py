@@ -109,8 +109,9 @@ def import_networks(cfg: ImportConfig, dataset: Dataset) -> tuple[Config, checkp
                 f"source: {folder} was trained on other data (shape {data.shape}) than "
                 f"task={cfg.task.name} with seed={cfg.seed} (shape {expected.shape}); name the "
                 f"task and seed that generated its data file")
-    gating = _stack([_rnn_params(f["gn"]["net"]) for f in files], dtype)
-    _same_shapes([{k: v[r] for k, v in gating.items()} for r in range(len(files))], folders)
+    per_gating = [_rnn_params(f["gn"]["net"]) for f in files]
+    _same_shapes(per_gating, folders)  # before stacking: a clear error, not numpy's
+    gating = _stack(per_gating, dtype)
     R, H = gating["b_c"].shape
     K = gating["b_o"].shape[1]
     experts, beta = {}, None
@@ -150,12 +151,12 @@ def import_networks(cfg: ImportConfig, dataset: Dataset) -> tuple[Config, checkp
 def sources(folders: list[Path]) -> list[dict]:
     """Each imported file with its sha256 and the C tool's epoch count and adaptive rate."""
     rows = []
-    for folder in folders:
+    for network, folder in enumerate(folders):
         for name in ("mre.dat", "gn.dat", "rnn.dat"):
             path = folder / name
             if path.is_file():
                 saved = read_save(path)
-                rows.append({"network": len(rows) if name != "gn.dat" else len(rows) - 1,
+                rows.append({"network": network,
                              "file": str(path.resolve()), "sha256": hashlib.sha256(
                                  path.read_bytes()).hexdigest(),
                              "epochs": int(saved["epoch"]), "adapt_lr": float(saved["adapt_lr"])})

@@ -7,6 +7,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -146,7 +147,35 @@ def test_moex_import_writes_a_run_folder_of_every_network(tmp_path):
     assert saved.config["num_runs"] == 2 and saved.phase == "done"
     assert torch.equal(saved.gating["w_rec"][0], saved.gating["w_rec"][1])
     assert torch.equal(saved.beta, record.beta)
-    assert (tmp_path / "run" / "imported_from.csv").read_text().count("mre.dat") == 2
+    sources = pd.read_csv(tmp_path / "run" / "imported_from.csv")
+    assert sources["network"].tolist() == [0, 0, 1, 1]  # mre.dat and gn.dat of each network
+
+
+def test_networks_of_different_sizes_are_one_clear_error(tmp_path):
+    shutil.copytree(DATA / "mixture", tmp_path / "a")
+    shutil.copytree(DATA / "mixture", tmp_path / "b")
+    gn = read_save(tmp_path / "b" / "gn.dat")
+    net = gn["net"]  # drop one context unit of the gating network in b
+    M = net["c_state_size"] - 1
+    for key in ("weight_ci", "weight_cc", "delta_weight_ci", "delta_weight_cc", "prior_weight_ci",
+                "prior_weight_cc", "threshold_c", "tau", "eta", "delta_threshold_c", "delta_tau",
+                "prior_threshold_c", "prior_tau", "const_init_c", "connection_ci",
+                "connection_cc"):
+        net[key] = net[key][:M]
+    for key in ("weight_cc", "delta_weight_cc", "prior_weight_cc", "weight_oc",
+                "delta_weight_oc", "prior_weight_oc"):
+        net[key] = net[key][:, :M]
+    net["connection_cc"], net["connection_oc"] = net["connection_cc"][:, :M + 1], \
+        net["connection_oc"][:, :M + 1]
+    net["c_state_size"] = M
+    for series in net["series"]:
+        for key in ("init_c_inter_state", "init_c_state", "delta_init_c_inter_state"):
+            series[key] = series[key][:M]
+    write_save(tmp_path / "b" / "gn.dat", gn, "gn.dat")
+    cfg = ImportConfig(task=TASKS["mixture"], source=[str(tmp_path / "a"), str(tmp_path / "b")])
+    with pytest.raises(ConfigError, match=r"b has w_in of shape \(4, 4\), .*a \(5, 4\); one import "
+                                          r"holds networks of one shape"):
+        import_networks(cfg, make_task(cfg.task, 0))
 
 
 def test_imported_gating_network_generates_what_rnn_generate_prints():
