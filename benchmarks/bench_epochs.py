@@ -24,7 +24,8 @@ import torch
 from moex.config import Config
 from moex.kernels import get_backend
 from moex.model import init_experts, init_gating
-from moex.pipeline import load_task, run_seeds
+from moex.pipeline import load_task
+from moex.run import run_seeds
 from moex.tasks import TaskConfig
 from moex.train import train_experts, train_gating
 

@@ -19,7 +19,7 @@ from moex.closed_loop import closed_loop_lyapunov, random_state
 from moex.config import Config
 from moex.kernels import get_backend
 from moex.model import init_experts, init_gating
-from moex.pipeline import run_seeds
+from moex.run import run_seeds
 
 
 def bench(runs: int, samples: int, steps: int, threads: int, backend: str, device: str,

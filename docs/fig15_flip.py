@@ -23,8 +23,9 @@ from moex import checkpoint
 from moex.closed_loop import closed_loop_lyapunov, random_state
 from moex.config import config_from_dict
 from moex.evaluate import phase2_targets
-from moex.pipeline import initial_parameters, load_task, run_seeds
+from moex.pipeline import load_task
 from moex.report import to_markdown
+from moex.run import initial_parameters, run_seeds
 from moex.train import train_gating
 
 REPEATS, SAMPLES, STEPS = 8, 25, 20000

@@ -128,7 +128,7 @@ def table():
     added, assuming its networks spread as the control's (its n: 50 in Table 1, 30 in Table 2)."""
     import pandas as pd
 
-    from moex.report import PAPER_TABLE1, PAPER_TABLE2
+    from moex.tasks.paper import PAPER_TABLE1, PAPER_TABLE2
 
     networks = pd.read_csv(DOCS / "mregn_control_networks.csv")
     rows = []

@@ -22,7 +22,7 @@ DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS))
 from table2_onehot import _one, at_p, markdown  # noqa: E402
 
-from moex.report import PAPER_TABLE2  # noqa: E402
+from moex.tasks.paper import PAPER_TABLE2  # noqa: E402
 
 DRAWS = 20000
 

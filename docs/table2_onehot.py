@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from moex.report import PAPER_TABLE2, wilson_interval
+from moex.report import wilson_interval
+from moex.tasks.paper import PAPER_TABLE2
 
 DOCS = Path(__file__).resolve().parent
 STAY, ALTERNATE, NEAR = 0.02, 0.8, 0.05

@@ -1,12 +1,15 @@
 """The verdict table at the top of REPRODUCTION.md, recomputed from the per-network CSVs in docs/.
 
-    python docs/verdicts.py            # prints the Markdown table
+    python docs/verdicts.py              # the Markdown table of REPRODUCTION.md
+    python docs/verdicts.py --evidence   # with the evidence column (docs/verdicts.md)
 
 Each row: the paper's number, ours as mean ± sd (n) over networks, the distance in standard
 errors of our mean (sd / √n; the paper gives no spread, so its number is taken as exact), and a
 verdict: `reproduced` within 2 standard errors (for a share of chaotic networks: the paper's
 share inside our 95 % Wilson interval), otherwise `differs`, with the cause where a controlled
-comparison found it (CAUSES). tests/test_docs.py checks that REPRODUCTION.md quotes this table.
+comparison found it (CAUSES) in one phrase and its evidence in a column of its own; and the
+authors' code trained on the same data and scored by moex (docs/mregn_control.py), where run.
+tests/test_docs.py checks that REPRODUCTION.md and docs/verdicts.md quote this table.
 """
 
 import sys
@@ -15,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from moex.report import PAPER_TABLE1, PAPER_TABLE2, wilson_interval
+from moex.report import wilson_interval
+from moex.tasks.paper import PAPER_TABLE1, PAPER_TABLE2
 
 DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS))  # the sibling scripts (table2_onehot)
@@ -54,29 +58,22 @@ def _paired_targets(p: float) -> str:
             f"sign-flip p {sign_flip_p(diff):.2g}")
 
 
-def _targets_cause() -> str:
-    return ("differs, candidate cause (not significant): the soft phase-2 targets, "
-            + _paired_targets(0.5) + "; " + _onehot(0.5))
+def _targets_evidence(p: float):
+    return lambda: _paired_targets(p) + "; " + _onehot(p)
 
 
-def _targets_part() -> str:
-    return ("differs, candidate cause (not significant): the soft phase-2 targets, "
-            + _paired_targets(0.25) + "; " + _onehot(0.25))
-
-
-def _protocol_cause() -> str:
+def _protocol_evidence() -> str:
     runs = pd.read_csv(DOCS / "table1_nc20_protocol.csv")
-    return ("differs, cause found: protocol; with the C code's symbol rule and KL formula "
-            "(50 networks retrained): " + _distance(runs.block_kl_train_threshold_10000_mregnkl,
-                                                   _paper("Table 1", 20, "block_kl_train")))
+    return ("with the C code's symbol rule and KL formula (50 networks retrained): "
+            + _distance(runs.block_kl_train_threshold_10000_mregnkl,
+                        _paper("Table 1", 20, "block_kl_train")))
 
 
-def _protocol_cause_nc10() -> str:
+def _protocol_evidence_nc10() -> str:
     arms = pd.read_csv(DOCS / "table1_nc10_arms.csv")
     runs = arms[arms.arm == "baseline_c_protocol"]
-    return ("differs, cause found: protocol, as at NC = 20; with the C code's symbol rule and KL "
-            "formula (50 networks retrained): " + _distance(runs.block_kl_train,
-                                            _paper("Table 1", 10, "block_kl_train")))
+    return ("with the C code's symbol rule and KL formula (50 networks retrained): "
+            + _distance(runs.block_kl_train, _paper("Table 1", 10, "block_kl_train")))
 
 
 def _reber_test_open() -> str:
@@ -86,7 +83,7 @@ def _reber_test_open() -> str:
         arms[arms.arm == "baseline"].block_kl_test.mean()
     every = arms[arms.arm == "init_tau_attraction"]
     paper = _paper("Table 1", 20, "block_kl_test")
-    return ("differs, cause open: not the protocol; not the data or held-out draw (10 data sets × "
+    return ("not the protocol; not the data or held-out draw (10 data sets × "
             f"5 networks: median {seeds.median():.3f}, mean " + _distance(seeds, paper) +
             " through 2 networks with a periodic closed loop); not the C code's "
             f"initialisation, learned τ or attraction alone, nor the first two together "
@@ -97,8 +94,8 @@ def _reber_test_open() -> str:
 
 def _saturated_nc10() -> str:
     e_g = _table1_runs(10).E_g
-    return (f"reproduced in the mean only through {(e_g > 1).sum()} saturated network "
-            f"(E^g {e_g.max():.2f}; median {e_g.median():.3f})")
+    return (f"{(e_g > 1).sum()} saturated network (E^g {e_g.max():.2f}) carries the mean; the "
+            f"median is {e_g.median():.3f}")
 
 
 def _table1_runs(nc: int) -> pd.DataFrame:
@@ -106,14 +103,23 @@ def _table1_runs(nc: int) -> pd.DataFrame:
     return reber[(reber["context_size"] == nc) & ~reber["failed"]]
 
 
-# (table, setting, metric) -> what a controlled comparison found; rows not named: cause open
+# (table, setting, metric) -> (the verdict when it is not the 2-SE rule's, a cause in one
+# phrase, the evidence); rows not named: the rule's verdict, cause open
 CAUSES = {
-    ("Table 1", 10, "E_g"): _saturated_nc10,
-    ("Table 1", 10, "block_kl_train"): _protocol_cause_nc10,
-    ("Table 1", 20, "block_kl_train"): _protocol_cause,
-    ("Table 1", 20, "block_kl_test"): _reber_test_open,
-    ("Table 2", "P = 0.5", "switch_prob"): _targets_cause,
-    ("Table 2", "P = 0.25", "switch_prob"): _targets_part,
+    ("Table 1", 10, "E_g"): ("reproduced", "in the mean only, through one saturated network",
+                             _saturated_nc10),
+    ("Table 1", 10, "block_kl_train"): ("differs, cause found", "the paper's protocol (the C "
+                                        "code's symbol rule and KL formula)",
+                                        _protocol_evidence_nc10),
+    ("Table 1", 20, "block_kl_train"): ("differs, cause found", "the paper's protocol (the C "
+                                        "code's symbol rule and KL formula)", _protocol_evidence),
+    ("Table 1", 20, "block_kl_test"): ("differs, cause open", "not the protocol, data, held-out "
+                                       "draw or the C code's choices alone", _reber_test_open),
+    ("Table 2", "P = 0.5", "switch_prob"): ("differs, candidate cause (not significant)",
+                                            "the soft phase-2 targets", _targets_evidence(0.5)),
+    ("Table 2", "P = 0.25", "switch_prob"): ("differs, candidate cause (not significant)",
+                                             "the soft phase-2 targets",
+                                             _targets_evidence(0.25)),
 }
 METRICS = {"E_g": "E^g", "block_kl_train": "KL train", "block_kl_test": "KL test",
            "max_lyapunov": "λ_max", "switch_prob": "switching prob."}
@@ -122,18 +128,39 @@ METRICS = {"E_g": "E^g", "block_kl_train": "KL train", "block_kl_test": "KL test
 PAPER_N = {"Table 1": 50, "Table 2": 30}  # networks behind each of the paper's means
 
 
+CONTROL = {"reber_nc20": ("Table 1", 20), "reber_nc30": ("Table 1", 30),
+           "table2_p05": ("Table 2", "P = 0.5"), "table2_p025": ("Table 2", "P = 0.25")}
+
+
+def _control(table, setting, metric) -> str:
+    """The authors' code trained on moex's data and scored by moex (docs/mregn_control.md)."""
+    summary = pd.read_csv(DOCS / "mregn_control_summary.csv")
+    for row in summary.itertuples():
+        if CONTROL.get(row.design) == (table, setting) and row.metric == metric:
+            if metric == "positive_percent":
+                return f"{row.control:.0f} % ({row.control_n})"
+            return f"{row.control:.4g} ± {row.control_sd:.2g} ({row.control_n})"
+    return "—"
+
+
 def _row(table, setting, metric, paper, values) -> dict:
     values = values.dropna()
     n, mean, sd = len(values), values.mean(), values.std()
     distance = (mean - paper) / (sd / np.sqrt(n))
     # with the paper's own sampling error, its networks assumed to spread as ours
     both = (mean - paper) / (sd * np.sqrt(1 / n + 1 / PAPER_N[table]))
-    verdict = "reproduced" if abs(distance) <= 2 else "differs, cause open"
+    kind = "reproduced" if abs(distance) <= 2 else "differs, cause open"
+    cause, evidence = "", ""
+    if (table, setting, metric) in CAUSES:
+        kind, cause, explain = CAUSES[(table, setting, metric)]
+        evidence = explain()
+    own = _own_data(table, setting, metric)
     return {"result": f"{table}, {setting}", "quantity": METRICS[metric],
             "paper": f"{paper:.4g}", "moex mean ± sd (n)": f"{mean:.4g} ± {sd:.2g} ({n})",
             "distance": f"{distance:+.1f} SE ({both:+.1f} with the paper's error)",
-            "verdict": (CAUSES[(table, setting, metric)]() if (table, setting, metric) in CAUSES
-                        else verdict) + _own_data(table, setting, metric)}
+            "authors' code (n)": _control(table, setting, metric),
+            "verdict": kind + (f": {cause}" if cause else ""),
+            "evidence": "; ".join(e for e in (evidence, own) if e) or "—"}
 
 
 def _own_data(table, setting, metric) -> str:
@@ -145,7 +172,7 @@ def _own_data(table, setting, metric) -> str:
     runs = own[metric][(own.switch_prob_task == p) & ~own.failed.astype(bool)]
     paper = _paper("Table 2", p, metric)
     digits = ".3f" if metric == "switch_prob" else ".3g"
-    return (f"; with a data set per network: {_distance(runs, paper, digits)}" if len(runs)
+    return (f"with a data set per network: {_distance(runs, paper, digits)}" if len(runs)
             else "")
 
 
@@ -156,7 +183,8 @@ def _share(table, setting, paper_percent, lyapunov) -> dict:
     return {"result": f"{table}, {setting}", "quantity": "% λ_max > 0",
             "paper": f"{paper_percent:g} %", "moex mean ± sd (n)": f"{100 * positive / n:.0f} % "
             f"({positive} / {n})", "distance": f"95 % CI [{low:.0f}, {high:.0f}] %",
-            "verdict": "reproduced" if inside else "differs, cause open"}
+            "authors' code (n)": _control(table, setting, "positive_percent"),
+            "verdict": "reproduced" if inside else "differs, cause open", "evidence": "—"}
 
 
 def verdicts() -> pd.DataFrame:
@@ -201,7 +229,9 @@ def tally(frame: pd.DataFrame) -> str:
             f"cases).")
 
 
-def markdown(frame: pd.DataFrame) -> str:
+def markdown(frame: pd.DataFrame, evidence: bool = False) -> str:
+    """The table; REPRODUCTION.md quotes it without the evidence column, docs/verdicts.md with."""
+    frame = frame if evidence else frame.drop(columns="evidence")
     lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
     lines += ["| " + " | ".join(map(str, row)) + " |" for row in frame.itertuples(False)]
     return "\n".join(lines)
@@ -210,4 +240,4 @@ def markdown(frame: pd.DataFrame) -> str:
 if __name__ == "__main__":
     frame = verdicts()
     print(tally(frame))
-    print(markdown(frame))
+    print(markdown(frame, evidence="--evidence" in sys.argv))

@@ -12,23 +12,17 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import checkpoint, io
+from moex import checkpoint, io, provenance
 from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import random_state, trained_state
 from moex.config import Config, RunFolder
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate, phase2_targets
 from moex.kernels import Backend, get_backend
-from moex.pipeline import (
-    evaluation_generator,
-    in_data_units,
-    initial_parameters,
-    load_run,
-    run_seeds,
-)
+from moex.pipeline import evaluation_generator, in_data_units, load_run
+from moex.run import Job, train_jobs
 from moex.tasks import Dataset, TaskConfig, user_data
 from moex.tasks.scaling import fit_scale
-from moex.train import train_experts, train_gating
 
 
 @dataclass
@@ -49,6 +43,7 @@ class Fitted:
     gating: dict[str, torch.Tensor]
     history: pd.DataFrame
     backend: Backend
+    provenance: dict | None = None  # what trained it (versions, CPU/GPU, times); `save` writes it
 
     def __repr__(self) -> str:
         """One line, not the tensors: task, sizes, runs, backend and the last logged errors."""
@@ -75,10 +70,13 @@ class Fitted:
             torch.as_tensor(self.dataset.labels), experts=self.experts, beta=self.beta,
             gating=self.gating,
             experts_rows=self.history[self.history["phase"] == "experts"].to_dict("records"),
+            gating_rows=self.history[self.history["phase"] == "gating"].to_dict("records"),
             failed=[bool(f) for f in failed],
             data_scale={k: torch.as_tensor(v) for k, v in self.dataset.scale.as_dict().items()})
         io.write_csv(path / io.HISTORY, self.history)
         record.save(path / checkpoint.NAME)
+        if self.provenance is not None:
+            provenance.save(path, self.provenance)
         return path
 
     def evaluate(self, quick: bool = False, **eval_settings) -> pd.DataFrame:
@@ -122,13 +120,15 @@ class Fitted:
 
 def load(run_dir) -> Fitted:
     """A finished run folder (from `moex train` or `Fitted.save`) as the `Fitted` that `fit`
-    returns: its config, data, parameters, learning history and backend."""
+    returns: its config, data, parameters, learning history, backend and (the folder's last
+    record) provenance."""
     run = load_run(RunFolder(run_dir=str(run_dir)))
     history_file = Path(run_dir) / io.HISTORY
     history = (pd.read_csv(history_file) if history_file.exists()
-               else pd.DataFrame(run.saved.experts_rows))
+               else pd.DataFrame(run.saved.experts_rows + run.saved.gating_rows))
+    records = provenance.read(Path(run_dir))
     return Fitted(run.cfg, run.dataset, run.saved.experts, run.saved.beta, run.saved.gating,
-                  history, run.backend)
+                  history, run.backend, records[-1] if records else None)
 
 
 def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
@@ -161,21 +161,13 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
         gating=dataclasses.replace(cfg.train.gating, steps=gating_steps))
     check(series.shape[1] >= cfg.model.delay + 2,
           f"series have {series.shape[1]} steps; need at least {cfg.model.delay + 2}")
-    S, _, D = series.shape
     dataset = user_data(*fit_scale(series, scale, "series"))
-    series = dataset.series
-    dtype = getattr(torch, cfg.precision)
     backend = get_backend(cfg.backend, cfg.device)
-    data = torch.as_tensor(series, dtype=dtype)
-    experts, gating = initial_parameters(cfg, S, D, dtype)
-    experts, beta, rows = train_experts(experts, data, cfg.model, cfg.train.experts, cfg.train,
-                                        backend=backend)
-    targets = phase2_targets(beta, dataset, cfg.num_runs, dtype,
-                             cfg.train.gating.target_temperature)
-    gating, gating_rows = train_gating(gating, targets, data[:, :-cfg.model.delay], cfg.model,
-                                       cfg.train.gating, cfg.train, backend=backend,
-                                       seeds=run_seeds(cfg.seed, cfg.num_runs))
-    return Fitted(cfg, dataset, experts, beta, gating, pd.DataFrame(rows + gating_rows), backend)
+    with provenance.kept("fit", cfg.backend, cfg.device, cfg.precision) as record:
+        provenance.note(backend=backend.name)
+        [done] = train_jobs([Job(cfg, dataset)], backend=backend)  # the core `moex train` runs
+    return Fitted(cfg, dataset, done.experts, done.beta, done.gating,
+                  pd.DataFrame(done.experts_rows + done.gating_rows), backend, record)
 
 
 __all__ = ["EvalConfig", "Fitted", "fit", "load"]

@@ -35,6 +35,7 @@ class Checkpoint:
         beta: (R, S, T, K) the gate logits of phase 1, or None.
         gating: phase-2 parameters (empty until training ends).
         experts_rows: the phase-1 history rows.
+        gating_rows: the phase-2 history rows (set when training ends; absent before 0.1.1).
         failed: per run, whether it became non-finite (set when training ends).
         train_state: the resumable state of the unfinished phase, or None.
         track_rng: the generator state of the metrics tracked while training, or None.
@@ -49,6 +50,7 @@ class Checkpoint:
     beta: torch.Tensor | None = None
     gating: dict = field(default_factory=dict)
     experts_rows: list = field(default_factory=list)
+    gating_rows: list = field(default_factory=list)
     failed: list | None = None
     train_state: dict | None = None
     track_rng: torch.Tensor | None = None

@@ -5,6 +5,7 @@ value or unknown key ends with one line on stderr and exit code 2, and nothing i
 """
 
 import contextlib
+import copy
 import difflib
 import fcntl
 import json
@@ -169,6 +170,23 @@ def _typed(composed, choices) -> object:
     if isinstance(cfg, EvaluateConfig) and choices.get("eval") == "paper":
         cfg.paper_sizes = True
     return cfg
+
+
+def typed_job_config(sweep_config) -> object:
+    """The dataclass of one job of a sweep (its config without the `hydra` node, as the task
+    function receives it): what the packed launcher trains before the job runs."""
+    task_cfg = copy.deepcopy(sweep_config)
+    with open_dict(task_cfg):
+        del task_cfg["hydra"]
+    return _typed(task_cfg, sweep_config.hydra.runtime.choices)
+
+
+def interrupted_jobs(folders: list[Path], exc: BaseException) -> None:
+    """A packed batch stopped by a signal: each job folder says so, and how to continue."""
+    for folder in folders:
+        _write_status(Path(folder), verb="train", status="interrupted", error=str(exc))
+    print(f"moex: interrupted ({exc}); every job's trained state is saved: re-run the same "
+          f"command with hydra.sweep.dir={Path(folders[0]).parent} to continue", file=sys.stderr)
 
 
 def validate(config_name: str, args: list[str], flags: list[str] = ()):
@@ -359,6 +377,11 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     config_name, task_function = VERBS[verb]
     hydra_flags, overrides = _split_flags(args)
+    shown = {"--cfg", "-c", "--info"} & set(hydra_flags)
+    if shown and {"-m", "--multirun"} & set(hydra_flags):  # Hydra's answer is a traceback
+        print(f"moex: error: {sorted(shown)[0]} shows the config of one run: drop -m and give "
+              f"one value per key", file=sys.stderr)
+        sys.exit(2)
     claimed = None
     if not {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"} & set(hydra_flags):
         try:

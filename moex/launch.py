@@ -4,18 +4,16 @@ A first `moex train` on the cpu backend (an empty numba cache) compiles its kern
 of CPU: the run compiles the phase-1 kernel while a helper process (`moex.kernels.cpu.warm`)
 compiles the closed loop and phase 2. Here the helper starts before the command imports PyTorch
 and Hydra (about 3 s on a 2-core machine), when the command line says the run trains on the cpu
-backend; the run adopts it (`warm.start`). One it never adopts (a bad override, a run that ends
-early) is stopped when the command exits. The helper itself exits at once when the kernels are
-already in the cache.
+backend (`moex.compile_helper`); the run adopts it (`warm.start`). One it never adopts (a bad
+override, a run that ends early) is stopped when the command exits. The helper itself exits at
+once when the kernels are already in the cache.
 """
 
-import atexit
-import subprocess
 import sys
 
-_NOT_TRAINING = {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"}
+from moex import compile_helper
 
-helper: tuple[str, subprocess.Popen] | None = None  # (precision, process) until the run adopts it
+_NOT_TRAINING = {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"}
 
 
 def helper_precision(argv: list[str]) -> str | None:
@@ -33,23 +31,6 @@ def helper_precision(argv: list[str]) -> str | None:
     return precision if precision in ("float64", "float32") else None
 
 
-def start_helper(precision: str) -> None:
-    global helper
-    helper = precision, subprocess.Popen(
-        [sys.executable, "-m", "moex.kernels.cpu.warm", precision],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    atexit.register(stop_helper)
-
-
-def stop_helper() -> None:
-    """Stop a helper the run has not adopted."""
-    global helper
-    if helper is not None:
-        helper[1].kill()
-        helper[1].wait()
-        helper = None
-
-
 def main() -> None:
     if sys.argv[1:2] in (["--version"], ["-V"]):  # without importing PyTorch and Hydra
         from importlib import metadata
@@ -58,7 +39,7 @@ def main() -> None:
         return
     precision = helper_precision(sys.argv[1:])
     if precision is not None:
-        start_helper(precision)
+        compile_helper.start(precision)
     from moex.cli import main as run_command
 
     run_command()

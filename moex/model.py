@@ -187,13 +187,15 @@ def expert_forward(experts: dict[str, torch.Tensor],
 
     Args:
         experts: parameters from `init_experts`.
-        inputs: (S, T, D) the inputs x_n (the series shifted by the delay).
+        inputs: (S, T, D) the inputs x_n (the series shifted by the delay), or (R, S, T, D)
+            when every run has data of its own.
 
     Returns:
         outputs (R, S, T, K, D), y^k_n for each run, series, step and expert, and the internal
         potentials (R, S, K, T, M) that produced them.
     """
-    drive = torch.einsum("rkmd,std->rktsm", experts["w_in"], inputs)
+    per_run = "rstd" if inputs.ndim == 4 else "std"
+    drive = torch.einsum(f"rkmd,{per_run}->rktsm", experts["w_in"], inputs)
     bias = experts["b_c"][:, :, None]  # (R, K, 1, M)
     u, c = leaky_scan(drive, experts["w_rec"], 1 / experts["tau"][:, :, None], bias,
                       experts["u0"].transpose(1, 2))  # (R, K, T, S, M), time-major inside

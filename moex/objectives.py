@@ -17,7 +17,7 @@ def mixture_log_likelihood(outputs: torch.Tensor, targets: torch.Tensor,
 
     Args:
         outputs: (R, S, T, K, D) expert outputs y^k_n.
-        targets: (S, T, D) training outputs y_n.
+        targets: (S, T, D) training outputs y_n, or (R, S, T, D) per run.
         log_gate_estimates: (R, S, T, K) ln ĝ_n = log_softmax(β_n).
         variances: (R, K) σ_k².
 
@@ -25,7 +25,7 @@ def mixture_log_likelihood(outputs: torch.Tensor, targets: torch.Tensor,
         (R,) log-likelihood summed over series and steps.
     """
     D = outputs.shape[-1]
-    sq_err = (outputs - targets[None, :, :, None]).square().sum(-1)  # (R, S, T, K)
+    sq_err = (outputs - targets[..., None, :]).square().sum(-1)  # (R, S, T, K)
     var = variances[:, None, None]
     log_p = -0.5 * D * torch.log(2 * math.pi * var) - sq_err / (2 * var)
     return torch.logsumexp(log_gate_estimates + log_p, dim=-1).sum((1, 2))
@@ -51,7 +51,7 @@ def mixture_mse(outputs: torch.Tensor, targets: torch.Tensor,
     """E = Σ ½‖y_n - Σ_k g^k_n y^k_n‖² / (T D) per run, T summed over series (paper Sec. 3).
 
     Args:
-        outputs: (R, S, T, K, D); targets: (S, T, D); gates: (R, S, T, K).
+        outputs: (R, S, T, K, D); targets: (S, T, D) or (R, S, T, D); gates: (R, S, T, K).
 
     Returns:
         (R,) mean squared error of the mixture output.

@@ -1,8 +1,6 @@
 """The glue, testable without Hydra: task → model → phase 1 → phase 2 → checkpoint → CSV → plots."""
 
 import dataclasses
-import hashlib
-import json
 import logging
 import signal
 import textwrap
@@ -26,29 +24,13 @@ from moex.config import (
     paper_eval_sizes,
 )
 from moex.errors import check
-from moex.evaluate import EvalConfig, evaluate, phase2_targets, track_metrics
+from moex.evaluate import EvalConfig, evaluate, phase2_targets
 from moex.kernels import Backend, get_backend
 from moex.metrics.table import LOGGED, METRICS
-from moex.model import init_experts, init_gating
+from moex.run import Job, run_seeds, train_jobs
 from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
-from moex.train import Hooks, train_experts, train_gating
 
 log = logging.getLogger(__name__)
-
-
-def run_seeds(seed: int, num_runs: int) -> list[int]:
-    """Seed of run r: a function of (seed, r) alone, so run r trains identically in any batch."""
-    return [int(np.random.SeedSequence([seed, r]).generate_state(1)[0]) for r in range(num_runs)]
-
-
-def initial_parameters(cfg: Config, num_series: int, num_features: int,
-                       dtype: torch.dtype) -> tuple[dict, dict]:
-    """The experts (none when D = 0) and the gating RNN of every run before training, run r
-    drawn from a generator seeded by (seed, r) alone."""
-    generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
-    experts = (init_experts(cfg.model, num_series, num_features, generators, dtype)
-               if num_features > 0 else {})
-    return experts, init_gating(cfg.model, num_series, num_features, generators, dtype)
 
 
 def evaluation_generator(cfg: Config) -> torch.Generator:
@@ -111,28 +93,15 @@ def check_same_training(saved: dict, cfg: Config, path: Path) -> None:
                                       f"use another output folder or the same overrides")
 
 
-def _cpu(tree):
-    if isinstance(tree, torch.Tensor):
-        return tree.detach().cpu().clone()
-    if isinstance(tree, dict):
-        return {k: _cpu(v) for k, v in tree.items()}
-    return tree
-
-
-def _phase1_cache(cfg: Config) -> Path | None:
-    """Where phase 1 of this config is cached: it does not depend on the gating network, its
-    phase or evaluation, so a sweep over those reuses one result per (task, seed)."""
-    if not cfg.cache_dir:
+def open_checkpoint(cfg: Config, out_dir: Path) -> checkpoint.Checkpoint | None:
+    """The checkpoint of a run folder, checked against the config that would continue it (a
+    `ConfigError` if it was trained with another); None for a new folder."""
+    path = Path(out_dir) / checkpoint.NAME
+    if not path.exists():
         return None
-    model = dataclasses.asdict(cfg.model)
-    model.pop("gating")
-    key = {"task": dataclasses.asdict(cfg.task), "model": model,
-           "experts": dataclasses.asdict(cfg.train.experts),
-           "adaptive": dataclasses.asdict(cfg.train.adaptive),
-           "momentum_form": cfg.train.momentum_form, "seed": cfg.seed,
-           "num_runs": cfg.num_runs, "precision": cfg.precision, "device": cfg.device}
-    digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
-    return Path(cfg.cache_dir) / f"phase1-{digest}.pt"
+    saved = checkpoint.load(path)
+    check_same_training(saved.config, cfg, path)
+    return saved
 
 
 def run_train(cfg: Config, out_dir: Path,
@@ -142,7 +111,8 @@ def run_train(cfg: Config, out_dir: Path,
     A checkpoint already in `out_dir` (from the same config) is continued: a finished run is not
     redone, an interrupted phase resumes at its saved step with the same result as an
     uninterrupted run. Checkpoints are written every `train.checkpoint_every` steps and when
-    `stop` reports a signal (then `TrainingInterrupted` is raised).
+    `stop` reports a signal (then `TrainingInterrupted` is raised). A folder whose networks the
+    packed launcher trained (phase `done`) only gets its outputs here.
 
     Args:
         cfg: the whole, validated config.
@@ -153,104 +123,39 @@ def run_train(cfg: Config, out_dir: Path,
         the final `Checkpoint`.
     """
     out_dir, stop = Path(out_dir), stop or StopRequest()
-    path = out_dir / checkpoint.NAME
-    saved = checkpoint.load(path) if path.exists() else None
-    if saved is not None:
-        check_same_training(saved.config, cfg, path)
-        log.info("resuming %s from its %s phase", path, saved.phase)
-    dtype = getattr(torch, cfg.precision)
+    saved = open_checkpoint(cfg, out_dir)
+    if saved is not None and saved.phase != "done":
+        log.info("resuming %s from its %s phase", out_dir / checkpoint.NAME, saved.phase)
     backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name)
     dataset = load_task(cfg)
-    series = torch.as_tensor(dataset.series, dtype=dtype)
-    S, L, D = series.shape
-    delay = cfg.model.delay
-    if backend.name == "cpu" and D > 0 and saved is None:
-        from moex.kernels.cpu import warm  # a first run compiles phase 2 etc. beside phase 1
+    if saved is None or saved.phase != "done":
+        [saved] = train_jobs([Job(cfg, dataset, out_dir, saved)], stop, backend)
+    finish_run(cfg, dataset, saved, out_dir, backend, stop)
+    return saved
 
-        warm.start(cfg.precision)
-    if saved is not None and saved.phase == "done":
-        if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
-            evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
-                         saved.failed, backend, stop)
-        return saved
-    signal = f"{D} features" if D else f"{len(dataset.symbol_names)} symbols"
-    log.info("task %s: %d series x %d steps of %s; %d runs on %s/%s, %s backend",
-             cfg.task.name, S, L, signal, cfg.num_runs, cfg.device, cfg.precision, backend.name)
-    # every draw happens on every start, so resumed and fresh runs see the same generators
-    experts, gating = initial_parameters(cfg, S, D, dtype)
-    track_rng = torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0x7AC)
-    record = checkpoint.Checkpoint(
-        dataclasses.asdict(cfg), "experts", series, torch.as_tensor(dataset.labels),
-        data_scale={k: torch.as_tensor(v) for k, v in dataset.scale.as_dict().items()})
 
-    def hooks(phase: str, **extra) -> Hooks:
-        def save(state):
-            record.phase, record.train_state = phase, _cpu(state)
-            record.track_rng = track_rng.get_state()
-            record.save(path)
-
-        resume = saved.train_state if saved is not None and saved.phase == phase else None
-        if resume is not None and saved.track_rng is not None:
-            track_rng.set_state(saved.track_rng)
-        return Hooks(save=save, save_every=cfg.train.checkpoint_every, should_stop=stop,
-                     resume=resume, **extra)
-
-    # ---- phase 1 (skipped for symbolic tasks, or when a checkpoint holds its result)
-    beta = None
-    if D > 0:  # symbolic tasks have no experts: their gates are the one-hot symbols
-        cached = _phase1_cache(cfg)
-        if saved is not None and saved.phase == "gating":
-            experts, beta = saved.experts, saved.beta
-            record.experts_rows = saved.experts_rows
-        elif cached is not None and cached.exists():
-            log.info("phase 1 reused from %s", cached)
-            done = torch.load(cached, map_location="cpu", weights_only=True)
-            experts, beta, record.experts_rows = done["experts"], done["beta"], done["rows"]
-        else:
-            with provenance.part("phase 1"):
-                experts, beta, record.experts_rows = train_experts(
-                    experts, series, cfg.model, cfg.train.experts, cfg.train, hooks("experts"),
-                    backend)
-            if cached is not None:
-                io.atomic_write(cached, lambda tmp: torch.save(
-                    {"experts": _cpu(experts), "beta": _cpu(beta),
-                     "rows": record.experts_rows}, tmp))
-        record.experts, record.beta = _cpu(experts), _cpu(beta)
-    # ---- phase 2: x_n aligned with ĝ_n (the whole series when D = 0)
-    gating_inputs = series[:, :-delay] if D > 0 else series
-    gate_targets = phase2_targets(beta, dataset, cfg.num_runs, dtype,
-                                  cfg.train.gating.target_temperature)
-    monitor = None
-    if cfg.eval.every:
-        def monitor(gating_params):
-            return track_metrics(experts, gate_targets, gating_params, series, delay, cfg.eval,
-                                 track_rng, backend)
-
-    with provenance.part("phase 2"):
-        gating, gating_rows = train_gating(
-            gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
-            hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend,
-            seeds=run_seeds(cfg.seed, cfg.num_runs))
-    history = pd.DataFrame(record.experts_rows + gating_rows)
-    failed = history.groupby("run")["failed"].any().reindex(range(cfg.num_runs), fill_value=False)
-    for run in np.flatnonzero(failed.to_numpy()):
-        log.warning("run %d failed: its objective or parameters became non-finite; it was "
-                    "frozen and its metrics are NaN", run)
-    record.phase, record.gating, record.train_state = "done", _cpu(gating), None
-    record.failed = [bool(f) for f in failed]
-    record.save(path)
-    io.write_csv(out_dir / io.HISTORY, history)
-    plotting.save_figure(plotting.plot_learning_curves(
-        history, f"learning curves: task {cfg.task.name}, runs 0-{cfg.num_runs - 1}"),
-                         out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
-    _log_summary(history)
-    if not cfg.eval.enabled:
+def finish_run(cfg: Config, dataset: Dataset, saved: checkpoint.Checkpoint, out_dir: Path,
+               backend: Backend, stop=never) -> None:
+    """The outputs of a trained run that its folder lacks: history.csv and the learning curves,
+    then metrics.csv, samples.npz and the figures (with `eval.enabled`) or the run's page."""
+    history_written = False
+    if not (out_dir / io.HISTORY).exists() and (saved.experts_rows or saved.gating_rows):
+        history = pd.DataFrame(saved.experts_rows + saved.gating_rows)
+        for r in np.flatnonzero(saved.failed):
+            log.warning("run %d failed: its objective or parameters became non-finite; it was "
+                        "frozen and its metrics are NaN", r)
+        io.write_csv(out_dir / io.HISTORY, history)
+        plotting.save_figure(plotting.plot_learning_curves(
+            history, f"learning curves: task {cfg.task.name}, runs 0-{cfg.num_runs - 1}"),
+            out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
+        _log_summary(history)
+        history_written = True
+    if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
+        evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
+                     saved.failed, backend, stop)
+    elif not cfg.eval.enabled and history_written:
         run_page.write(out_dir, cfg, None, f"moex run {out_dir.name}")
-    if cfg.eval.enabled:
-        evaluate_run(cfg, dataset, record.experts, record.beta, record.gating, out_dir,
-                     record.failed, backend, stop)
-    return record
 
 
 def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path,

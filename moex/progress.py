@@ -19,6 +19,16 @@ def bar(iterable=None, **kwargs) -> tqdm:
     return tqdm(iterable, **{**settings, **kwargs})
 
 
+def steps(start: int, stop: int, **kwargs):
+    """range(start, stop) under a bar whose count is always current: tqdm iterating a range
+    counts in a local variable it publishes only when it redraws, so a log line in between
+    (which redraws the bar) showed a stale count, often 0 %."""
+    with bar(total=stop, initial=start, **kwargs) as shown:
+        for step in range(start, stop):
+            yield step
+            shown.update()
+
+
 class TerminalFormatter(logging.Formatter):
     """The terminal's log lines: the time and the message, and the level where it is not INFO
     (the run folder's log file keeps the full record)."""

@@ -96,23 +96,44 @@ _CURRENT: ContextVar[dict | None] = ContextVar("provenance", default=None)
 
 
 @contextmanager
-def recorded(out_dir: Path, verb: str, backend: str | None, device: str | None,
+def recorded(out_dir: Path | list[Path], verb: str, backend: str | None, device: str | None,
              precision: str | None):
-    """Append this command's record to `out_dir`/provenance.json when it ends: on success, and
-    for `train` also when it fails or is interrupted (its folder stays); a refused or failed
-    evaluate/generate/import leaves nothing. Parts are timed with `part(name)` meanwhile."""
+    """Append this command's record to `out_dir`/provenance.json (to each folder of a list: the
+    jobs of a packed batch) when it ends: on success, and for `train` also when it fails or is
+    interrupted (its folder stays); a refused or failed evaluate/generate/import leaves nothing.
+    Parts are timed with `part(name)` meanwhile."""
     record = collect(verb, backend, device, precision)
+    folders = out_dir if isinstance(out_dir, list) else [out_dir]
     token = _CURRENT.set(record)
     try:
         yield record
     except BaseException:
         if verb == "train":
-            _save(out_dir, record)
+            for folder in folders:
+                _save(folder, record)
         raise
     else:
-        _save(out_dir, record)
+        for folder in folders:
+            _save(folder, record)
     finally:
         _CURRENT.reset(token)
+
+
+@contextmanager
+def kept(verb: str, backend: str | None, device: str | None, precision: str | None):
+    """This process's record for work that writes no folder yet (`moex.fit`): parts are timed
+    into it; the caller keeps it and writes it with `save` (`Fitted.save`)."""
+    record = collect(verb, backend, device, precision)
+    token = _CURRENT.set(record)
+    try:
+        yield record
+    finally:
+        _CURRENT.reset(token)
+
+
+def save(out_dir: Path, record: dict) -> None:
+    """Append a kept record to `out_dir`/provenance.json."""
+    _save(out_dir, record)
 
 
 def _save(out_dir: Path, record: dict) -> None:

@@ -13,22 +13,8 @@ import yaml
 from moex import io, plotting, provenance
 from moex.errors import ConfigError, check
 from moex.metrics.table import REPORTED
+from moex.tasks.paper import PAPER_TABLES
 
-# the paper's numbers, for the adjacent columns
-PAPER_TABLE1 = pd.DataFrame({  # Reber, mean of 50 trials (Table 1)
-    "context_size": [10, 20, 30, 50],
-    "paper_E_g": [0.144868, 0.010118, 0.005721, 0.004339],
-    "paper_block_kl_train": [2.511791, 0.258037, 0.051233, 0.006338],
-    "paper_block_kl_test": [2.388665, 0.309089, 0.327273, 0.290858],
-    "paper_max_lyapunov": [0.203512, 0.215117, 0.160728, 0.116574],
-    "paper_positive_percent": [88, 98, 100, 100],
-})
-PAPER_TABLE2 = pd.DataFrame({  # two Lissajous curves, mean of 30 trials (Table 2)
-    "switch_prob_task": [0.5, 0.25, 0.125],
-    "paper_switch_prob": [0.451033, 0.275999, 0.150866],
-    "paper_max_lyapunov": [0.001076, 0.002080, 0.002829],
-    "paper_positive_percent": [93, 96, 96],
-})
 METRICS = REPORTED  # the metric table's columns of a report
 # settings the paper's tables and figures are keyed by, under short column names; every other
 # setting that varies between jobs becomes a column under its dotted config key
@@ -230,26 +216,20 @@ def _write_table(out: Path, name: str, frame: pd.DataFrame) -> None:
 
 
 def paper_tables(summary: pd.DataFrame, keys: list[str]) -> dict[str, pd.DataFrame]:
-    """Table 1 (Reber, by context size) and Table 2 (two Lissajous, by P) beside the paper's
-    numbers, for the settings the sweep has; rows the sweep lacks are shown as missing. Every
-    other setting in `keys` (those that vary between jobs) is a column of its own."""
+    """The paper's tables (`moex.tasks.paper.PAPER_TABLES`: Table 1 by context size, Table 2 by
+    P) beside the sweep's numbers, for the tasks the sweep has; rows the sweep lacks are shown as
+    missing. Every other setting in `keys` (those that vary between jobs) is a column of its
+    own."""
     tables = {}
-    reber = summary[summary["task"] == "reber"]
-    if len(reber):
-        cols = ["context_size", *_others(keys, "context_size"), "E_g_mean",
-                "block_kl_train_mean", "block_kl_test_mean", "max_lyapunov_mean",
-                "positive_percent", "num_runs"]
-        tables["table1"] = PAPER_TABLE1.merge(reber[[c for c in cols if c in reber]],
-                                              on="context_size", how="outer")
-    liss = summary[summary["task"] == "lissajous2"]
-    if len(liss) and liss["switch_prob_task"].nunique() > 1:
-        cols = ["switch_prob_task", *_others(keys, "switch_prob_task", "task"),
-                "data_switch_prob_mean", "switch_prob_mean", "switch_prob_std",
-                "near_data_percent", "max_lyapunov_mean", "max_lyapunov_std", "positive_percent",
-                "positive_ci_low", "positive_ci_high", "nonperiodic_fraction_mean", "num_runs"]
-        cols = [c for c in cols if c in liss]
-        tables["table2"] = (PAPER_TABLE2.merge(liss[cols], on="switch_prob_task", how="outer")
-                            .sort_values("switch_prob_task", ascending=False, ignore_index=True))
+    for paper in PAPER_TABLES:
+        ours = summary[summary["task"] == paper.task]
+        if not len(ours) or (paper.needs_several and ours[paper.key].nunique() < 2):
+            continue
+        cols = [c for c in (paper.key, *_others(keys, paper.key, "task"), *paper.columns)
+                if c in ours]
+        tables[paper.name] = (paper.numbers.merge(ours[cols], on=paper.key, how="outer")
+                              .sort_values(paper.key, ascending=not paper.descending,
+                                           ignore_index=True))
     if "arm" in summary:
         cols = ["arm", *_others(keys, "arm"), "switch_prob_mean", "switch_prob_std",
                 "data_switch_prob_mean",
@@ -355,12 +335,14 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", group,
                                        reference=runs.get("data_switch_prob"), band=NEAR)
         plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png", fmt)
-    reber = runs[runs["task"] == "reber"]
-    if reber["context_size"].nunique() > 1 and {"max_lyapunov", "block_kl_test"} <= set(reber):
-        fig = plotting.plot_scatter_by(reber, "max_lyapunov", "block_kl_test", "context_size",
-                                       log_y=True)  # Table 1 per network: chaos and the test KL
-        plotting.save_figure(fig, figures / "table1_kl_vs_lyapunov.png", fmt)
-    liss = jobs[(jobs["task"] == "lissajous2") & (jobs["status"] == "done")
+    for paper in PAPER_TABLES:  # a symbolic task's table per network: chaos and the test KL
+        ours = runs[runs["task"] == paper.task]
+        if paper.key == "context_size" and ours["context_size"].nunique() > 1 \
+                and {"max_lyapunov", "block_kl_test"} <= set(ours):
+            fig = plotting.plot_scatter_by(ours, "max_lyapunov", "block_kl_test", "context_size",
+                                           log_y=True)
+            plotting.save_figure(fig, figures / f"{paper.name}_kl_vs_lyapunov.png", fmt)
+    liss = jobs[(jobs["status"] == "done") & jobs["switch_prob_task"].notna()
                 & ~jobs["job"].str.contains("/evaluate/")]  # Fig. 9: the trained evaluation
     hists = {}
     for _, job in liss.iterrows():
@@ -371,7 +353,7 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
                     cut = data.get("residence_censored_hist", 0 * data["residence_hist"])
                     hists.setdefault(job["switch_prob_task"], []).append(
                         (data["residence_hist"], cut))
-    if len(hists) > 1:
+    if len(hists) > 1 and liss["task"].nunique() == 1:  # one task's curves, by P
         fig = plotting.plot_residence_panels(
             {p: tuple(np.concatenate(part) for part in zip(*h, strict=True))
              for p, h in hists.items()})

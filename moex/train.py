@@ -215,7 +215,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
 
     started = time.perf_counter()
 
-    for step in progress.bar(range(start, steps), desc=phase, initial=start, total=steps):
+    for step in progress.steps(start, steps, desc=phase):
         if hooks.should_stop() and hooks.save is not None:
             save(step)
             raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
@@ -314,7 +314,8 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
 
     Args:
         experts: initial parameters from `init_experts` (R runs).
-        series: (S, L, D) training series; inputs x_n = series[n], targets series[n + τ].
+        series: (S, L, D) training series; inputs x_n = series[n], targets series[n + τ]; or
+            (R, S, L, D) when every run has series of its own (packed jobs).
         model: the model config (delay, σ̄, whether τ = 1/ε is learned).
         cfg: this phase's settings; rule: adaptive thresholds and momentum form.
         hooks: checkpointing, interruption and resuming (see `Hooks`).
@@ -326,8 +327,8 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
     """
     backend = backend or get_backend()
     data = series.detach().cpu().numpy()
-    inputs, targets = data[:, : -model.delay], data[:, model.delay:]
-    S, T, D = targets.shape
+    inputs, targets = data[..., : -model.delay, :], data[..., model.delay:, :]
+    S, T, D = targets.shape[-3:]
     R, K = experts["log_sigma"].shape
     params = {k: v.detach().cpu() for k, v in experts.items()}
     fixed = {} if model.learn_time_constants else {"tau": params.pop("tau")}
@@ -352,7 +353,8 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     Args:
         gating: initial parameters from `init_gating` (R runs).
         gate_targets: (R, S, T, K) ĝ_n, soft targets from phase 1 (or one-hot symbols).
-        inputs: (S, T, D) inputs x_n aligned with ĝ_n (D = 0 for symbolic tasks).
+        inputs: (S, T, D) inputs x_n aligned with ĝ_n (D = 0 for symbolic tasks), or
+            (R, S, T, D) per run.
         model: the model config; cfg: this phase's settings; rule: adaptive thresholds.
         hooks: tracking (its monitor sees the full gating parameters), checkpointing, resuming.
         backend: where the time loops run (`moex.kernels.get_backend`; default: auto).

@@ -52,6 +52,10 @@ def test_fitted_save_gives_a_folder_the_cli_evaluates_and_load_reads_back(tmp_pa
     pd.testing.assert_frame_equal(loaded.evaluate(quick=True), fitted.evaluate(quick=True))
     with pytest.raises(moex.ConfigError, match="already holds a run"):
         fitted.save(folder)
+    # what trained it travels with it: versions, machine, backend, each phase's time
+    assert fitted.provenance["verb"] == "fit" and fitted.provenance["backend"] == "cpu"
+    assert {"phase 1", "phase 2"} <= set(fitted.provenance["seconds"])
+    assert loaded.provenance == fitted.provenance  # written by save, read by load
     shown = repr(fitted)  # one line, not the tensors
     assert "\n" not in shown and len(shown) < 300 and "2 runs of task csv" in shown
     done = subprocess.run([sys.executable, "-c", "from moex.cli import main; main()", "evaluate",

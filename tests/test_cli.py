@@ -375,3 +375,9 @@ def test_version_answers_without_importing_the_stack(tmp_path):
                             "print('torch' in sys.modules, 'hydra' in sys.modules)"],
                            capture_output=True, text=True, timeout=60)
     assert probe.stdout.split()[-2:] == ["False", "False"], probe.stdout + probe.stderr
+
+
+def test_cfg_with_multirun_is_one_line_not_a_traceback(tmp_path):
+    done = _moex(["train", "-m", "num_runs=1,2", "--cfg", "job"], tmp_path)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "drop -m" in done.stderr and list(tmp_path.iterdir()) == []

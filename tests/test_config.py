@@ -8,7 +8,8 @@ from omegaconf import OmegaConf
 
 from moex.cli import CONF_DIR, _override_variants
 from moex.config import Config, config_from_dict, register_configs
-from moex.pipeline import _phase1_cache, load_task
+from moex.pipeline import load_task
+from moex.run import phase1_cache
 
 TASKS = sorted(p.stem for p in (Path(CONF_DIR) / "task").glob("*.yaml"))
 
@@ -99,7 +100,7 @@ def test_cached_sweeps_vary_phase1_settings_fastest(experiment):
         params = dict(base.hydra.sweeper.params or {})
         changes = []
         for key, values in params.items():
-            paths = {_phase1_cache(OmegaConf.to_object(compose(
+            paths = {phase1_cache(OmegaConf.to_object(compose(
                 "config", overrides=[f"experiment={experiment}", f"{key}={v}"])))
                 for v in sweep_values(key, values)}
             changes.append(len(paths) > 1)

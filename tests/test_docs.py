@@ -1,4 +1,5 @@
-"""REPRODUCTION.md quotes the tables that scripts in docs/ recompute from the CSVs."""
+"""REPRODUCTION.md and its pages (docs/reproduction/, docs/verdicts.md) quote the tables that
+scripts in docs/ recompute from the CSVs; the report stays short enough to read."""
 
 import importlib.util
 import subprocess
@@ -10,6 +11,11 @@ import pandas as pd
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
+PAGES = ROOT / "docs" / "reproduction"
+
+
+def _page(name: str) -> str:
+    return (PAGES / f"{name}.md").read_text()
 
 
 def _script(name):
@@ -25,6 +31,31 @@ def test_the_verdict_table_is_the_one_the_csvs_give():
     assert len(table.splitlines()) == 2 + 4 * 5 + 3 * 3
     assert table in (ROOT / "REPRODUCTION.md").read_text()
     assert verdicts.tally(verdicts.verdicts()) in (ROOT / "REPRODUCTION.md").read_text()
+    full = verdicts.markdown(verdicts.verdicts(), evidence=True)
+    assert full in (ROOT / "docs" / "verdicts.md").read_text()
+
+
+def test_the_report_is_short_its_verdicts_terse_and_every_page_linked():
+    """REPRODUCTION.md: at most 400 lines, verdict cells of at most 25 words, a link to every
+    page under docs/reproduction/, and no link to a page or anchor that does not exist."""
+    import re
+
+    text = (ROOT / "REPRODUCTION.md").read_text()
+    assert len(text.splitlines()) <= 400
+    verdicts = _script("verdicts")
+    assert all(len(cell.split()) <= 25 for cell in verdicts.verdicts()["verdict"])
+    for page in PAGES.glob("*.md"):
+        assert f"docs/reproduction/{page.name}" in text, page.name
+    for source in [ROOT / "REPRODUCTION.md", ROOT / "README.md", ROOT / "docs" / "verdicts.md",
+                   *PAGES.glob("*.md")]:
+        for target, anchor in re.findall(r"\]\(([^)#:]+\.md)(?:#([^)]+))?\)",
+                                         source.read_text()):
+            path = (source.parent / target).resolve()
+            assert path.is_file(), f"{source.name} links to {target}"
+            if anchor:
+                heads = [re.sub(r"[^\w\- ]", "", h.lstrip("#").strip().lower()).replace(" ", "-")
+                         for h in path.read_text().splitlines() if h.startswith("#")]
+                assert anchor in heads, f"{source.name} links to {target}#{anchor}"
 
 
 def test_the_tally_counts_each_kind_of_verdict_once():
@@ -45,7 +76,7 @@ def test_the_one_hot_tables_are_the_ones_the_csvs_give():
     onehot = _script("table2_onehot")
     rows, pairs = onehot.table()
     assert len(rows) == 2 * len(pairs) and set(rows["targets"]) == {"soft", "one-hot"}
-    text = (ROOT / "REPRODUCTION.md").read_text()
+    text = _page("table2_onehot")
     assert onehot.markdown(rows) in text and onehot.markdown(pairs) in text
 
 
@@ -53,7 +84,7 @@ def test_the_data_seed_overview_is_the_one_the_csvs_give():
     seeds = _script("data_seeds")
     table = seeds.overview()
     assert set(table["experiment"]) == set(seeds.EXPERIMENTS)  # every experiment's CSV is there
-    assert seeds.to_markdown(table) in (ROOT / "REPRODUCTION.md").read_text()
+    assert seeds.to_markdown(table) in _page("data_seeds")
 
 
 def test_the_two_way_split_recovers_a_known_data_effect():
@@ -77,14 +108,14 @@ def test_the_design_comparison_is_the_one_the_csvs_give():
     designs = _script("table2_designs")
     rows, tests = designs.table()
     assert len(rows) == 2 * len(tests) and len(tests) >= 1
-    text = (ROOT / "REPRODUCTION.md").read_text()
+    text = _page("table2_own_data")
     assert designs.markdown(rows) in text and designs.markdown(tests) in text
 
 
 def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
     cells = _script("capacity_cells")
     table = pd.read_csv(ROOT / "docs" / "capacity_grid_summary.csv")
-    text = (ROOT / "REPRODUCTION.md").read_text()
+    text = _page("capacity")
     assert cells.cell_tables(table) in text
     assert f"{cells.zero_band(table):.2g}" in text
     assert cells.to_markdown(cells.replication(table)) in text
@@ -96,7 +127,8 @@ def test_the_capacity_grid_tables_are_the_ones_the_csv_gives():
     assert cells.to_markdown(_script("fig16_arms").table(arms)) in text
     rows = cells.to_markdown(cells.figure_rows(table, arms)).splitlines()[2:]
     assert [row.split(" | ")[0] for row in rows] == ["| Fig. 14a", "| Fig. 14b", "| Fig. 16"]
-    assert all(row in text.splitlines() for row in rows)  # the figure verdicts' rows
+    full = (ROOT / "docs" / "verdicts.md").read_text().splitlines()
+    assert all(row in full for row in rows)  # the figure verdicts' rows
 
 
 def test_the_fig16_arms_table_counts_each_arm_against_its_baseline(tmp_path):
@@ -200,7 +232,7 @@ def test_the_residence_table_is_the_one_the_csv_gives():
     residence = _script("residence")
     table = residence.table(pd.read_csv(residence.CSV))
     assert list(table.P) == [0.5, 0.25, 0.125] and (table.networks == 30).all()
-    assert residence.to_markdown(table) in (ROOT / "REPRODUCTION.md").read_text()
+    assert residence.to_markdown(table) in _page("table2_own_data")
 
 
 def test_stays_drawn_from_the_geometric_law_are_at_zero_distance_from_it():

@@ -15,7 +15,8 @@ from moex.config import Config
 from moex.evaluate import EvalConfig, _train_block_kl, evaluate, phase2_targets
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward
-from moex.pipeline import initial_parameters, load_task, run_train
+from moex.pipeline import load_task, run_train
+from moex.run import initial_parameters
 from moex.tasks import Dataset, TaskConfig, make_task
 from moex.train import (
     ExpertPhaseConfig,

@@ -355,11 +355,14 @@ def test_exponents_at_a_fixed_point_converge_to_log_eigenvalue_moduli(fixed_poin
 
 
 def test_nearest_symbols_match_reference(backend):
-    g = np.random.default_rng(0)
-    points, prototypes = g.uniform(-1, 1, (3, 37, 2)), g.uniform(-1, 1, (11, 2))
-    symbols = g.integers(0, 4, 11)
-    np.testing.assert_array_equal(backend.nearest_symbols(points, prototypes, symbols),
-                                  REFERENCE.nearest_symbols(points, prototypes, symbols))
+    """Tensors in, int64 tensors out on the backend's device, the reference's symbols."""
+    g = torch.Generator().manual_seed(0)
+    points, prototypes = torch.rand(3, 37, 2, generator=g) * 2 - 1, torch.rand(11, 2, generator=g)
+    symbols = torch.randint(0, 4, (11,), generator=g)
+    got = backend.nearest_symbols(points, prototypes, symbols)
+    assert got.dtype == torch.int64 and got.shape == (3, 37)
+    assert got.device.type == torch.device(backend.device).type
+    torch.testing.assert_close(got.cpu(), REFERENCE.nearest_symbols(points, prototypes, symbols))
 
 
 def test_backend_choice(monkeypatch):

@@ -18,7 +18,7 @@ from omegaconf import open_dict
 from moex import cli
 from moex.config import register_configs
 from moex.model import ModelConfig, init_experts, init_gating
-from moex.pipeline import run_seeds
+from moex.run import run_seeds
 from moex.tasks import TaskConfig, make_task
 from moex.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig, train_experts
 from tests.conftest import generators

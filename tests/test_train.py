@@ -5,7 +5,7 @@ import torch
 
 from moex.kernels.reference import expert_objective, gating_objective
 from moex.model import ModelConfig, init_experts, init_gating
-from moex.pipeline import run_seeds
+from moex.run import run_seeds
 from moex.tasks import TaskConfig, make_task
 from moex.train import (
     ExpertPhaseConfig,
@@ -108,6 +108,37 @@ def test_batch_of_runs_equals_runs_trained_alone(form, backend):
                     torch.testing.assert_close(part_a[k][0], part_t[k][r], rtol=0, atol=1e-10)
             else:
                 torch.testing.assert_close(part_a[0], part_t[r], rtol=0, atol=1e-10)
+
+
+def test_runs_with_data_of_their_own_equal_each_data_set_trained_alone(backend):
+    """Packing law: a batch whose runs have series of their own ((R, S, L, D), as the packed
+    launcher trains a sweep's jobs) equals each data set trained alone, both phases, to 1e-10;
+    phase 2 with input noise, so each run's noise stays its own."""
+    data = [torch.as_tensor(make_task(TaskConfig(num_series=2, length=30, switch_prob=p),
+                                      seed=s).series) for p, s in ((0.5, 0), (0.25, 1))]
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 4, 5
+    steps = 2 if backend.caps.interpreted else 10
+    phase1 = ExpertPhaseConfig(steps=steps, adaptive_lr=True, learning_rate=0.05)
+    phase2 = GatingPhaseConfig(steps=steps, adaptive_lr=True, learning_rate=1.0,
+                               input_noise_var=0.01)
+    rule, seeds = TrainConfig(), run_seeds(3, 2)
+
+    def both(series, seeds):
+        experts = init_experts(model, 2, 2, generators(seeds))
+        experts, beta, _ = train_experts(experts, series, model, phase1, rule, backend=backend)
+        gating = init_gating(model, 2, 2, generators(seeds))
+        gating, _ = train_gating(gating, torch.softmax(beta, -1), series[..., :-1, :], model,
+                                 phase2, rule, backend=backend, seeds=seeds)
+        return experts, beta, gating
+
+    packed = both(torch.stack(data), seeds)
+    for r in range(2):
+        alone = both(data[r], seeds[r:r + 1])
+        for part_p, part_a in zip(packed, alone, strict=True):
+            for k, value in (part_p.items() if isinstance(part_p, dict) else [("beta", part_p)]):
+                a = part_a[k] if isinstance(part_a, dict) else part_a
+                torch.testing.assert_close(a[0], value[r], rtol=0, atol=1e-10, msg=k)
 
 
 def test_learning_rate_scaling_per_group():

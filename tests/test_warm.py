@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from moex import launch
+from moex import compile_helper, launch
 from moex.kernels.cpu import warm
 
 
@@ -95,11 +95,11 @@ def test_the_command_starts_a_helper_only_for_a_cpu_training_in_its_process(argv
 
 def test_the_run_adopts_the_commands_helper_of_its_precision(monkeypatch):
     process = _sleeper()
-    monkeypatch.setattr(launch, "helper", ("float64", process))
+    monkeypatch.setattr(compile_helper, "helper", ("float64", process))
     monkeypatch.setattr(warm, "_helper", None)
     try:
         assert warm.start("float64") is process
-        assert warm._helper is process and launch.helper is None
+        assert warm._helper is process and compile_helper.helper is None
         assert process.poll() is None
     finally:
         process.kill()
@@ -108,15 +108,15 @@ def test_the_run_adopts_the_commands_helper_of_its_precision(monkeypatch):
 
 def test_a_helper_of_another_precision_is_stopped(monkeypatch):
     process = _sleeper()
-    monkeypatch.setattr(launch, "helper", ("float32", process))
+    monkeypatch.setattr(compile_helper, "helper", ("float32", process))
     monkeypatch.setattr(warm, "_helper", None)
     monkeypatch.setattr(warm, "cached", lambda dtype: True)  # start no helper of its own
     assert warm.start("float64") is None
-    assert process.poll() is not None and launch.helper is None
+    assert process.poll() is not None and compile_helper.helper is None
 
 
 def test_a_helper_the_run_never_adopted_is_stopped_at_exit(monkeypatch):
     process = _sleeper()
-    monkeypatch.setattr(launch, "helper", ("float64", process))
-    launch.stop_helper()  # registered with atexit when the command starts a helper
-    assert process.poll() is not None and launch.helper is None
+    monkeypatch.setattr(compile_helper, "helper", ("float64", process))
+    compile_helper.stop()  # registered with atexit when the command starts a helper
+    assert process.poll() is not None and compile_helper.helper is None

@@ -1,14 +1,18 @@
 """Backends: where the time loops of training and evaluation run.
 
 Three backends (`REGISTRY`), each a module with the same names (`BackendModule`): the two training
-problems (`Problem`), a closed loop and a symbol readout, torch tensors in and out (the symbol
-readout: numpy), each honouring the device the `Backend` binds it to:
+problems (`Problem`), a closed loop and a symbol readout, torch tensors in and out (the problems
+also take their fixed data as numpy), each honouring the device the `Backend` binds it to:
 
 - `ExpertProblem(inputs, targets, model, phase, num_runs, device)`: phase 1 (Eqs. 9-13);
 - `GatingProblem(gate_targets, inputs, model, phase, seeds, device)`: phase 2 (Eqs. 14-16);
 - `closed_loop(experts, gating, state, steps, noise, tangents, count, ..., device)`: the
   autonomous mixture (Sec. 2.2) with Lyapunov tangent vectors;
-- `nearest_symbols(points, prototypes, prototype_symbols, device)`: the symbol of each point.
+- `nearest_symbols(points, prototypes, prototype_symbols, device)`: the symbol of each point;
+- `warm_up(precision)`: before a first training, start compiling what comes later (cpu only).
+
+The problems take data shared by all runs, (S, T, D), or data of each run's own, (R, S, T, D):
+jobs packed into one batch (`moex.run`).
 
 `reference` is the model's equations in PyTorch with autograd (any device); it is the oracle the
 tests hold the others to. `cpu` (package `cpu/`) is the compiled numba implementation; `gpu`
@@ -72,8 +76,11 @@ class BackendModule(Protocol):
                     count: bool = False, uniform_gates: bool = False, potentials: bool = True,
                     device: str = "cpu") -> ClosedLoopRun: ...
 
-    def nearest_symbols(self, points: np.ndarray, prototypes: np.ndarray,
-                        prototype_symbols: np.ndarray, device: str = "cpu") -> np.ndarray: ...
+    def nearest_symbols(self, points: torch.Tensor, prototypes: torch.Tensor,
+                        prototype_symbols: torch.Tensor, device: str = "cpu") -> torch.Tensor: ...
+
+    def warm_up(self, precision: str) -> None:
+        """Before a first training: start compiling what the run needs later (or nothing)."""
 
 
 @dataclass(frozen=True)
@@ -99,10 +106,15 @@ class Backend:
         return self.module.closed_loop(experts, gating, state, steps, noise, tangents, count,
                                        uniform_gates, potentials, device=self.device)
 
-    def nearest_symbols(self, points: np.ndarray, prototypes: np.ndarray,
-                        prototype_symbols: np.ndarray) -> np.ndarray:
+    def nearest_symbols(self, points: torch.Tensor, prototypes: torch.Tensor,
+                        prototype_symbols: torch.Tensor) -> torch.Tensor:
+        """The symbol (int64) of each point's nearest prototype, on this backend's device."""
         return self.module.nearest_symbols(points, prototypes, prototype_symbols,
                                            device=self.device)
+
+    def warm_up(self, precision: str) -> None:
+        """Start compiling the kernels a first training needs after its first phase."""
+        self.module.warm_up(precision)
 
 
 def _gpu_module():

@@ -26,7 +26,7 @@ def expert_objective(inputs: torch.Tensor, targets: torch.Tensor, model, phase) 
     """ln L(D, θ) of phase 1 (Eqs. 11-13) as a function of the experts' parameters and β.
 
     Args:
-        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
+        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}, or (R, S, T, D) per run.
         model: the `ModelConfig`; phase: the `ExpertPhaseConfig`.
 
     Returns:
@@ -54,7 +54,7 @@ def gating_objective(gate_targets: torch.Tensor, inputs: torch.Tensor, model,
     """ln L(D^g, θ^g) of phase 2 (Eqs. 14-15) up to ln Z, as a function of the gating parameters.
 
     Args:
-        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n.
+        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n, or (R, S, T, D).
         model: the `ModelConfig`; phase: the `GatingPhaseConfig`.
 
     Returns:
@@ -130,7 +130,7 @@ class GatingProblem(_Problem):
 
     def resample(self, step: int) -> None:
         if self.phase.input_noise_var > 0:
-            noisy = self.inputs + input_noise(self.seeds, step, self.inputs.shape,
+            noisy = self.inputs + input_noise(self.seeds, step, self.inputs.shape[-3:],
                                               self.phase.input_noise_var, self.inputs.dtype)
             self.objective = gating_objective(self.targets, torch.from_numpy(noisy).to(
                 self.device), self.model, self.phase)
@@ -170,7 +170,15 @@ def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor
     return ClosedLoopRun(state, y, g, u_g if potentials else None, tangents, growth)
 
 
-def nearest_symbols(points: np.ndarray, prototypes: np.ndarray, prototype_symbols: np.ndarray,
-                    device: str = "cpu") -> np.ndarray:
-    """`moex.metrics.symbols.symbolize_nearest` itself (numpy, on the CPU whatever the device)."""
-    return symbolize_nearest(points, prototypes, prototype_symbols)
+def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
+                    prototype_symbols: torch.Tensor, device: str = "cpu") -> torch.Tensor:
+    """`moex.metrics.symbols.symbolize_nearest` itself (computed on the host), on `device`."""
+    def host(x):
+        return torch.as_tensor(x).detach().cpu().numpy()
+
+    return torch.as_tensor(symbolize_nearest(host(points), host(prototypes),
+                                             host(prototype_symbols)), device=device)
+
+
+def warm_up(precision: str) -> None:
+    """Nothing to compile (PyTorch's eager operators)."""

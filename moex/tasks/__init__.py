@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import torch
 
 from moex.errors import check, check_positive, check_range, closest_first
 from moex.metrics.symbols import symbolize_argmax, symbolize_nearest
@@ -94,14 +95,18 @@ class Dataset:
     violations: Callable[[np.ndarray], np.ndarray] | None = None
     scale: Scale = field(default_factory=Scale)
 
-    def symbolize(self, outputs: np.ndarray, gates: np.ndarray,
-                  nearest=symbolize_nearest) -> np.ndarray:
+    def symbolize(self, outputs: np.ndarray, gates: np.ndarray, nearest=None) -> np.ndarray:
         """Symbols (..., T) of generated steps: the symbol of the nearest prototype point of the
         output where the task has primitives, else the winning gate (Eq. 22). `nearest` is the
-        implementation of the first rule (a backend's `nearest_symbols`)."""
+        implementation of the first rule (a backend's `nearest_symbols`, tensors in and out;
+        default: `symbolize_nearest` on the host)."""
         if self.prototypes is None:
             return symbolize_argmax(gates)
-        return nearest(outputs, self.prototypes, self.prototype_symbols)
+        if nearest is None:
+            return symbolize_nearest(outputs, self.prototypes, self.prototype_symbols)
+        labels = nearest(torch.as_tensor(outputs), torch.as_tensor(self.prototypes),
+                         torch.as_tensor(self.prototype_symbols))
+        return labels.cpu().numpy()
 
     @property
     def switch_prob(self) -> float | None:

@@ -22,4 +22,12 @@ from moex.kernels.cpu.closed_loop import closed_loop
 from moex.kernels.cpu.phases import ExpertProblem, GatingProblem
 from moex.kernels.cpu.symbols import nearest_symbols
 
-__all__ = ["ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols"]
+__all__ = ["ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up"]
+
+
+def warm_up(precision: str) -> None:
+    """A first run (an empty cache) compiles phase 2 and the closed loop in a helper process
+    while it trains phase 1 (`warm`)."""
+    from moex.kernels.cpu import warm
+
+    warm.start(precision)

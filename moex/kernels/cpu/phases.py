@@ -36,7 +36,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     partial[r·S + s] gets (ln p, ln φ(β), Σ‖ŷ - y‖², then per expert ∂ ln p/∂s of
     σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). Every loop runs over time, innermost;
     the strided inputs are copied to contiguous arrays first."""
-    S, T, D = targets.shape
+    S, T, D = targets.shape[1:]
     K = beta.shape[3]
     prior_std = var[r, K]
     y = np.empty((K, D, T))
@@ -48,9 +48,10 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         for d in range(D):
             for t in range(T):
                 y[k, d, t] = Y[lane // LB, t, d, lane % LB]
+    own = r if targets.shape[0] > 1 else 0  # (1, S, T, D): one data set for every run
     for d in range(D):
         for t in range(T):
-            target[d, t] = targets[s, t, d]
+            target[d, t] = targets[own, s, t, d]
     # ln ĝ = β - ln Σ exp β (Eq. 9)
     for t in range(T):
         top[t] = beta[r, s, t, 0]
@@ -163,7 +164,7 @@ def _run_sums(r, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_lo
     out[0, r] = log_lik + prior + _run_lanes(r, S, T, net[6], S1, S2, floor, attraction,
                                              want_grad, lane_grads[6], g_u0)
     out[1, r], out[2, r] = log_lik, prior
-    out[3, r] = 0.5 * error / (S * T * targets.shape[2])
+    out[3, r] = 0.5 * error / (S * T * targets.shape[3])
     if want_grad:
         for k in range(K):
             g_log_sigma[r, k] = partial[r * S:(r + 1) * S, 3 + k].sum() \
@@ -296,7 +297,8 @@ class ExpertProblem:
     for all runs, one compiled call per thread each (`resample` has nothing to draw).
 
     Args:
-        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
+        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}, or (R, S, T, D) when every run has
+            data of its own (packed jobs).
         model: the `ModelConfig`; phase: the `ExpertPhaseConfig`; num_runs: R.
     """
 
@@ -304,15 +306,17 @@ class ExpertProblem:
     device = torch.device("cpu")
 
     def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
-        S, T, D = targets.shape
+        S, T, D = targets.shape[-3:]
         R, K, M = num_runs, model.num_experts, model.experts.context_size
         dtype = np.dtype(inputs.dtype)
         self.shape, self.model, self.phase = (R, S, T, K), model, phase
         self.lanes = _Lanes(T, M, D, D, R * K * S, K * S, R, model.learn_time_constants,
                             phase.attraction, dtype)
-        # lane (r·K + k)·S + s reads series s
-        self.inputs = _in_lanes(np.tile(np.asarray(inputs).transpose(1, 2, 0), R * K))
-        self.targets = np.ascontiguousarray(targets)
+        # lane (r·K + k)·S + s reads series s of run r
+        x = np.broadcast_to(np.asarray(inputs), (R, S, T, D)).transpose(2, 3, 0, 1)
+        self.inputs = _in_lanes(np.broadcast_to(x[:, :, :, None], (T, D, R, K, S)).reshape(
+            T, D, R * K * S))
+        self.targets = np.ascontiguousarray(np.asarray(targets).reshape(-1, S, T, D))
         self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype)]
         self.chunk = LB // math.gcd(K * S, LB)  # the fewest runs whose lanes fill whole blocks
         self.staging = _Staging({
@@ -365,7 +369,8 @@ class GatingProblem:
     compiled call per thread each.
 
     Args:
-        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n (D may be 0).
+        gate_targets: (R, S, T, K) ĝ_n; inputs: (S, T, D) x_n aligned with ĝ_n (D may be 0), or
+            (R, S, T, D) per run.
         model: the `ModelConfig`; phase: the `GatingPhaseConfig`.
         seeds: one per run, for the input noise that `resample(step)` draws when
             `phase.input_noise_var` > 0 (`moex.kernels.input_noise`).
@@ -383,7 +388,7 @@ class GatingProblem:
         self.lanes = _Lanes(T_g, H, K + D, K, R * S, S, R, model.learn_time_constants,
                             phase.attraction, dtype)
         ghat = np.asarray(gate_targets)
-        x = np.broadcast_to(np.asarray(inputs)[None], (R, S, T, D))
+        x = np.broadcast_to(np.asarray(inputs), (R, S, T, D))
         # lane r·S + s reads [ĝ_n, x_n] of run r, series s and is fitted to ĝ_{n+τ} (Eq. 5)
         feed = np.concatenate([ghat[:, :, :T_g], x[:, :, :T_g]], -1)  # (R, S, T_g, K + D)
         self.inputs = _in_lanes(feed.transpose(2, 3, 0, 1).reshape(T_g, K + D, R * S))

@@ -1,6 +1,7 @@
 """The symbol of each generated point: the symbol of its nearest prototype, compiled."""
 
 import numpy as np
+import torch
 from numba import njit
 
 from moex.kernels.cpu import threads
@@ -33,9 +34,10 @@ def _nearest(lo, hi, points, prototypes, symbols, out):  # pragma: no cover
             out[b * LB + v] = symbols[int(index[v])]
 
 
-def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
-                    prototype_symbols: np.ndarray, device: str = "cpu") -> np.ndarray:
-    """`moex.metrics.symbols.symbolize_nearest` compiled: (..., T, D) -> (..., T) symbols."""
+def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
+                    prototype_symbols: torch.Tensor, device: str = "cpu") -> torch.Tensor:
+    """`moex.metrics.symbols.symbolize_nearest` compiled: (..., T, D) -> (..., T) int64 symbols."""
+    points = torch.as_tensor(points).detach().cpu().numpy()
     D = points.shape[-1]
     flat = np.asarray(points, np.float64).reshape(-1, D)
     by_coordinate = np.zeros((D, padded(len(flat))))
@@ -43,6 +45,7 @@ def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
     out = np.empty(by_coordinate.shape[1], np.int64)
     with _first_use(_nearest, "symbol kernel"):
         threads.over(_nearest, by_coordinate.shape[1] // LB, by_coordinate,
-                     np.ascontiguousarray(prototypes, np.float64),
-                 np.ascontiguousarray(prototype_symbols, np.int64), out)
-    return out[:len(flat)].reshape(points.shape[:-1])
+                     np.ascontiguousarray(torch.as_tensor(prototypes).cpu().numpy(), np.float64),
+                     np.ascontiguousarray(torch.as_tensor(prototype_symbols).cpu().numpy(),
+                                          np.int64), out)
+    return torch.from_numpy(out[:len(flat)].reshape(points.shape[:-1]))

@@ -2,9 +2,9 @@
 numba cache) compiles the phase-1 kernel in the training process and, at the same time, the
 closed-loop, phase-2 and symbol kernels in a helper process that calls each on a tiny problem of
 the same types and leaves them in the cache. `moex.launch` starts the helper before the command's
-imports and the run adopts it (`start`); a run started otherwise starts its own. Exact reruns
-make this safe: a kernel loaded from the cache gives the bits of one compiled in the process
-(tested)."""
+imports (`moex.compile_helper`) and the run adopts it (`start`); a run started otherwise starts
+its own. Exact reruns make this safe: a kernel loaded from the cache gives the bits of one
+compiled in the process (tested)."""
 
 import pickle
 import subprocess
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from moex import launch
+from moex import compile_helper
 from moex.kernels.cpu import phases
 
 _helper: subprocess.Popen | None = None
@@ -47,11 +47,9 @@ def start(dtype: str) -> subprocess.Popen | None:
     start one when the later kernels are not cached for `dtype`; None when none is needed."""
     global _helper, _dtype
     _dtype = dtype
-    if launch.helper is not None:
-        if launch.helper[0] == dtype:
-            _helper, launch.helper = launch.helper[1], None
-            return _helper
-        launch.stop_helper()
+    _helper = compile_helper.adopt(dtype)
+    if _helper is not None:
+        return _helper
     if cached(dtype):
         return None
     _helper = subprocess.Popen([sys.executable, "-m", "moex.kernels.cpu.warm", dtype],

@@ -22,7 +22,11 @@ from moex.kernels.gpu.symbols import nearest_symbols
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 
 __all__ = ["ExpertProblem", "GatingProblem", "available", "closed_loop", "kernel_report",
-           "nearest_symbols"]
+           "nearest_symbols", "warm_up"]
+
+
+def warm_up(precision: str) -> None:
+    """Nothing: Triton compiles each kernel at its first launch (and caches it on disk)."""
 
 
 def available(device: str) -> bool:

@@ -54,7 +54,7 @@ class ExpertProblem(_Problem):
     """Phase 1 of R runs (Eqs. 9-13). Lane (r·K + k)·S + s runs expert k of run r on series s.
 
     Args:
-        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}.
+        inputs, targets: (S, T, D) x_n and y_n = x_{n+τ}, or (R, S, T, D) per run.
         model: the `ModelConfig`; phase: the `ExpertPhaseConfig`; num_runs: R.
     """
 
@@ -62,15 +62,17 @@ class ExpertProblem(_Problem):
 
     def __init__(self, inputs, targets, model, phase, num_runs, device="cuda"):
         super().__init__(device)
-        S, T, D = targets.shape
+        S, T, D = targets.shape[-3:]
         R, K, M = num_runs, model.num_experts, model.experts.context_size
         dtype = getattr(torch, str(np.dtype(inputs.dtype)))
         self.shape, self.model, self.phase = (R, S, T, K, D, M), model, phase
-        self.X = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(dtype)
+        own = np.ndim(inputs) == 4  # data per run: X holds R·S series
+        self.X = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(
+            dtype).reshape(-1, T, D)
         self.targets = torch.as_tensor(np.ascontiguousarray(targets), device=self.device).to(dtype)
         lane = np.arange(R * K * S)
         r, k, s = lane // (K * S), lane // S % K, lane % S
-        self.rnn = Net(len(lane), T, D, M, D, r * K + k, s, (r * S + s) * K + k,
+        self.rnn = Net(len(lane), T, D, M, D, r * K + k, r * S * own + s, (r * S + s) * K + k,
                         model.learn_time_constants, phase.attraction, dtype, self.device)
 
     def _call(self, params, grads, active):
@@ -135,7 +137,7 @@ class GatingProblem(_Problem):
         ghat = torch.as_tensor(np.ascontiguousarray(gate_targets), device=self.device).to(dtype)
         x = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(dtype)
         self.targets = ghat[:, :, delay:].contiguous()
-        feed = torch.cat([ghat[:, :, :T_g], x[None, :, :T_g].expand(R, -1, -1, -1)], -1)
+        feed = torch.cat([ghat[:, :, :T_g], x[..., :T_g, :].expand(R, -1, -1, -1)], -1)
         self.clean = feed.reshape(R * S, T_g, K + D).contiguous()
         self.X = self.clean.clone()
         self.entropy = torch.xlogy(self.targets, self.targets).sum((1, 2, 3))

@@ -1,7 +1,6 @@
 """The symbol of each generated point (nearest prototype, `moex.metrics.symbols.symbolize_nearest`)
 as one Triton kernel."""
 
-import numpy as np
 import torch
 import triton
 import triton.language as tl
@@ -28,16 +27,18 @@ def nearest_kernel(X, PROTO, SYM, OUT, n, P: tl.constexpr, D: tl.constexpr, PP: 
 
 
 
-def nearest_symbols(points: np.ndarray, prototypes: np.ndarray,
-                    prototype_symbols: np.ndarray, device: str = "cpu") -> np.ndarray:
-    """`moex.metrics.symbols.symbolize_nearest` as one kernel: (..., T, D) -> (..., T)."""
+def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
+                    prototype_symbols: torch.Tensor, device: str = "cpu") -> torch.Tensor:
+    """`moex.metrics.symbols.symbolize_nearest` as one kernel: (..., T, D) -> (..., T) int64,
+    on `device`."""
     device = torch.device(device)
+    points = torch.as_tensor(points)
     D = points.shape[-1]
-    flat = torch.as_tensor(np.ascontiguousarray(points, np.float64).reshape(-1, D), device=device)
-    proto = torch.as_tensor(np.ascontiguousarray(prototypes, np.float64), device=device)
-    symbols = torch.as_tensor(np.asarray(prototype_symbols, np.int64), device=device)
+    flat = points.to(device, torch.float64).reshape(-1, D).contiguous()
+    proto = torch.as_tensor(prototypes).to(device, torch.float64).contiguous()
+    symbols = torch.as_tensor(prototype_symbols).to(device, torch.int64).contiguous()
     out = torch.empty(len(flat), dtype=torch.int64, device=device)
     P, block = len(proto), 128
     nearest_kernel[(triton.cdiv(len(flat), block),)](flat, proto, symbols, out, len(flat), P=P,
                                                      D=D, PP=pow2(P), DP=pow2(D), BLOCK=block)
-    return out.cpu().numpy().reshape(points.shape[:-1])
+    return out.reshape(points.shape[:-1])
