@@ -440,13 +440,18 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
                 ax.axhspan(level - band, level + band, color="grey", alpha=0.15, lw=0,
                            label=f"within ±{band:g} of the data" if i == 0 else None)
     ax.axvline(0, color="grey", lw=0.8, ls=":")
-    ax.set_xscale("symlog", linthresh=LINTHRESH)
+    wide = bool((runs[x].abs() > LINTHRESH).any())  # else symlog's ticks fall outside the data
+    if wide:
+        ax.set_xscale("symlog", linthresh=LINTHRESH)
+    else:
+        ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 3), useOffset=False)
     ax.margins(x=0.08)
     if log_y:
         ax.set_yscale("log")
     names_of = {"context_size": "NC (context units of the gating RNN)", "arm": "study arm",
                 "switch_prob_task": "P (the data's switching probability)"}
-    ax.set_xlabel(f"{label(x)} (linear within ±{LINTHRESH:g}, logarithmic beyond)")
+    ax.set_xlabel(f"{label(x)} (linear within ±{LINTHRESH:g}, logarithmic beyond)" if wide
+                  else label(x))
     ax.set_ylabel(label(y))
     ax.set_title(f"{label(y)} against {label(x)}, one point per network")
     ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5),

@@ -258,3 +258,23 @@ def test_the_control_table_is_the_one_the_csvs_give():
     table = control.markdown(rows)
     assert table in (ROOT / "REPRODUCTION.md").read_text()
     assert table in (ROOT / "docs" / "mregn_control.md").read_text()
+
+
+def test_the_pooled_mean_weighs_data_sets_by_their_own_spread_and_the_between_data_spread():
+    """Random-effects pooling of data sets (docs/verdicts.py): one data set gives the plain mean
+    and sd/√n; data sets drawn around one mean with no between-data spread give about sd/√N over
+    all N networks; a between-data spread s_b keeps the standard error near s_b/√J however
+    many networks each data set has, and the mean comes back."""
+    verdicts = _script("verdicts")
+    rng = np.random.default_rng(3)
+    one = rng.normal(2.0, 1.0, 50)
+    mean, se, spread = verdicts.pooled([one])
+    assert mean == one.mean() and np.isclose(se, one.std(ddof=1) / np.sqrt(50))
+    same = [rng.normal(2.0, 1.0, 20) for _ in range(30)]
+    mean, se, _ = verdicts.pooled(same)
+    assert abs(mean - 2.0) < 0.1 and abs(se / (1 / np.sqrt(600)) - 1) < 0.3
+    centres = rng.normal(5.0, 2.0, 400)
+    spread_out = [rng.normal(c, 0.5, 20) for c in centres]
+    mean, se, spread = verdicts.pooled(spread_out)
+    assert abs(mean - 5.0) < 0.4 and abs(se / (2.0 / np.sqrt(400)) - 1) < 0.2
+    assert abs(spread / np.sqrt(4.0 + 0.25) - 1) < 0.15

@@ -97,3 +97,24 @@ def test_a_heatmap_writes_each_cell_and_names_the_cells_not_run():
                                 limits=(0.005, 0.05), colorbar=False)
     assert len(fig.axes) == 1  # a panel in a row whose neighbour carries the bar
     plt.close("all")
+
+
+def test_scatter_ticks_cover_exponents_that_all_lie_near_zero():
+    """λ_max all within ±1e-5 (a run of limit cycles): a linear axis with 0 and ticks inside the
+    data, not symlog's two labels at the axis ends (read as −2.94195×10⁻⁶ ... 3.01911×10⁻⁶)."""
+    import numpy as np
+    import pandas as pd
+
+    from moex import plotting
+
+    rng = np.random.default_rng(0)
+    runs = pd.DataFrame({"max_lyapunov": rng.normal(0, 2e-6, 12),
+                         "switch_prob": rng.uniform(0.2, 0.21, 12), "switch_prob_task": 0.5})
+    fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "switch_prob_task")
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
+    assert ax.get_xscale() == "linear" and 0.0 in ticks and len(ticks) >= 4
+    wide = runs.assign(max_lyapunov=runs["max_lyapunov"] * 1e3)  # past ±1e-4: symlog
+    assert plotting.plot_scatter_by(wide, "max_lyapunov", "switch_prob",
+                                    "switch_prob_task").axes[0].get_xscale() == "symlog"
