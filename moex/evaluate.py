@@ -66,9 +66,11 @@ class EvalConfig:
     initial_states: str = "random"
     track_samples: int = 4  # random initial states per network when tracking
     track_steps: int = 5000  # Lyapunov steps per sample when tracking
+    track_from: int = 0  # the first gating step tracked (e.g. only the end of training)
 
     def __post_init__(self):
         check(self.every >= 0, f"eval.every={self.every} must be >= 0")
+        check(self.track_from >= 0, f"eval.track_from={self.track_from} must be >= 0")
         for key in ("num_samples", "lyapunov_steps", "num_exponents", "block_length",
                     "max_period", "plot_steps", "track_samples", "track_steps"):
             check(getattr(self, key) >= 1, f"eval.{key}={getattr(self, key)} must be >= 1")

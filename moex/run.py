@@ -227,7 +227,8 @@ def train_jobs(jobs: list[Job], stop=never, backend: Backend | None = None
     with provenance.part("phase 2"):
         gating, gating_rows = train_gating(
             gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
-            hooks("gating", monitor=monitor, monitor_every=cfg.eval.every), backend,
+            hooks("gating", monitor=monitor, monitor_every=cfg.eval.every,
+                  monitor_from=cfg.eval.track_from), backend,
             seeds=[s for job in jobs for s in run_seeds(job.cfg.seed, job.cfg.num_runs)])
     for record, part, n in zip(records, runs, sizes, strict=True):
         record.phase, record.gating, record.train_state = "done", _cpu(_part(gating, part)), None

@@ -111,6 +111,7 @@ class Hooks:
 
     monitor: Monitor | None = None  # params -> extra statistics per run (R,)
     monitor_every: int = 0
+    monitor_from: int = 0  # the first step the monitor sees
     save: Callable[[dict], None] | None = None  # receives the resumable state of the phase
     save_every: int = 0
     should_stop: Callable[[], bool] = lambda: False  # e.g. a SIGTERM arrived
@@ -269,8 +270,8 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
             velocity.masked_fill_(frozen, 0.0)
         if "tau" in views:
             views["tau"].clamp_(min=1.0)  # ε <= 1, as in the C code
-        tracked = hooks.monitor_every > 0 and (step % hooks.monitor_every == 0
-                                               or step == steps - 1)
+        tracked = hooks.monitor_every > 0 and step >= hooks.monitor_from and (
+            step % hooks.monitor_every == 0 or step == steps - 1)
         if tracked:
             stats = {**stats, **statistics(hooks.monitor(_host(net)))}
         if tracked or step % log_every == 0 or step == steps - 1:

@@ -124,6 +124,17 @@ def test_tracking_during_training(tmp_path):
     last = tracked[tracked["step"] == 4].sort_values("run")["block_kl_train"]
     np.testing.assert_allclose(last, _train_block_kl(targets, closed["gates"], cfg.eval))
 
+    # eval.track_from: only the end of training is tracked (Fig. 15's flip at the last steps);
+    # the training itself is the same
+    cfg.eval = EvalConfig(enabled=False, every=2, track_from=3, track_samples=2,
+                          track_steps=100, transient=10)
+    late = run_train(cfg, tmp_path / "late")
+    history = pd.read_csv(tmp_path / "late" / "history.csv")
+    tracked = history[(history["phase"] == "gating") & history["block_kl_train"].notna()]
+    assert sorted(tracked["step"].unique()) == [4]
+    for k, v in saved.gating.items():
+        assert torch.equal(late.gating[k], v), k
+
 
 @pytest.mark.parametrize("backend", backend_params(slow_interpreted=True), indirect=True)
 def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backend):
