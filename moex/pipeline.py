@@ -178,7 +178,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     samples = in_data_units(samples, dataset)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     ok = metrics[~metrics["failed"]]
-    _plot_samples(samples, dataset, cfg, out_dir, metrics)
+    _plot_samples(samples, dataset, cfg, out_dir, metrics, cfg.eval.noise_var)
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
     log.info("λ_max positive in %d of %d runs (mean %.4g)", int((ok["max_lyapunov"] > 0).sum()),
              len(ok), ok["max_lyapunov"].mean())
@@ -218,11 +218,13 @@ def _run_title(row) -> str:
 
 
 def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
-                  metrics: pd.DataFrame | None = None) -> None:
+                  metrics: pd.DataFrame | None = None, noise_var: float = 0.0) -> None:
     """Figures of one run's closed-loop sample, and of every run (small multiples, residence
-    times) when the metric table is there to title them."""
+    times) when the metric table is there to title them; titles name the noise on x_n."""
     figures, fmt = out_dir / io.FIGURES, cfg.plot.format
     run, label = _chosen_run(cfg, metrics)
+    noisy = f", noise ρ² = {noise_var:g}" if noise_var > 0 else ""
+    label += noisy
     outputs, gates = samples["outputs"][run], samples["gates"][run]
     gating_u, symbols = samples["gating_u"][run], samples["symbols"][run]
     if outputs.shape[-1] >= 2:
@@ -248,14 +250,15 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
         pooled = "1 run" if cfg.num_runs == 1 else f"averaged over {cfg.num_runs} runs"
         ax = plotting.plot_residence(samples["residence_hist"], switch_prob=dataset.switch_prob,
                                      censored_hist=samples.get("residence_censored_hist"),
-                                     title=f"repetitions of a curve before a switch, {pooled}")
+                                     title=f"repetitions of a curve before a switch, {pooled}"
+                                           f"{noisy}")
         plotting.save_figure(ax.figure, figures / "residence_times.png", fmt)
     if metrics is not None and outputs.shape[-1] >= 2:
         fig = plotting.plot_run_trajectories(
             samples["outputs"], samples["gates"],
             [_run_title(row) for _, row in metrics.iterrows()],
             f"the closed loop of each of the {cfg.num_runs} runs, last "
-            f"{samples['outputs'].shape[1]} steps")
+            f"{samples['outputs'].shape[1]} steps{noisy}")
         plotting.save_figure(fig, figures / "runs.png", fmt)
     if gates.shape[-1] > 2 and outputs.shape[-1] >= 2:
         axes = plotting.plot_expert_panels(outputs, gates, title=f"where each expert wins, {label}")
@@ -341,7 +344,7 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
     out_dir = Path(out_dir)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     first = {k: v[:, 0] for k, v in samples.items()}
-    _plot_samples(first, dataset, cfg, out_dir)
+    _plot_samples(first, dataset, cfg, out_dir, noise_var=tool.noise_var)
     log.info("generated %d samples x %d steps per run (noise variance %g, from %s) into %s",
              tool.num_samples, tool.steps, tool.noise_var,
              "random states" if tool.from_series < 0 else f"series {tool.from_series}",

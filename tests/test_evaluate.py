@@ -202,3 +202,27 @@ def test_trained_initial_states_start_each_sample_from_its_series():
     np.testing.assert_allclose(rows["max_lyapunov"], direct.mean(1)[:, 0], rtol=1e-12)
     with pytest.raises(ValueError, match="eval.initial_states='nope'; choose random or trained"):
         EvalConfig(initial_states="nope")
+
+
+def test_figures_of_a_noisy_evaluation_say_so(tiny_cfg, tmp_path, monkeypatch):
+    """With eval.noise_var > 0 the closed-loop figures are of the noisy loop: every title of
+    trajectory, gates, runs and residence times names ρ²; without noise none does."""
+    from moex import plotting
+
+    titles = {}
+
+    def keep(fig, path, fmt="png"):
+        texts = [ax.get_title() for ax in fig.axes] + (
+            [fig._suptitle.get_text()] if fig._suptitle is not None else [])
+        titles[path.stem] = " ".join(texts)
+
+    monkeypatch.setattr(plotting, "save_figure", keep)
+    tiny_cfg.eval = dataclasses.replace(tiny_cfg.eval, num_samples=2, lyapunov_steps=200,
+                                        transient=20, plot_steps=100, noise_var=0.001)
+    run_train(tiny_cfg, tmp_path / "noisy")
+    for name in ("trajectory", "gates", "runs", "residence_times"):
+        assert "ρ² = 0.001" in titles[name], name
+    titles.clear()
+    tiny_cfg.eval = dataclasses.replace(tiny_cfg.eval, noise_var=0.0)
+    run_train(tiny_cfg, tmp_path / "clean")
+    assert titles and not any("ρ²" in t for t in titles.values())
