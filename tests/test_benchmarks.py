@@ -52,3 +52,19 @@ def test_the_comparison_with_the_c_tools_refuses_a_folder_that_is_no_checkout(tm
                            str(tmp_path)], capture_output=True, text=True, timeout=300)
     assert done.returncode == 2
     assert "is not an mregn checkout" in done.stderr
+
+
+def test_the_phase1_breakdown_times_every_stage(tmp_path):
+    """benchmarks/bench_phase1_parts.py: a row per stage, each a finite time."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run([sys.executable, str(root / "benchmarks" / "bench_phase1_parts.py"),
+                           "--runs", "1", "--repeats", "1"], capture_output=True, text=True,
+                          timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    for stage in ("forward", "mixture", "backward", "sums per run", "whole value_and_grad"):
+        assert re.search(rf"\| 1 \| {stage}[^|]* \| -?\d+\.\d+ \|", done.stdout), stage
