@@ -256,7 +256,8 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
     if metrics is not None and outputs.shape[-1] >= 2:
         fig = plotting.plot_run_trajectories(
             samples["outputs"], samples["gates"],
-            [_run_title(row) for _, row in metrics.iterrows()],
+            [_run_title(row) + ("\na fixed point" if np.ptp(out, axis=0).max() < 1e-3 else "")
+             for (_, row), out in zip(metrics.iterrows(), samples["outputs"], strict=True)],
             f"the closed loop of each of the {cfg.num_runs} runs, last "
             f"{samples['outputs'].shape[1]} steps{noisy}")
         plotting.save_figure(fig, figures / "runs.png", fmt)

@@ -226,3 +226,7 @@ def test_figures_of_a_noisy_evaluation_say_so(tiny_cfg, tmp_path, monkeypatch):
     tiny_cfg.eval = dataclasses.replace(tiny_cfg.eval, noise_var=0.0)
     run_train(tiny_cfg, tmp_path / "clean")
     assert titles and not any("ρ²" in t for t in titles.values())
+    # a run whose closed loop sits still is called a fixed point in its panel, and only then
+    with np.load(tmp_path / "clean" / "samples.npz") as samples:
+        still = [np.ptp(out, axis=0).max() < 1e-3 for out in samples["outputs"]]
+    assert titles["runs"].count("a fixed point") == sum(still)
