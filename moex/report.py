@@ -334,6 +334,11 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
         group = "arm" if runs["arm"].notna().any() or not keys else keys[0]
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", group,
                                        reference=runs.get("data_switch_prob"), band=NEAR)
+        noise = runs.get("noise_var", pd.Series(dtype=float)).dropna().unique()
+        if len(noise) == 1 and noise[0] > 0:  # one noise for all: the noisy loop's switching
+            ax = fig.axes[0]
+            ax.set_title(f"{ax.get_title()}\nswitching measured with noise ρ² = {noise[0]:g} "
+                         f"on x_n")
         plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png", fmt)
     for paper in PAPER_TABLES:  # a symbolic task's table per network: chaos and the test KL
         ours = runs[runs["task"] == paper.task]

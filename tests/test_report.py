@@ -282,3 +282,23 @@ def test_report_compares_runs_from_different_folders(tmp_path):
         "A", "B"]
     assert set(pd.read_csv(tmp_path / "both" / "summary.csv")["job"]) == {"nc5", "nc6"}
     assert not list((tmp_path / "both" / "figures").glob("*.png"))  # svg only, if any figure
+
+
+def test_the_scatter_says_when_its_switching_was_measured_under_noise(tmp_path, monkeypatch):
+    """Every job evaluated with one noise level ρ² > 0: the switching-against-λ_max figure's
+    title says so; without noise it does not."""
+    from moex import plotting
+
+    titles = {}
+    monkeypatch.setattr(plotting, "save_figure",
+                        lambda fig, path, fmt="png": titles.update({path.stem: fig.axes[0]
+                                                                    .get_title()}))
+    for noise in (0.001, 0.0):
+        folder = tmp_path / str(noise)
+        for job, p in (("0", 0.5), ("1", 0.25)):
+            _fake_job(folder / job, f"task:\n  name: lissajous2\n  switch_prob: {p}\n",
+                      {"switch_prob": [0.4, 0.3], "data_switch_prob": [0.47, 0.47],
+                       "max_lyapunov": [0.002, -0.001], "noise_var": [noise, noise]})
+        report(folder)
+        said = "noise ρ² = 0.001" in titles["switch_prob_vs_lyapunov"]
+        assert said == (noise > 0), noise
