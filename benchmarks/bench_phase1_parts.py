@@ -36,6 +36,46 @@ def flops_per_lane_step(M: int, D: int) -> dict[str, int]:
             "backward": 2 * (D * M + M * M + M * M + M * D + M)}  # δ_o, δ_c, ∂W_rec, ∂W_in, ∂b
 
 
+def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor) -> dict[str, float]:
+    """The minimum over `repeats` round-robin rounds of each stage's seconds, for R networks."""
+    S, L, D = series.shape
+    T, K = L - 1, cfg.model.num_experts
+    gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, R)]
+    params = init_experts(cfg.model, S, D, gens)
+    fixed = {"tau": params.pop("tau")}
+    params["beta"] = torch.zeros(R, S, T, K, dtype=series.dtype)
+    problem = phases.ExpertProblem(series[:, :-1].numpy(), series[:, 1:].numpy(), cfg.model,
+                                   ExpertPhaseConfig(), R)
+    grads = {k: torch.zeros_like(v) for k, v in params.items()}
+    net = {**params, **fixed}
+    active = torch.ones(R, dtype=torch.bool)
+    problem.value_and_grad(net, grads, active)  # compile or load, allocate
+    p, g, lanes = problem.staging.load(net), problem.staging.grads, problem.lanes
+    floor = float(cfg.model.sigma_min) ** 2
+    args = (phases._per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
+            tuple(lanes.work), lanes.lane_grads, phases._per_network(g, True), g["u0"],
+            g["log_sigma"], g["beta"], problem.inputs, problem.targets, floor,
+            float(problem.phase.gate_prior_std), bool(problem.phase.attraction), True,
+            np.ones(R, bool), lanes.block_runs, problem.chunk, lanes.out)
+    NB = lanes.net[0].shape[0]
+    stages = {
+        "forward (Eqs. 1-3)": lambda: threads.over(_expert_items, NB, _FORWARD, *args),
+        "mixture (Eqs. 9-13)": lambda: threads.over(_expert_items, R * S, _MIXTURE, *args),
+        "backward (BPTT)": lambda: threads.over(_expert_items, NB, _BACKWARD, *args),
+        "sums per run": lambda: _expert_items(0, R, _RUNS, *args),
+        "whole value_and_grad": lambda: problem.value_and_grad(net, grads, active),
+    }
+    best = dict.fromkeys(stages, float("inf"))
+    for _ in range(repeats):
+        for name, call in stages.items():
+            start = time.perf_counter()
+            call()
+            best[name] = min(best[name], time.perf_counter() - start)
+    parts = sum(v for k, v in best.items() if k != "whole value_and_grad")
+    best["staging and the rest"] = best["whole value_and_grad"] - parts
+    return best
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, nargs="+", default=[1, 30])
@@ -46,47 +86,13 @@ def main(argv=None) -> None:
     cfg = Config(task=TaskConfig(name="lissajous2"))
     series = torch.as_tensor(load_task(cfg).series)
     S, L, D = series.shape
-    T, K, M = L - 1, cfg.model.num_experts, cfg.model.experts.context_size
+    K, M = cfg.model.num_experts, cfg.model.experts.context_size
     work = flops_per_lane_step(M, D)
-    print(f"| R | stage | ms per network-epoch | ns per lane-step | flops per lane-step | "
-          f"Gflop/s |\n|---|---|---|---|---|---|")
+    print("| R | stage | ms per network-epoch | ns per lane-step | flops per lane-step | "
+          "Gflop/s |\n|---|---|---|---|---|---|")
     for R in args.runs:
-        gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, R)]
-        params = init_experts(cfg.model, S, D, gens)
-        fixed = {"tau": params.pop("tau")}
-        params["beta"] = torch.zeros(R, S, T, K, dtype=series.dtype)
-        problem = phases.ExpertProblem(series[:, :-1].numpy(), series[:, 1:].numpy(), cfg.model,
-                                       ExpertPhaseConfig(), R)
-        grads = {k: torch.zeros_like(v) for k, v in params.items()}
-        net = {**params, **fixed}
-        active = torch.ones(R, dtype=torch.bool)
-        problem.value_and_grad(net, grads, active)  # compile or load, allocate
-        p, g, lanes = problem.staging.load(net), problem.staging.grads, problem.lanes
-        floor = float(cfg.model.sigma_min) ** 2
-        stage_args = (phases._per_network(p, True), p["u0"], p["log_sigma"], p["beta"],
-                      lanes.net, tuple(lanes.work), lanes.lane_grads, phases._per_network(g, True),
-                      g["u0"], g["log_sigma"], g["beta"], problem.inputs, problem.targets, floor,
-                      float(problem.phase.gate_prior_std), bool(problem.phase.attraction), True,
-                      np.ones(R, bool), lanes.block_runs, problem.chunk, lanes.out)
-        NB = lanes.net[0].shape[0]
-        stages = {
-            "forward (Eqs. 1-3)": lambda: threads.over(_expert_items, NB, _FORWARD, *stage_args),
-            "mixture (Eqs. 9-13)": lambda: threads.over(_expert_items, R * S, _MIXTURE,
-                                                        *stage_args),
-            "backward (BPTT)": lambda: threads.over(_expert_items, NB, _BACKWARD, *stage_args),
-            "sums per run": lambda: _expert_items(0, R, _RUNS, *stage_args),
-            "whole value_and_grad": lambda: problem.value_and_grad(net, grads, active),
-        }
-        best = dict.fromkeys(stages, float("inf"))
-        for _ in range(args.repeats):
-            for name, call in stages.items():
-                start = time.perf_counter()
-                call()
-                best[name] = min(best[name], time.perf_counter() - start)
-        parts = sum(v for k, v in best.items() if k != "whole value_and_grad")
-        best["staging and the rest"] = best["whole value_and_grad"] - parts
-        lane_steps = R * K * S * T
-        for name, seconds in best.items():
+        lane_steps = R * K * S * (L - 1)
+        for name, seconds in best_times(R, args.repeats, cfg, series).items():
             key = {"forward (Eqs. 1-3)": "forward", "backward (BPTT)": "backward"}.get(name)
             flops = work[key] if key else None
             ns = 1e9 * seconds / lane_steps
