@@ -6,7 +6,8 @@ noise floor of the tracking estimate, from a `paper_fig15` run folder.
 writes docs/fig15_summary.csv (per network: the noise floor, flips, and the evaluation's λ_max and
 switching, with ρ² = 10⁻⁴ beside them when NOISY_EVAL_DIR, a `moex evaluate ... eval.noise_var=
 0.0001` folder, is given) and docs/fig15_tracked.png (the tracked λ_max of every network against
-its ±2-sd band).
+its ±2-sd band); docs/fig15_end_summary.csv and docs/fig15_end_tracked.png for a run tracked from
+`eval.track_from` on (the end of training).
 
 The paper's flip: λ_max from −5.4·10⁻⁵ to +9.95·10⁻⁴ within 10 learning steps. A flip here is a
 pair of consecutive tracked points (eval.every apart) going from below −FLOOR_FACTOR × floor to
@@ -67,7 +68,7 @@ def flips(history: pd.DataFrame, floor: np.ndarray) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def plot(history: pd.DataFrame, table: pd.DataFrame, path: Path) -> None:
+def plot(history: pd.DataFrame, table: pd.DataFrame, path: Path, ev) -> None:
     """One panel per network: tracked λ_max against the gating step, the ±2-sd band shaded."""
     tracked = history[(history["phase"] == "gating") & history["max_lyapunov"].notna()]
     runs = sorted(tracked["run"].unique())
@@ -89,8 +90,10 @@ def plot(history: pd.DataFrame, table: pd.DataFrame, path: Path) -> None:
     for ax in axes[:, 0]:
         ax.set_ylabel(r"tracked $\lambda_{\max}$")
     axes.flat[0].legend(fontsize=8, loc="lower right")
-    fig.suptitle(r"Fig. 15 looked for: $\lambda_{\max}$ (4 samples × 5000 steps) every 10 "
-                 r"gating steps, NT 10 / LT 1000 / NC 30")
+    fig.suptitle(rf"Fig. 15 looked for: $\lambda_{{\max}}$ ({ev.track_samples} samples × "
+                 rf"{ev.track_steps} steps) every {ev.every} gating steps"
+                 + (f" from step {ev.track_from}" if ev.track_from else "")
+                 + ", NT 10 / LT 1000 / NC 30")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
@@ -108,8 +111,10 @@ def main() -> None:
         table = table.merge(noisy, on="run", suffixes=("", "_noise1e-4"))
     print(to_markdown(table))
     docs = Path(__file__).parent
-    table.to_csv(docs / "fig15_summary.csv", index=False)
-    plot(history, table, docs / "fig15_tracked.png")
+    ev = config_from_dict(checkpoint.load(run_dir).config).eval
+    name = "fig15_end" if ev.track_from else "fig15"  # the end of training only: its own files
+    table.to_csv(docs / f"{name}_summary.csv", index=False)
+    plot(history, table, docs / f"{name}_tracked.png", ev)
 
 
 if __name__ == "__main__":
