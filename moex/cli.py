@@ -39,6 +39,7 @@ CONF_DIR = str(config.CONF_DIR)
 LOCK = ".moex.lock"
 
 JOBS_INDEX = "jobs.csv"
+SHOWS_CONFIG = {"--cfg", "-c", "--info"}  # Hydra flags that print instead of running
 
 
 def _write_job_index(sweep_dir: Path) -> None:
@@ -377,13 +378,13 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     config_name, task_function = VERBS[verb]
     hydra_flags, overrides = _split_flags(args)
-    shown = {"--cfg", "-c", "--info"} & set(hydra_flags)
+    shown = SHOWS_CONFIG & set(hydra_flags)
     if shown and {"-m", "--multirun"} & set(hydra_flags):  # Hydra's answer is a traceback
         print(f"moex: error: {sorted(shown)[0]} shows the config of one run: drop -m and give "
               f"one value per key", file=sys.stderr)
         sys.exit(2)
     claimed = None
-    if not {"--help", "-h", "--hydra-help", "--info", "--cfg", "-c"} & set(hydra_flags):
+    if not ({"--help", "-h", "--hydra-help"} | SHOWS_CONFIG) & set(hydra_flags):
         try:
             cfg = validate(config_name, overrides, hydra_flags)
             multirun = bool({"-m", "--multirun"} & set(hydra_flags))

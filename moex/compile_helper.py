@@ -10,12 +10,17 @@ import sys
 helper: tuple[str, subprocess.Popen] | None = None  # (precision, process) until the run adopts it
 
 
+def spawn(precision: str) -> subprocess.Popen:
+    """A helper process compiling the kernels of `precision` into the cache."""
+    return subprocess.Popen([sys.executable, "-m", "moex.kernels.cpu.warm", precision],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
 def start(precision: str) -> None:
-    """Start a helper compiling the kernels of `precision`; stopped at exit unless adopted."""
+    """Start a helper for `precision` before the command's imports; stopped at exit unless
+    adopted."""
     global helper
-    helper = precision, subprocess.Popen(
-        [sys.executable, "-m", "moex.kernels.cpu.warm", precision],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    helper = precision, spawn(precision)
     atexit.register(stop)
 
 

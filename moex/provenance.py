@@ -110,11 +110,11 @@ def recorded(out_dir: Path | list[Path], verb: str, backend: str | None, device:
     except BaseException:
         if verb == "train":
             for folder in folders:
-                _save(folder, record)
+                save(folder, record)
         raise
     else:
         for folder in folders:
-            _save(folder, record)
+            save(folder, record)
     finally:
         _CURRENT.reset(token)
 
@@ -132,11 +132,7 @@ def kept(verb: str, backend: str | None, device: str | None, precision: str | No
 
 
 def save(out_dir: Path, record: dict) -> None:
-    """Append a kept record to `out_dir`/provenance.json."""
-    _save(out_dir, record)
-
-
-def _save(out_dir: Path, record: dict) -> None:
+    """Append a record (a kept one, or the running command's) to `out_dir`/provenance.json."""
     text = json.dumps(read(out_dir) + [record], indent=1)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     atomic_write(Path(out_dir) / NAME, lambda tmp: Path(tmp).write_text(text))

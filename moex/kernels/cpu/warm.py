@@ -43,8 +43,9 @@ def cached(dtype: str) -> bool:
 
 
 def start(dtype: str) -> subprocess.Popen | None:
-    """Adopt the helper `moex.launch` started for `dtype` (stopping one of another precision), or
-    start one when the later kernels are not cached for `dtype`; None when none is needed."""
+    """Adopt the helper the `moex` command started for `dtype` (stopping one of another
+    precision), or start one when the later kernels are not cached for `dtype`; None when none
+    is needed."""
     global _helper, _dtype
     _dtype = dtype
     _helper = compile_helper.adopt(dtype)
@@ -52,8 +53,7 @@ def start(dtype: str) -> subprocess.Popen | None:
         return _helper
     if cached(dtype):
         return None
-    _helper = subprocess.Popen([sys.executable, "-m", "moex.kernels.cpu.warm", dtype],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _helper = compile_helper.spawn(dtype)
     return _helper
 
 
