@@ -10,6 +10,8 @@ from moex.metrics.table import METRICS, REPORTED
 from moex.report import to_markdown
 
 NAME = "report.md"
+STARTS = {"random": "random initial states",  # eval.initial_states, in the page's words
+          "trained": "trained initial states (sample n from series n mod S)"}
 FIGURE_ORDER = ("learning_curves", "trajectory", "runs", "gates", "residence_times",
                 "phase_portrait", "experts")
 
@@ -37,8 +39,9 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
                                          strict=True)]
         table = table.rename(columns={c: METRICS[c].text for c in shown if c in METRICS})
         lines += ["## Metrics (one row per network)", "",
-                  f"Evaluated on {ev.num_samples} random initial states × {ev.lyapunov_steps} "
-                  f"closed-loop steps per network (after {ev.transient} discarded), noise "
+                  f"Evaluated on {ev.num_samples} {STARTS[ev.initial_states]} × "
+                  f"{ev.lyapunov_steps} closed-loop steps per network (after {ev.transient} "
+                  f"discarded), noise "
                   f"variance {ev.noise_var:g}, symbol blocks of length {ev.block_length}.", "",
                   to_markdown(table), "",
                   "; ".join(f"{METRICS[c].text}: {METRICS[c].meaning}" for c in shown

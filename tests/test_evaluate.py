@@ -226,7 +226,19 @@ def test_figures_of_a_noisy_evaluation_say_so(tiny_cfg, tmp_path, monkeypatch):
     tiny_cfg.eval = dataclasses.replace(tiny_cfg.eval, noise_var=0.0)
     run_train(tiny_cfg, tmp_path / "clean")
     assert titles and not any("ρ²" in t for t in titles.values())
+    page = (tmp_path / "clean" / "report.md").read_text()
+    assert "2 random initial states × 200 closed-loop steps" in page
     # a run whose closed loop sits still is called a fixed point in its panel, and only then
     with np.load(tmp_path / "clean" / "samples.npz") as samples:
         still = [np.ptp(out, axis=0).max() < 1e-3 for out in samples["outputs"]]
     assert titles["runs"].count("a fixed point") == sum(still)
+    # re-evaluated from the trained initial states: the page says so
+    from moex.config import EvalOverrides, EvaluateConfig
+    from moex.pipeline import run_evaluate
+
+    run_evaluate(EvaluateConfig(run_dir=str(tmp_path / "clean"),
+                                eval=EvalOverrides(initial_states="trained")),
+                 tmp_path / "trained")
+    page = (tmp_path / "trained" / "report.md").read_text()
+    assert "2 trained initial states (sample n from series n mod S) × 200" in page
+    assert "random initial states" not in page
