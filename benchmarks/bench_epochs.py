@@ -52,10 +52,10 @@ def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tu
     return wall, cpu
 
 
-def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
-          context_size: int, dtype: str, device: str = "cpu", series: int = 0,
-          length: int = 0, base: int = 5) -> list[dict]:
-    """Rows of ms per network-epoch; `series` and `length` (0: the task's) shrink the data."""
+def trainers(task: str, runs: int, backend: str, threads: int, context_size: int, dtype: str,
+             device: str = "cpu", series: int = 0, length: int = 0) -> tuple[dict, bool]:
+    """{phase name: fn(n) training n epochs of `runs` networks} and whether to synchronise CUDA;
+    `series` and `length` (0: the task's) shrink the data."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
     torch.set_num_threads(1 if chosen.name == "cpu" else threads)
@@ -72,16 +72,7 @@ def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats:
     series = torch.as_tensor(data.series, dtype=dtype)
     S, _, D = series.shape
     gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, runs)]
-    results = []
-
-    def record(name, fn):
-        wall, cpu = _time(fn, steps, repeats, base, sync=chosen.device.startswith("cuda"))
-        results.append({"task": task, "phase": name, "runs": runs, "backend": backend,
-                        "threads": threads, "context_size": context_size,
-                        "wall_ms": 1e3 * wall / runs, "cpu_ms": 1e3 * cpu / runs})
-        print(f"| {task} | {name} | {runs} | {backend} | {threads} | {context_size} | "
-              f"{1e3 * cpu / runs:.2f} | {1e3 * wall / runs:.2f} |", flush=True)
-
+    out = {}
     if D > 0:
         experts = init_experts(cfg.model, S, D, gens, dtype)
         for adaptive in (False, True):
@@ -90,7 +81,7 @@ def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats:
                 train_experts(experts, series, cfg.model, cfg.train.experts, cfg.train,
                               backend=chosen)
 
-            record(f"phase 1, {'adaptive' if adaptive else 'fixed'} rate", phase1)
+            out[f"phase 1, {'adaptive' if adaptive else 'fixed'} rate"] = phase1
         targets = torch.softmax(torch.randn(runs, S, series.shape[1] - 1, 2,
                                             generator=torch.Generator().manual_seed(0)), -1)
         inputs = series[:, :-1]
@@ -104,7 +95,24 @@ def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats:
         train_gating(gating, targets.to(dtype), inputs, cfg.model, cfg.train.gating, cfg.train,
                      backend=chosen)
 
-    record("phase 2, adaptive rate", phase2)
+    out["phase 2, adaptive rate"] = phase2
+    return out, chosen.device.startswith("cuda")
+
+
+def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
+          context_size: int, dtype: str, device: str = "cpu", series: int = 0,
+          length: int = 0, base: int = 5) -> list[dict]:
+    """Rows of ms per network-epoch (`trainers` for the arguments)."""
+    fns, sync = trainers(task, runs, backend, threads, context_size, dtype, device, series,
+                         length)
+    results = []
+    for name, fn in fns.items():
+        wall, cpu = _time(fn, steps, repeats, base, sync)
+        results.append({"task": task, "phase": name, "runs": runs, "backend": backend,
+                        "threads": threads, "context_size": context_size,
+                        "wall_ms": 1e3 * wall / runs, "cpu_ms": 1e3 * cpu / runs})
+        print(f"| {task} | {name} | {runs} | {backend} | {threads} | {context_size} | "
+              f"{1e3 * cpu / runs:.2f} | {1e3 * wall / runs:.2f} |", flush=True)
     return results
 
 

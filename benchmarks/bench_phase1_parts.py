@@ -56,7 +56,7 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor) -> dict[
             tuple(lanes.work), lanes.lane_grads, phases._per_network(g, True), g["u0"],
             g["log_sigma"], g["beta"], problem.inputs, problem.targets, floor,
             float(problem.phase.gate_prior_std), bool(problem.phase.attraction), True,
-            np.ones(R, bool), lanes.block_runs, problem.chunk, lanes.out)
+            np.ones(R, bool), np.ones(R, bool), lanes.block_runs, problem.chunk, lanes.out)
     NB = lanes.net[0].shape[0]
     stages = {
         "forward (Eqs. 1-3)": lambda: threads.over(_expert_items, NB, _FORWARD, *args),

@@ -8,19 +8,23 @@ their code is never copied into moex). Both sides train on moex's two-Lissajous 
 lissajous2, data seed 0: 10 series x 1000 steps, 2 experts of 10 units, a gating RNN of 15),
 written in the tools' target format. Each figure is the marginal CPU time of an epoch: a training
 of `--base` + `--steps` epochs minus one of `--base` epochs (so start-up, reading and writing
-files are left out), the best of `--repeats` pairs; moex's side is `bench_epochs.bench` (through
-the whole training loop). C: OMP_NUM_THREADS=1; moex: 1 numba thread.
+files are left out); moex's side trains through the whole training loop (`bench_epochs`). The
+`--repeats` rounds take C and moex in turn, cell by cell, and each round gives a ratio: on a
+shared machine whose speed drifts from minute to minute, a ratio of two measurements taken one
+after the other holds where two separately measured minima do not. C: OMP_NUM_THREADS=1; moex:
+1 numba thread.
 """
 
 import argparse
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from bench_epochs import bench
+from bench_epochs import _clock, trainers
 
 from moex.config import Config
 from moex.mregn_format import write_targets
@@ -44,14 +48,21 @@ def _cpu_seconds(command: str, cwd: Path) -> float:
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-def c_epoch_ms(template: str, steps: int, base: int, repeats: int, **fields) -> float:
-    """Marginal CPU ms per epoch of one of the tools (the best of `repeats` pairs)."""
-    best = float("inf")
-    for _ in range(repeats):
-        short = _cpu_seconds(template.format(epochs=base, **fields), fields["cwd"])
-        long = _cpu_seconds(template.format(epochs=base + steps, **fields), fields["cwd"])
-        best = min(best, (long - short) / steps)
-    return 1e3 * best
+def c_epoch_ms(template: str, steps: int, base: int, **fields) -> float:
+    """Marginal CPU ms per epoch of one of the tools, from one pair of runs."""
+    short = _cpu_seconds(template.format(epochs=base, **fields), fields["cwd"])
+    long = _cpu_seconds(template.format(epochs=base + steps, **fields), fields["cwd"])
+    return 1e3 * (long - short) / steps
+
+
+def moex_epoch_ms(fn, steps: int, base: int, runs: int) -> float:
+    """Marginal CPU ms per network-epoch of moex, from one pair of trainings."""
+    short, long = _clock(fn, base, False), _clock(fn, base + steps, False)
+    return 1e3 * (long[1] - short[1]) / steps / runs
+
+
+def _spread(values: list[float]) -> str:
+    return f"{statistics.median(values):.1f}x ({min(values):.1f}-{max(values):.1f})"
 
 
 def main(argv=None) -> int:
@@ -62,6 +73,10 @@ def main(argv=None) -> int:
     parser.add_argument("--base", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
+    templates = {"phase 1, fixed rate": PHASE1, "phase 1, adaptive rate":
+                 PHASE1.replace(" -o ", " -a -o "), "phase 2, adaptive rate": PHASE2}
+    c_ms = {phase: [] for phase in templates}
+    moex_ms = {(phase, runs): [] for phase in templates for runs in args.runs}
     with tempfile.TemporaryDirectory() as scratch:
         work = Path(scratch)
         built = subprocess.run(["bash", str(ROOT / "tools" / "build_mregn.sh"),
@@ -73,27 +88,32 @@ def main(argv=None) -> int:
         data = load_task(Config(task=TaskConfig(name="lissajous2")))
         target = write_targets(work / "data.txt", data.series, "moex lissajous2, data seed 0")
         fields = dict(bin=work / "bin", data=target, cwd=work)
-        c = {"phase 1, fixed rate": c_epoch_ms(PHASE1, args.steps, args.base, args.repeats,
-                                               **fields),
-             "phase 1, adaptive rate": c_epoch_ms(PHASE1.replace(" -o ", " -a -o "), args.steps,
-                                                  args.base, args.repeats, **fields)}
         subprocess.run(PHASE1.format(epochs=10, **fields).replace("mre.dat", "start.dat").split(),
                        cwd=work, check=True, stdout=subprocess.DEVNULL)
-        c["phase 2, adaptive rate"] = c_epoch_ms(PHASE2, args.steps, args.base, args.repeats,
-                                                 **fields)
+        moex = {runs: trainers("lissajous2", runs, "cpu", 1, 15, "float64")[0]
+                for runs in args.runs}
+        for fns in moex.values():  # compile (or load) every kernel at the timed sizes first
+            for fn in fns.values():
+                fn(args.base)
+                fn(args.base + args.steps)
+        for _ in range(args.repeats):  # C and moex in turn, so that a drift hits both
+            for phase, template in templates.items():
+                c_ms[phase].append(c_epoch_ms(template, args.steps, args.base, **fields))
+                for runs in args.runs:
+                    moex_ms[(phase, runs)].append(moex_epoch_ms(
+                        moex[runs][phase], args.steps, args.base, runs))
     print(f"# {os.uname().nodename}, {os.cpu_count()} CPUs; C: gcc -O2 -fopenmp, 1 thread; "
-          f"moex: cpu backend, float64, 1 thread")
-    moex = {}
-    for runs in args.runs:
-        for row in bench("lissajous2", runs, "cpu", 1, args.steps, args.repeats, 15, "float64",
-                         base=args.base):
-            moex[(row["phase"], runs)] = row["cpu_ms"]
+          f"moex: cpu backend, float64, 1 thread; {args.repeats} rounds, C and moex in turn")
     head = " | ".join(f"moex R = {r} | C / moex R = {r}" for r in args.runs)
     print(f"\n| work | C ms | {head} |\n|---|---|" + "---|---|" * len(args.runs))
-    for phase, c_ms in c.items():
-        cells = " | ".join(f"{moex[(phase, r)]:.2f} | {c_ms / moex[(phase, r)]:.1f}x"
-                           for r in args.runs)
-        print(f"| {phase} | {c_ms:.2f} | {cells} |")
+    for phase, c in c_ms.items():
+        cells = " | ".join(
+            f"{statistics.median(moex_ms[(phase, r)]):.2f} | "
+            f"{_spread([a / b for a, b in zip(c, moex_ms[(phase, r)], strict=True)])}"
+            for r in args.runs)
+        print(f"| {phase} | {statistics.median(c):.2f} | {cells} |")
+    print("\nmedians over the rounds; a ratio is the median (min-max) of the rounds' ratios, each "
+          "of a C and a moex measurement taken one after the other")
     return 0
 
 

@@ -17,6 +17,7 @@ _HOMES = {
     "moex.errors": ("ConfigError",),
     "moex.evaluate": ("EvalConfig", "evaluate"),
     "moex.kernels": ("get_backend",),
+    "moex.metrics.lyapunov": ("lyapunov_exponents",),
     "moex.model": ("ModelConfig", "expert_forward", "gate_estimates", "gating_forward",
                    "init_experts", "init_gating", "leaky_scan"),
     "moex.pipeline": ("run_train",),

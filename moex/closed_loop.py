@@ -7,7 +7,7 @@ import torch
 from moex import progress
 from moex.errors import Interrupted
 from moex.kernels import Backend, get_backend
-from moex.metrics.lyapunov import initial_tangents
+from moex.metrics.lyapunov import benettin, initial_tangents
 from moex.model import ClosedLoopState
 
 CHUNK = 500  # closed-loop steps per call of the time loop (bounds the memory of the records)
@@ -121,20 +121,19 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
         should_stop: asked between chunks; `Interrupted` is raised when it returns True.
     """
     backend = backend or get_backend()
-    tangents = initial_tangents(state.flat(), num_exponents, generator)
-    growth = 0
+
+    def advance(tangents, size, counted, done):
+        nonlocal state
+        keep = counted and done + size > steps - keep_potentials
+        run = backend.closed_loop(experts, gating, state, size,
+                                  _noise(state, size, noise_std, generator), tangents, counted,
+                                  uniform_gates, keep)
+        state = run.state
+        if counted and on_chunk is not None:
+            on_chunk(run)
+        bar.update(size)
+        return run.tangents, run.growth
+
     with progress.bar(total=transient + steps, desc="lyapunov") as bar:
-        for counted, total in ((False, transient), (True, steps)):
-            done = 0
-            for size in _chunks(total):
-                _check_stop(should_stop)
-                keep = counted and done + size > total - keep_potentials
-                run = backend.closed_loop(experts, gating, state, size,
-                                          _noise(state, size, noise_std, generator), tangents,
-                                          counted, uniform_gates, keep)
-                state, tangents, growth = run.state, run.tangents, growth + run.growth
-                if counted and on_chunk is not None:
-                    on_chunk(run)
-                done += size
-                bar.update(size)
-    return growth / steps
+        return benettin(advance, initial_tangents(state.flat(), num_exponents, generator), steps,
+                        transient, CHUNK, should_stop)

@@ -68,3 +68,17 @@ def test_the_phase1_breakdown_times_every_stage(tmp_path):
     assert done.returncode == 0, done.stderr
     for stage in ("forward", "mixture", "backward", "sums per run", "whole value_and_grad"):
         assert re.search(rf"\| 1 \| {stage}[^|]* \| -?\d+\.\d+ \|", done.stdout), stage
+
+
+def test_the_adaptive_rate_benchmark_prints_its_rows(tmp_path):
+    """benchmarks/bench_adaptive.py: phase 1 at a fixed rate, then both adaptive phases with the
+    trial's forward pass reused and run again, each a time and a ratio."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_adaptive.py"),
+                           "--runs", "1", "--rounds", "1", "--steps", "2", "--base", "1"],
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    number = r"-?\d+\.\d+"
+    assert re.search(rf"\| 1 \| phase 1, fixed rate \| {number} \|", done.stdout)
+    for phase in ("phase 1", "phase 2"):
+        assert re.search(rf"\| 1 \| {phase}, adaptive rate \| {number} \| {number} \| {number} "
+                         rf"\({number}-{number}\) \|", done.stdout), phase

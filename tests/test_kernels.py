@@ -15,6 +15,7 @@ from moex.metrics.lyapunov import initial_tangents, reorthonormalise
 from moex.model import ModelConfig, closed_loop_step, init_experts, init_gating
 from moex.tasks import TaskConfig, make_task
 from moex.train import (
+    AdaptiveLRConfig,
     ExpertPhaseConfig,
     GatingPhaseConfig,
     TrainConfig,
@@ -113,12 +114,13 @@ def test_inactive_runs_are_skipped_and_others_unchanged(backend):
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs 2 numba threads")
-@pytest.mark.parametrize("R", [3, 9])
+@pytest.mark.parametrize("R", [3, 9, 17])
 def test_cpu_kernels_give_the_same_bits_on_any_number_of_threads(R):
     """Both phases (value and every gradient) and the closed loop with a tangent give the same
     bits on 1 and 2 threads. With K·S = 9 lanes a chunk is 8 runs: R = 3 compares the
     whole-chunk path (1 thread) with the stage-by-stage path (2 threads), R = 9 the whole-chunk
-    path on 1 and 2 threads."""
+    path on 1 and 2 threads, R = 17 (3 chunks) one chunk per thread and the last chunk stage by
+    stage on 2 threads."""
     _, fast = _problems(R, 3, 11, 3, 2, 4, 1, True, True, torch.float64)
     model = ModelConfig(num_experts=3)
     gens = generators(range(R))
@@ -400,3 +402,75 @@ def test_cuda_backends_match_cpu(name):
         for a, b in zip(*results, strict=True):
             for k in a:
                 np.testing.assert_allclose(b[k], a[k], rtol=1e-10, atol=1e-10, err_msg=k)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.01])
+def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(monkeypatch, noise):
+    """The cpu backend's gradient step after an accepted adaptive trial takes the trial's forward
+    pass from the lanes (`lanes._Forwarded`): both phases trained so (with retries, steps given up
+    after 2 retries, learned τ and 3 runs whose lanes share blocks) equal the same training with
+    every forward pass run afresh, bit for bit; with phase-2 input noise (fresh inputs every
+    step) nothing is reused."""
+    from moex.kernels.cpu import lanes
+
+    task = make_task(TaskConfig(num_series=3, length=40), seed=1)
+    series = torch.as_tensor(task.series)
+    model = ModelConfig(learn_time_constants=True)
+    model.experts.context_size, model.gating.context_size = 4, 5
+    rule = TrainConfig(adaptive=AdaptiveLRConfig(max_retries=2))  # some steps are given up
+    phase1 = ExpertPhaseConfig(steps=12, adaptive_lr=True, learning_rate=0.3, log_every=1)
+    phase2 = GatingPhaseConfig(steps=12, adaptive_lr=True, learning_rate=20.0, log_every=1,
+                               input_noise_var=noise)
+    calls = []
+    stale = lanes._Forwarded.stale
+
+    def spy(self, params, active):  # (active runs, runs given a forward pass) per gradient step
+        result = stale(self, params, active)
+        calls.append((int(active.sum()), int(result.sum())))
+        return result
+
+    monkeypatch.setattr(lanes._Forwarded, "stale", spy)
+    out = []
+    for reuse in (True, False):
+        monkeypatch.setattr(lanes._Forwarded, "enabled", reuse)
+        calls.clear()
+        experts, beta, rows1 = train_experts(init_experts(model, 3, 2, generators([0, 1, 2])),
+                                             series, model, phase1, rule, backend=COMPILED)
+        gating, rows2 = train_gating(init_gating(model, 3, 2, generators([0, 1, 2])),
+                                     torch.softmax(beta, -1), series[:, :-1], model, phase2,
+                                     rule, backend=COMPILED)
+        out.append(({**experts, "beta": beta, **{f"g_{k}": v for k, v in gating.items()}},
+                    rows1 + rows2, list(calls)))
+    (reused, rows, calls_on), (fresh, fresh_rows, calls_off) = out
+    for k in reused:
+        assert torch.equal(reused[k], fresh[k]), k
+    assert rows == fresh_rows
+    for phase in ("experts", "gating"):  # retried, and given up (2 retries: still rejected)
+        assert {1, 2} <= {r["retries"] for r in rows if r["phase"] == phase}, phase
+    assert all(active == stale for active, stale in calls_off)
+    phase1_calls, phase2_calls = calls_on[:12], calls_on[12:]
+    assert sum(active - stale for active, stale in phase1_calls) >= 12  # most runs reused
+    saved = sum(active - stale for active, stale in phase2_calls)
+    assert saved == 0 if noise else saved >= 12
+
+
+def test_forward_pass_record_of_runs_whose_lanes_share_blocks():
+    """`_Forwarded` with 8 lanes a block and 6 lanes a run: run 0 in block 0, run 1 in blocks 0
+    and 1, run 2 in blocks 1 and 2. Recomputing block 0 alone (run 0 stale) after run 1's
+    parameters changed leaves run 1 half old, half new: stale; run 0 current; run 2 untouched."""
+    from moex.kernels.cpu.lanes import LB, _Forwarded, _runs_of_blocks
+
+    assert LB == 8
+    record = _Forwarded(_runs_of_blocks(3, 6, 3), 6, ("w",))
+    params = {"w": np.zeros((3, 2))}
+    everyone = np.ones(3, bool)
+    np.testing.assert_array_equal(record.stale(params, everyone), everyone)  # nothing recorded
+    record.record(params, everyone)
+    np.testing.assert_array_equal(record.stale(params, everyone), [False, False, False])
+    changed = {"w": np.array([[0.0, 0.0], [1.0, 0.0], [0.0, -0.0]])}  # -0.0 differs from 0.0
+    np.testing.assert_array_equal(record.stale(changed, everyone), [False, True, True])
+    record.record(changed, np.array([True, False, False]))
+    np.testing.assert_array_equal(record.stale(changed, everyone), [False, True, True])
+    np.testing.assert_array_equal(record.stale(params, everyone), [False, True, False])
+    record.forget()
+    np.testing.assert_array_equal(record.stale(params, everyone), everyone)

@@ -1,4 +1,4 @@
-"""The first run's helper process (`moex.kernels.cpu.warm`, started by `moex.launch`): the run
+"""The first run's helper process (`moex.kernels.cpu.helper`, started by `moex.launch`): the run
 waits for the kernels the helper compiles, only while the helper runs and only until the kernel is
 in the cache for the run's precision; the command starts a helper only for a cpu training, and the
 run adopts it or stops it."""
@@ -98,7 +98,7 @@ def test_the_run_adopts_the_commands_helper_of_its_precision(monkeypatch):
     monkeypatch.setattr(compile_helper, "helper", ("float64", process))
     monkeypatch.setattr(warm, "_helper", None)
     try:
-        assert warm.start("float64") is process
+        assert warm.start("float64", ()) is process
         assert warm._helper is process and compile_helper.helper is None
         assert process.poll() is None
     finally:
@@ -110,8 +110,8 @@ def test_a_helper_of_another_precision_is_stopped(monkeypatch):
     process = _sleeper()
     monkeypatch.setattr(compile_helper, "helper", ("float32", process))
     monkeypatch.setattr(warm, "_helper", None)
-    monkeypatch.setattr(warm, "cached", lambda dtype: True)  # start no helper of its own
-    assert warm.start("float64") is None
+    monkeypatch.setattr(warm, "cached", lambda dtype, kernels: True)  # start no helper of its own
+    assert warm.start("float64", ()) is None
     assert process.poll() is not None and compile_helper.helper is None
 
 

@@ -26,7 +26,6 @@ a backend runs here (the tests' one `backend` fixture is built from it).
 from dataclasses import dataclass
 from typing import Protocol
 
-import numpy as np
 import torch
 
 from moex.errors import check
@@ -53,7 +52,9 @@ class Problem(Protocol):
         """Statistics per run; ∂ ln L of every active run written into `grads`."""
 
     def value(self, params: dict, active) -> dict[str, torch.Tensor]:
-        """The same statistics without gradients (the adaptive-rate retry)."""
+        """The same statistics without gradients (the adaptive-rate retry). A backend may keep
+        its forward pass: the next `value_and_grad` at the same parameters (the accepted trial's
+        point) may take it instead of running it again (the cpu backend does, bit for bit)."""
 
 
 @dataclass(frozen=True)
@@ -161,10 +162,3 @@ def available(name: str) -> tuple[Backend | None, str]:
         return get_backend(name, device), ""
     except ValueError as error:
         return None, str(error)
-
-
-def input_noise(seeds: list[int], step: int, shape: tuple, variance: float, dtype) -> np.ndarray:
-    """(R, *shape) Gaussian noise of `variance` for training step `step`, run r drawn from
-    (seeds[r], step) alone: a run sees the same noise batched or alone, fresh or resumed."""
-    return np.stack([np.random.default_rng([seed, step]).standard_normal(shape)
-                     for seed in seeds]).astype(dtype) * np.sqrt(variance)

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from moex import objectives
-from moex.kernels import input_noise
+from moex.kernels.noise import input_noise
 from moex.metrics.lyapunov import reorthonormalise
 from moex.metrics.symbols import symbolize_nearest
 from moex.model import (
@@ -118,7 +118,7 @@ class ExpertProblem(_Problem):
 
 class GatingProblem(_Problem):
     """Phase 2 of R runs; see `gating_objective`. With `phase.input_noise_var`, every
-    `resample(step)` adds fresh noise to the inputs x_n (`moex.kernels.input_noise`)."""
+    `resample(step)` adds fresh noise to the inputs x_n (`moex.kernels.noise`)."""
 
     def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
         def tensor(x):

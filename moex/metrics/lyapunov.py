@@ -1,26 +1,15 @@
-"""Lyapunov exponents of any step map by tangent propagation with QR re-orthonormalisation
-(Benettin et al. 1980), batched over leading axes (runs × samples)."""
+"""Lyapunov exponents by tangent propagation with QR re-orthonormalisation (Benettin et al.
+1980), batched over leading axes (runs × samples): `benettin` is the loop the closed loop of the
+mixture (`moex.closed_loop.closed_loop_lyapunov`) and `lyapunov_exponents` of any map share."""
 
 from collections.abc import Callable
 
 import torch
 
-TangentStep = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+from moex.errors import Interrupted
 
-
-def jvp_step(step: Callable[[torch.Tensor], torch.Tensor]) -> TangentStep:
-    """Lift a map x_{n+1} = f(x_n) on (B..., dim) to (x, V) -> (f(x), J_f(x) V).
-
-    V is (B..., dim, k); the Jacobian-vector products are exact forward-mode derivatives
-    (torch.func.jvp). The closed loop of the mixture has its own hand-written tangent map
-    (`moex.model.closed_loop_step`).
-    """
-
-    def tangent_step(state, tangents):
-        columns = [torch.func.jvp(step, (state,), (v,)) for v in tangents.unbind(-1)]
-        return columns[0][0], torch.stack([c[1] for c in columns], dim=-1)
-
-    return tangent_step
+# (tangents (B..., dim, k), steps, counted, done) -> (tangents, Σ ln |R_vv| over those steps)
+Advance = Callable[[torch.Tensor, int, bool, int], tuple[torch.Tensor, torch.Tensor]]
 
 
 def initial_tangents(state: torch.Tensor, num_exponents: int,
@@ -38,38 +27,56 @@ def reorthonormalise(tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     return q, torch.log(torch.diagonal(r, dim1=-2, dim2=-1).abs())
 
 
-def lyapunov_exponents(tangent_step: TangentStep, state: torch.Tensor, num_steps: int,
-                       num_exponents: int = 1, transient: int = 0, reorth_every: int = 1,
-                       generator: torch.Generator | None = None) -> torch.Tensor:
-    """The first k Lyapunov exponents of x_{n+1} = f(x_n), per trajectory.
+def benettin(advance: Advance, tangents: torch.Tensor, steps: int, transient: int, chunk: int,
+             should_stop: Callable[[], bool] = lambda: False) -> torch.Tensor:
+    """The first k exponents per trajectory (B..., k), per step (natural log): `transient` steps
+    align the tangents, the log growth of the next `steps` is averaged.
 
     Args:
-        tangent_step: (x, V) -> (f(x), J V), see `jvp_step`.
+        advance: runs the map with its tangents for a number of steps (at most `chunk`),
+            re-orthonormalising them (every step, or at least at the end), and returns the
+            tangents and the summed ln |R_vv|; `counted` says whether the steps are averaged,
+            `done` how many of this stretch came before.
+        tangents: (B..., dim, k) orthonormal (`initial_tangents`).
+        should_stop: asked before every chunk; `Interrupted` when it says so.
+    """
+    growth = 0
+    for counted, total in ((False, transient), (True, steps)):
+        for done in range(0, total, chunk):
+            if should_stop():
+                raise Interrupted("the Lyapunov exponents were stopped by a signal before they "
+                                  "were finished")
+            tangents, log_growth = advance(tangents, min(chunk, total - done), counted, done)
+            if counted:
+                growth = growth + log_growth
+    return growth / steps
+
+
+def lyapunov_exponents(step: Callable[[torch.Tensor], torch.Tensor], state: torch.Tensor,
+                       num_steps: int, num_exponents: int = 1, transient: int = 0,
+                       reorth_every: int = 1,
+                       generator: torch.Generator | None = None) -> torch.Tensor:
+    """The first k Lyapunov exponents of any map x_{n+1} = f(x_n), per trajectory, through the
+    loop the mixture's exponents use (`benettin`); the Jacobian-vector products are exact
+    forward-mode derivatives (`torch.func.jvp`).
+
+    Args:
+        step: f on (B..., dim).
         state: (B..., dim) initial states, one trajectory each.
         num_steps: steps averaged over, after `transient` steps that align the tangents.
         num_exponents: k <= dim; k = 1 gives the maximum exponent.
-        reorth_every: steps between QR re-orthonormalisations (1 = every step).
+        reorth_every: steps between QR re-orthonormalisations.
         generator: draws the random initial tangent vectors.
 
     Returns:
         (B..., k) exponents per step (natural log), in descending order.
     """
-    tangents = initial_tangents(state, num_exponents, generator)
-    log_growth = torch.zeros(state.shape[:-1] + (num_exponents,), dtype=state.dtype,
-                             device=state.device)
-    total = transient + num_steps
-    for n in range(total):
-        state, tangents = tangent_step(state, tangents)
-        if (n + 1) % reorth_every == 0 or n + 1 == total:
-            tangents, log_r = reorthonormalise(tangents)
-            if n >= transient:
-                log_growth += log_r
-    # the steps before the first QR after the transient are counted approximately: negligible
-    return log_growth / num_steps
+    def advance(tangents, size, counted, done):
+        nonlocal state
+        for _ in range(size):
+            columns = [torch.func.jvp(step, (state,), (v,)) for v in tangents.unbind(-1)]
+            state, tangents = columns[0][0], torch.stack([c[1] for c in columns], -1)
+        return reorthonormalise(tangents)
 
-
-def max_lyapunov_exponent(step: Callable[[torch.Tensor], torch.Tensor], state: torch.Tensor,
-                          num_steps: int, transient: int = 0, **kwargs) -> torch.Tensor:
-    """The largest exponent (B...) of a plain map x -> f(x), by forward-mode tangents."""
-    tangent_step = jvp_step(step)
-    return lyapunov_exponents(tangent_step, state, num_steps, 1, transient, **kwargs)[..., 0]
+    return benettin(advance, initial_tangents(state, num_exponents, generator), num_steps,
+                    transient, reorth_every)

@@ -1,6 +1,6 @@
 """Compiled CPU backend (numba): the functions of `moex.kernels.reference`; a training step of all
-R runs is one compiled call per thread (with fewer chunks of runs than threads, one per thread
-for each of three stages).
+R runs is one compiled call per thread (and for the chunks of runs left over after an equal
+share per thread, one per thread for each of three stages).
 
 Layout. Every independent recurrence is a *lane*: an (expert, series) pair of one run in phase 1
 (lane (r·K + k)·S + s), a series of one run in phase 2 (lane r·S + s), a (run, sample) trajectory
@@ -14,12 +14,13 @@ Modules: `simd` (lanes, exp/log/tanh, fma), `threads` (the kernels' thread pool)
 leaky RNN's forward pass and BPTT over a block of lanes, with the derivation), `lanes`
 (parameters to lanes and back, work arrays), `phases` (phase 1 and phase 2: the objectives, the
 problem classes), `closed_loop` (the autonomous mixture with Lyapunov tangents), `symbols`
-(nearest-point readout), `warm` (a first run's helper process that compiles the later kernels
-while the run trains). The GPU backend (`moex.kernels.gpu`) mirrors it module for module.
+(nearest-point readout), `warm` and `helper` (a first run's helper process that compiles the
+later kernels while the run trains: the run's side and the process). The GPU backend
+(`moex.kernels.gpu`) mirrors it module for module.
 """
 
-from moex.kernels.cpu.closed_loop import closed_loop
-from moex.kernels.cpu.phases import ExpertProblem, GatingProblem
+from moex.kernels.cpu.closed_loop import _closed_blocks, closed_loop
+from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, _gating_items
 from moex.kernels.cpu.symbols import nearest_symbols
 
 __all__ = ["ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up"]
@@ -30,4 +31,4 @@ def warm_up(precision: str) -> None:
     while it trains phase 1 (`warm`)."""
     from moex.kernels.cpu import warm
 
-    warm.start(precision)
+    warm.start(precision, (_closed_blocks, _gating_items))

@@ -112,6 +112,70 @@ def _block_active(b, block_runs, active):  # pragma: no cover
     return active[block_runs[b, 0]:block_runs[b, 1] + 1].any()
 
 
+class _Forwarded:
+    """Which runs' lanes hold the forward pass of the parameters a call now hands: the gradient
+    step after an accepted adaptive trial (Sec. 2.1.4) is at the trial's point, so it finds the
+    trial's forward pass in the lanes and runs only what follows it. The forward pass is a
+    function of the parameters, the inputs and nothing else, computed per lane, so the step gives
+    bit for bit what a fresh pass would.
+
+    A block of lanes is recomputed when any run it holds is stale, with every lane's current
+    parameters; a run is then current if all of its blocks were recomputed, unchanged if none
+    was, and unknown (stale from then on) if some were and its parameters had changed.
+
+    Args:
+        block_runs: (NB, 2) the first and last run of each block (`_runs_of_blocks`).
+        lanes_per_run: lanes of one run; names: the parameters the forward pass reads.
+    """
+
+    enabled = True  # False: every call runs its forward pass (the tests compare the two)
+
+    def __init__(self, block_runs, lanes_per_run: int, names: tuple[str, ...]):
+        R = int(block_runs[-1, 1]) + 1
+        first, last = np.arange(R) * lanes_per_run, (np.arange(R) + 1) * lanes_per_run - 1
+        self.first_block, self.last_block = first // LB, last // LB
+        self.block_runs, self.names = block_runs, names
+        self.params: dict[str, np.ndarray] = {}
+        self.current = np.zeros(R, bool)
+
+    def _same(self, params: dict) -> np.ndarray:
+        """(R,): the runs whose lanes hold the forward pass of exactly these parameters."""
+        same = self.current.copy()
+        for name in self.names:
+            now, then = _bits(params[name]), _bits(self.params[name])
+            same &= (now == then).all(1)
+        return same
+
+    def stale(self, params: dict, active: np.ndarray) -> np.ndarray:
+        """(R,) the active runs whose lanes need a forward pass for `params`."""
+        if not (self.enabled and self.current.any()):
+            return active
+        return active & ~self._same(params)
+
+    def record(self, params: dict, stale: np.ndarray) -> None:
+        """After a call that recomputed the blocks holding a `stale` run, with `params`."""
+        runs = self.block_runs
+        hits = np.concatenate([[0], np.cumsum(stale)])
+        recomputed = hits[runs[:, 1] + 1] > hits[runs[:, 0]]  # (NB,)
+        done = np.concatenate([[0], np.cumsum(recomputed)])
+        count = done[self.last_block + 1] - done[self.first_block]  # (R,) blocks recomputed
+        whole = count == self.last_block - self.first_block + 1
+        if not self.params:
+            self.params = {n: np.array(params[n]) for n in self.names}
+        else:
+            self.current &= (count == 0) | self._same(params)
+            for name in self.names:
+                self.params[name][whole] = params[name][whole]
+        self.current |= whole
+
+    def forget(self) -> None:
+        """The inputs changed (fresh input noise): no lane holds a current forward pass."""
+        self.current[:] = False
+
+
+def _bits(x: np.ndarray) -> np.ndarray:
+    """(R, -1) unsigned integers of the same bits: an exact comparison (-0.0 is not 0.0)."""
+    return x.reshape(len(x), -1).view(f"u{x.dtype.itemsize}")
 
 
 # ---------------------------------------------------------------------------------------------

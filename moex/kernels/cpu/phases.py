@@ -8,11 +8,12 @@ import numpy as np
 import torch
 from numba import njit
 
-from moex.kernels import input_noise
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import (
+    _NET,
     _block_active,
     _first_use,
+    _Forwarded,
     _gather,
     _host,
     _in_lanes,
@@ -25,6 +26,7 @@ from moex.kernels.cpu.lanes import (
 )
 from moex.kernels.cpu.rnn import _backward, _forward
 from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log
+from moex.kernels.noise import input_noise
 
 # phase 1: the experts and β (Eqs. 9-13)
 
@@ -178,8 +180,9 @@ _CHUNKS, _FORWARD, _MIXTURE, _BACKWARD, _RUNS = range(5)
 @njit(nogil=True, **JIT)
 def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_grads, grads,
                   g_u0, g_log_sigma, g_beta, X, targets, floor, prior_std, attraction, want_grad,
-                  active, block_runs, chunk, out):  # pragma: no cover
-    """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent).
+                  active, stale, block_runs, chunk, out):  # pragma: no cover
+    """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent);
+    the forward pass only in blocks that hold a `stale` run (`_Forwarded`).
 
     _CHUNKS: chunks of `chunk` runs (whole blocks of lanes), each taken through every stage (a
     call of this function per stage) in one thread while its histories are in that thread's
@@ -200,13 +203,14 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                                            (_BACKWARD, b0, b1), (_RUNS, first, last)):
                 _expert_items(i0, i1, stage_of_chunk, params, u0, log_sigma, beta, net, work,
                               lane_grads, grads, g_u0, g_log_sigma, g_beta, X, targets, floor,
-                              prior_std, attraction, want_grad, active, block_runs, chunk, out)
+                              prior_std, attraction, want_grad, active, stale, block_runs, chunk,
+                              out)
         return
     for i in range(lo, hi):
         if stage == _FORWARD:
             for lane in range(i * LB, (i + 1) * LB):
                 _spread(lane, S, params, u0, net)
-            if _block_active(i, block_runs, active):
+            if _block_active(i, block_runs, stale):
                 _forward(X[i], wi[i], wr[i], wo[i], bc[i], bo[i], eps[i], u0_lane[i], True,
                          C0[i], C[i], Y[i], U[i], S1[i], S2[i])
         elif stage == _MIXTURE:
@@ -260,10 +264,11 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
 
 @njit(nogil=True, **JIT)
 def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
-                  entropy, sigma_min, attraction, want_grad, active, block_runs,
+                  entropy, sigma_min, attraction, want_grad, active, stale, block_runs,
                   out):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-2 step: with `blocks`, blocks of lanes (weights
-    spread to the lanes, forward, objective, backward); otherwise runs, after every block
+    spread to the lanes, forward where a `stale` run is (`_Forwarded`), objective, backward);
+    otherwise runs, after every block
     (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes)."""
     C0, C, Y, U, S1, S2, DY, log_lik = work
     wi, wr, wo, bc, bo, eps, u0_lane = net
@@ -275,8 +280,9 @@ def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0
             for lane in range(i * LB, (i + 1) * LB):
                 _spread(lane, S, params, u0, net)
             if _block_active(i, block_runs, active):
-                _forward(X[i], wi[i], wr[i], wo[i], bc[i], bo[i], eps[i], u0_lane[i], False,
-                         C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                if _block_active(i, block_runs, stale):
+                    _forward(X[i], wi[i], wr[i], wo[i], bc[i], bo[i], eps[i], u0_lane[i], False,
+                             C0[i], C[i], Y[i], U[i], S1[i], S2[i])
                 _softmax_objective(Y[i], targets[i], want_grad, DY[i], log_lik[i])
                 if want_grad:
                     _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], wr[i], wo[i], eps[i],
@@ -292,7 +298,38 @@ def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0
                 _gather(i, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
 
 
-class ExpertProblem:
+class _Problem:
+    """What both phases' problems share: the calls of `moex.kernels.Problem` around a phase's
+    `_step`, with the parameters staged and the forward passes the lanes hold on record."""
+
+    device = torch.device("cpu")
+    STATS: tuple[str, ...] = ()
+    KERNEL: tuple = ()  # (the compiled kernel, what the log calls it)
+
+    def _call(self, params, grads, active, want_grad):
+        p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
+        active = np.ascontiguousarray(_host(active))
+        # a gradient step right after an accepted adaptive trial finds its forward pass done
+        stale = self.forwarded.stale(p, active) if want_grad else active
+        with _first_use(*self.KERNEL):
+            self._step(p, g, lanes, active, stale, want_grad)
+        if want_grad:
+            self.forwarded.forget()  # the next call is at other parameters (a step was taken)
+        else:
+            self.forwarded.record(p, stale)
+        self.staging.store(grads)
+        return lanes.stats(self.STATS)
+
+    def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
+        """Objective statistics per run (R,); every gradient is written into `grads`."""
+        return self._call(params, grads, active, True)
+
+    def value(self, params: dict, active: np.ndarray) -> dict:
+        """The same statistics without gradients (the adaptive-rate retry)."""
+        return self._call(params, None, active, False)
+
+
+class ExpertProblem(_Problem):
     """Phase 1 of R runs (Sec. 2.1.2, Eqs. 9-13): `value_and_grad` and `value` of ln L(D, θ)
     for all runs, one compiled call per thread each (`resample` has nothing to draw).
 
@@ -303,7 +340,7 @@ class ExpertProblem:
     """
 
     STATS = ("objective", "log_likelihood", "log_prior", "E")
-    device = torch.device("cpu")
+    KERNEL = (_expert_items, "phase-1 kernel")
 
     def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
         S, T, D = targets.shape[-3:]
@@ -323,48 +360,38 @@ class ExpertProblem:
             "w_in": (R, K, M, D), "w_rec": (R, K, M, M), "w_out": (R, K, D, M), "b_c": (R, K, M),
             "b_o": (R, K, D), "tau": (R, K, M), "log_sigma": (R, K), "u0": (R, S, K, M),
             "beta": (R, S, T, K)}, dtype)
+        self.forwarded = _Forwarded(self.lanes.block_runs, K * S, _NET + ("u0",))
 
-    def _call(self, params, grads, active, want_grad):
-        p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
-        with _first_use(_expert_items, "phase-1 kernel"):
-            self._step(p, g, lanes, active, want_grad)
-        self.staging.store(grads)
-        return lanes.stats(self.STATS)
-
-    def _step(self, p, g, lanes, active, want_grad):
-        """One phase-1 step of every active run: whole chunks of runs when there are at least as
-        many chunks as threads, otherwise stage by stage over all blocks (`_expert_items`)."""
+    def _step(self, p, g, lanes, active, stale, want_grad):
+        """One phase-1 step of every active run: whole chunks of runs, as many per thread
+        (`_expert_items`), and the chunks left over (fewer than threads) stage by stage over
+        their blocks, series and runs, shared out among the threads as well."""
         R, S, T, K = self.shape
         floor = float(self.model.sigma_min) ** 2
         prior_std = float(self.phase.gate_prior_std)
         args = (_per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
                 tuple(lanes.work), lanes.lane_grads, _per_network(g, True), g["u0"],
                 g["log_sigma"], g["beta"], self.inputs, self.targets, floor, prior_std,
-                bool(self.phase.attraction), want_grad, np.ascontiguousarray(_host(active)),
-                lanes.block_runs, self.chunk, lanes.out)
+                bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
+                self.chunk, lanes.out)
         chunks = -(-R // self.chunk)
-        if chunks >= threads.count():
-            threads.over(_expert_items, chunks, _CHUNKS, *args)
+        whole = chunks - chunks % threads.count()
+        threads.over(_expert_items, whole, _CHUNKS, *args)
+        first = min(whole * self.chunk, R)  # the runs left over
+        if first == R:
             return
-        _variances(0, R, p["log_sigma"], floor, prior_std, lanes.work[8])
-        NB = lanes.net[0].shape[0]
-        for stage, items in ((_FORWARD, NB), (_MIXTURE, R * S), (_BACKWARD, NB * want_grad)):
+        _variances(first, R, p["log_sigma"], floor, prior_std, lanes.work[8])
+        blocks = range(first * K * S // LB, lanes.net[0].shape[0])
+        for stage, items in ((_FORWARD, blocks), (_MIXTURE, range(first * S, R * S)),
+                             (_BACKWARD, blocks if want_grad else range(0))):
             threads.over(_expert_items, items, stage, *args)
-        _expert_items(0, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
-
-    def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
-        """Objective statistics per run (R,); every gradient is written into `grads`."""
-        return self._call(params, grads, active, True)
-
-    def value(self, params: dict, active: np.ndarray) -> dict:
-        """The same statistics without gradients (the adaptive-rate retry)."""
-        return self._call(params, None, active, False)
+        _expert_items(first, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
 
     def resample(self, step: int) -> None:
         pass
 
 
-class GatingProblem:
+class GatingProblem(_Problem):
     """Phase 2 of R runs (Sec. 2.1.2, Eqs. 14-16): ln L(D^g, θ^g) up to ln Z for all runs, one
     compiled call per thread each.
 
@@ -373,11 +400,11 @@ class GatingProblem:
             (R, S, T, D) per run.
         model: the `ModelConfig`; phase: the `GatingPhaseConfig`.
         seeds: one per run, for the input noise that `resample(step)` draws when
-            `phase.input_noise_var` > 0 (`moex.kernels.input_noise`).
+            `phase.input_noise_var` > 0 (`moex.kernels.noise`).
     """
 
     STATS = ("objective", "log_likelihood", "kl", "E_g")
-    device = torch.device("cpu")
+    KERNEL = (_gating_items, "phase-2 kernel")
 
     def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
         R, S, T, K = gate_targets.shape
@@ -401,35 +428,22 @@ class GatingProblem:
         self.staging = _Staging({
             "w_in": (R, H, K + D), "w_rec": (R, H, H), "w_out": (R, K, H), "b_c": (R, H),
             "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
+        self.forwarded = _Forwarded(self.lanes.block_runs, S, _NET + ("u0",))
 
-    def _call(self, params, grads, active, want_grad):
-        p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
-        with _first_use(_gating_items, "phase-2 kernel"):
-            self._step(p, g, lanes, active, want_grad)
-        self.staging.store(grads)
-        return lanes.stats(self.STATS)
-
-    def _step(self, p, g, lanes, active, want_grad):
+    def _step(self, p, g, lanes, active, stale, want_grad):
         args = (_per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
                 lanes.lane_grads, _per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),
-                bool(self.phase.attraction), want_grad, np.ascontiguousarray(_host(active)),
-                lanes.block_runs, lanes.out)
+                bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
+                lanes.out)
         threads.over(_gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
         _gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
-
-    def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
-        """Objective statistics per run (R,); every gradient is written into `grads`."""
-        return self._call(params, grads, active, True)
-
-    def value(self, params: dict, active: np.ndarray) -> dict:
-        """The same statistics without gradients (the adaptive-rate retry)."""
-        return self._call(params, None, active, False)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""
         if self.phase.input_noise_var <= 0:
             return
+        self.forwarded.forget()
         R, S, T_g, K = self.shape
         D = self.inputs.shape[2] - K
         noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),  # all of x_n

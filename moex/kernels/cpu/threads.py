@@ -31,13 +31,15 @@ def count() -> int:
     return get_num_threads()
 
 
-def over(kernel, items: int, *args) -> None:
-    """kernel(lo, hi, *args) for contiguous ranges that cover 0..items-1, one per thread."""
+def over(kernel, items: int | range, *args) -> None:
+    """kernel(lo, hi, *args) for contiguous ranges that cover 0..items-1 (or the range `items`),
+    one per thread."""
     global _pool, _workers
+    first, items = (items.start, len(items)) if isinstance(items, range) else (0, items)
     threads = min(count(), items)
     if threads <= 1:
         if items > 0:
-            kernel(0, items, *args)
+            kernel(first, first + items, *args)
         return
     if _workers < threads - 1:
         _pool, _workers = ThreadPoolExecutor(threads - 1, "moex-kernel"), threads - 1
@@ -45,7 +47,7 @@ def over(kernel, items: int, *args) -> None:
             torch.set_num_threads(1)
             logger.info("PyTorch's intra-op threads set to 1: the compiled kernels' %d threads "
                         "use the cores", threads)
-    bounds = [items * t // threads for t in range(threads + 1)]
+    bounds = [first + items * t // threads for t in range(threads + 1)]
     futures = [_pool.submit(kernel, bounds[t], bounds[t + 1], *args) for t in range(1, threads)]
     try:
         kernel(bounds[0], bounds[1], *args)

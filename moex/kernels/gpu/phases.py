@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from moex import objectives
-from moex.kernels import input_noise
 from moex.kernels.gpu.lanes import Net, weights
+from moex.kernels.noise import input_noise
 
 
 def _attraction(u0, sums, count, floor):

@@ -1,0 +1,46 @@
+"""The helper process of a first run (`python -m moex.kernels.cpu.helper <precision>`, started by
+`moex.compile_helper`, adopted by `warm.start`): it calls the phase-2, closed-loop and symbol
+kernels once on tiny inputs, so that numba compiles them into its cache while the run trains
+phase 1. Nothing imports this module; it imports what it calls."""
+
+import sys
+
+import numpy as np
+import torch
+
+from moex.closed_loop import random_state
+from moex.kernels.cpu import phases, warm
+from moex.kernels.cpu.closed_loop import _closed_blocks, closed_loop
+from moex.kernels.cpu.symbols import nearest_symbols
+from moex.model import ModelConfig, init_experts, init_gating
+from moex.train import GatingPhaseConfig
+
+LATER = (_closed_blocks, phases._gating_items)  # the two large ones (`warm.cached`)
+
+
+def compile_later_phases(dtype: str) -> None:
+    """Call the phase-2, closed-loop and symbol kernels once on tiny inputs of `dtype`."""
+    torch_dtype = getattr(torch, dtype)
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 2, 3
+    generators = [torch.Generator().manual_seed(0)]
+    gating = init_gating(model, 1, 2, generators, torch_dtype)
+    experts = init_experts(model, 1, 2, generators, torch_dtype)
+    # the closed loop first (about 12 s of an idle 2-core VM's core, the largest), then phase 2,
+    # whose RNN passes (`rnn._forward`, `_backward`) the run's phase-1 kernel has cached by then,
+    # so only its own functions are left (about 5 s): the run's phase 1 (compiling, then
+    # training) ends about when they are ready
+    state = random_state(experts, gating, 1, 2, 1, generators[0])
+    tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
+    tangents[..., 0, 0] = 1.0
+    closed_loop(experts, gating, state, 2, None, tangents, True)
+    ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype).numpy()
+    problem = phases.GatingProblem(ghat, np.zeros((1, 4, 2), dtype), model, GatingPhaseConfig(),
+                                   [0])
+    grads = {k: torch.zeros_like(v) for k, v in gating.items()}
+    problem.value_and_grad(gating, grads, torch.ones(1, dtype=torch.bool))
+    nearest_symbols(np.zeros((1, 2, 2)), np.zeros((2, 2)), np.arange(2))
+
+
+if __name__ == "__main__" and not warm.cached(sys.argv[1], LATER):
+    compile_later_phases(sys.argv[1])
