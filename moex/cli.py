@@ -204,6 +204,7 @@ def validate(config_name: str, args: list[str], flags: list[str] = ()):
                     composed = compose(config_name, overrides=search + overrides,
                                        return_hydra_config=True)
                     choices = dict(composed.hydra.runtime.choices)
+                    _check_launcher(composed.hydra.launcher)
                     with open_dict(composed):
                         del composed["hydra"]
                     configs.append(_typed(composed, choices))
@@ -214,6 +215,13 @@ def validate(config_name: str, args: list[str], flags: list[str] = ()):
                 raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
     finally:
         GlobalHydra.instance().clear()
+
+
+def _check_launcher(launcher) -> None:
+    """The packed launcher's own option (Hydra checks only its type)."""
+    if "max_runs" in launcher:
+        check(int(launcher.max_runs) >= 0, f"hydra.launcher.max_runs={launcher.max_runs} must "
+              f"be >= 0 (the most networks in one batch; 0: no limit)")
 
 
 def _launcher_hint(exc: BaseException) -> str:
