@@ -22,11 +22,10 @@ import torch
 from moex import checkpoint
 from moex.closed_loop import closed_loop_lyapunov, random_state
 from moex.config import config_from_dict
-from moex.evaluate import phase2_targets
 from moex.pipeline import load_task
 from moex.report import to_markdown
 from moex.run import initial_parameters, run_seeds
-from moex.train import train_gating
+from moex.train import phase2_targets, train_gating
 
 REPEATS, SAMPLES, STEPS = 8, 25, 20000
 NOISE_VAR = 1e-4  # ρ² of Fig. 15c

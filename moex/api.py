@@ -17,12 +17,13 @@ from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import random_state, trained_state
 from moex.config import Config, RunFolder
 from moex.errors import check
-from moex.evaluate import EvalConfig, evaluate, phase2_targets
+from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.pipeline import evaluation_generator, in_data_units, load_run
 from moex.run import Job, train_jobs
 from moex.tasks import Dataset, TaskConfig, user_data
 from moex.tasks.scaling import fit_scale
+from moex.train import phase2_targets
 
 
 @dataclass

@@ -32,6 +32,7 @@ from moex.metrics.symbols import (
 )
 from moex.model import expert_forward, gate_estimates, gating_forward
 from moex.tasks import Dataset
+from moex.train import phase2_targets
 
 SYMBOL_RULES = {"argmax": symbolize_argmax, "threshold": symbolize_threshold}
 
@@ -107,15 +108,6 @@ class Evaluation(NamedTuple):
 
     rows: list[dict]
     samples: dict
-
-
-def phase2_targets(beta: torch.Tensor | None, dataset: Dataset, num_runs: int,
-                   dtype: torch.dtype, temperature: float = 1.0) -> torch.Tensor:
-    """The targets the gating RNN is fitted to, (R, S, T, K): ĝ from β (Eq. 9, at
-    `temperature`), or the one-hot symbols of a task without experts (Sec. 3.1)."""
-    if beta is None:
-        return torch.as_tensor(dataset.gate_targets, dtype=dtype).expand(num_runs, -1, -1, -1)
-    return gate_estimates(beta, temperature)
 
 
 def _train_block_kl(targets, closed_gates, cfg: EvalConfig) -> np.ndarray:

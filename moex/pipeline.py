@@ -24,11 +24,12 @@ from moex.config import (
     paper_eval_sizes,
 )
 from moex.errors import check
-from moex.evaluate import EvalConfig, evaluate, phase2_targets
+from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.table import LOGGED, METRICS
 from moex.run import Job, run_seeds, train_jobs
 from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
+from moex.train import phase2_targets
 
 log = logging.getLogger(__name__)
 

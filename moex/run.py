@@ -24,11 +24,11 @@ from moex import checkpoint, io, provenance
 from moex.closed_loop import never
 from moex.config import Config
 from moex.errors import check
-from moex.evaluate import phase2_targets, track_metrics
+from moex.evaluate import track_metrics
 from moex.kernels import Backend, get_backend
 from moex.model import init_experts, init_gating
 from moex.tasks import Dataset
-from moex.train import Hooks, train_experts, train_gating
+from moex.train import Hooks, phase2_targets, train_experts, train_gating
 
 log = logging.getLogger(__name__)
 

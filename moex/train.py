@@ -17,7 +17,8 @@ import torch
 from moex import progress
 from moex.errors import Interrupted, check, check_positive, check_range
 from moex.kernels import Backend, get_backend
-from moex.model import ModelConfig
+from moex.model import ModelConfig, gate_estimates
+from moex.tasks import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -343,6 +344,15 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
                             cfg.adaptive_lr, rule, "experts", cfg.log_every, hooks, "E")
     beta = trained.pop("beta")
     return {**trained, **fixed}, beta, rows
+
+
+def phase2_targets(beta: torch.Tensor | None, dataset: Dataset, num_runs: int,
+                   dtype: torch.dtype, temperature: float = 1.0) -> torch.Tensor:
+    """The targets the gating RNN is fitted to, (R, S, T, K): ĝ from β (Eq. 9, at
+    `temperature`), or the one-hot symbols of a task without experts (Sec. 3.1)."""
+    if beta is None:
+        return torch.as_tensor(dataset.gate_targets, dtype=dtype).expand(num_runs, -1, -1, -1)
+    return gate_estimates(beta, temperature)
 
 
 def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,

@@ -12,7 +12,7 @@ import torch
 from moex import objectives
 from moex.closed_loop import closed_loop_lyapunov, generate, random_state, trained_state
 from moex.config import Config
-from moex.evaluate import EvalConfig, _train_block_kl, evaluate, phase2_targets
+from moex.evaluate import EvalConfig, _train_block_kl, evaluate
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward
 from moex.pipeline import load_task, run_train
@@ -22,6 +22,7 @@ from moex.train import (
     ExpertPhaseConfig,
     GatingPhaseConfig,
     TrainConfig,
+    phase2_targets,
     train_experts,
     train_gating,
 )

@@ -15,11 +15,12 @@ from moex import checkpoint, pipeline
 from moex.closed_loop import generate, trained_state
 from moex.config import ImportConfig
 from moex.errors import ConfigError
-from moex.evaluate import _teacher_forced, phase2_targets
+from moex.evaluate import _teacher_forced
 from moex.importer import export_run, import_networks
 from moex.model import ModelConfig
 from moex.mregn_format import read_save, read_targets, write_save, write_targets
 from moex.tasks import TaskConfig, make_task
+from moex.train import phase2_targets
 
 DATA = Path(__file__).parent / "data" / "mregn"
 TASKS = {"mixture": TaskConfig(name="lissajous2", num_series=2, length=60),
