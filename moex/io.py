@@ -14,7 +14,6 @@ HISTORY = "history.csv"
 METRICS = "metrics.csv"
 SAMPLES = "samples.npz"
 FIGURES = "figures"
-LOG = "train.log"
 EVAL_SETTINGS = "eval_config.yaml"  # the evaluation settings `moex evaluate` used
 
 
