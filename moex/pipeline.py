@@ -39,6 +39,22 @@ def evaluation_generator(cfg: Config) -> torch.Generator:
     return torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
 
 
+_LAST: dict[tuple, Dataset] = {}  # the last generated data set of this process, by its settings
+
+
+def _generated(cfg: Config) -> Dataset:
+    """`make_task` for the config, built once per process when the task is generated (not read
+    from files): `moex train` checks its config on the data (`cli.validate`) and then trains on
+    the same data set. Nothing changes a `Dataset` in place."""
+    if cfg.task.path:
+        return make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
+    key = (repr(cfg.task), cfg.seed, cfg.model.delay)
+    if key not in _LAST:
+        _LAST.clear()
+        _LAST[key] = make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
+    return _LAST[key]
+
+
 def load_task(cfg: Config) -> Dataset:
     """The task's data, checked against the model config and the memory a training on it needs
     (a `ConfigError` if they disagree, before generating data that could not be trained on)."""
@@ -47,7 +63,7 @@ def load_task(cfg: Config) -> Dataset:
     shape = planned_shape(cfg.task)
     if shape is not None:
         budget.check_train(cfg, *shape)
-    dataset = make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
+    dataset = _generated(cfg)
     if shape is None:
         budget.check_train(cfg, *dataset.series.shape)
     K, names = cfg.model.num_experts, dataset.symbol_names
