@@ -13,7 +13,7 @@ ratio to the fixed-rate phase 1 of the same round, so a drift of the machine's s
 import argparse
 import statistics
 
-from bench_epochs import _clock, trainers
+from bench_epochs import marginal, ratios, trainers, warm_up
 
 from moex.kernels.cpu import lanes
 
@@ -28,15 +28,12 @@ def rounds(runs: int, count: int, steps: int, base: int) -> dict[tuple[str, bool
     out = {case: [] for case in CASES}
     for phase, reuse in CASES:  # compile (or load) at the timed sizes
         lanes._Forwarded.enabled = reuse
-        fns[phase](base)
-        fns[phase](base + steps)
+        warm_up(fns[phase], steps, base)
     try:
         for _ in range(count):
             for phase, reuse in CASES:
                 lanes._Forwarded.enabled = reuse
-                short, long = _clock(fns[phase], base, False), _clock(fns[phase], base + steps,
-                                                                        False)
-                out[(phase, reuse)].append(1e3 * (long[1] - short[1]) / steps / runs)
+                out[(phase, reuse)].append(1e3 * marginal(fns[phase], steps, base)[1] / runs)
     finally:
         lanes._Forwarded.enabled = True
     return out
@@ -58,14 +55,8 @@ def main(argv=None) -> None:
         for phase in ("phase 1, adaptive rate", "phase 2, adaptive rate"):
             reused, again = times[(phase, True)], times[(phase, False)]
             cells = [f"{statistics.median(reused):.2f}", f"{statistics.median(again):.2f}",
-                     _ratio(reused, again), _ratio(reused, fixed) if "1" in phase else ""]
+                     ratios(reused, again), ratios(reused, fixed) if "1" in phase else ""]
             print(f"| {runs} | {phase} | {' | '.join(cells)} |", flush=True)
-
-
-def _ratio(a: list[float], b: list[float]) -> str:
-    """Median (min-max) of the rounds' ratios a / b."""
-    ratios = [x / y for x, y in zip(a, b, strict=True)]
-    return f"{statistics.median(ratios):.2f} ({min(ratios):.2f}-{max(ratios):.2f})"
 
 
 if __name__ == "__main__":

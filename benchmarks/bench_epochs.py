@@ -16,6 +16,7 @@ threads), so with 2 threads it shows the cost and the wall time shows the speed-
 
 import argparse
 import os
+import statistics
 import time
 
 import numba
@@ -38,18 +39,31 @@ def _clock(fn, steps: int, sync: bool) -> tuple[float, float]:
     return time.perf_counter() - start, time.process_time() - start_cpu
 
 
-def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tuple[float, float]:
-    """(wall, cpu) seconds per epoch: (time of base + steps epochs - time of base epochs) / steps,
-    which leaves out the set-up of a training call; the best of `repeats` such pairs. The
-    warm-up runs both lengths, so every kernel is compiled at the timed sizes first."""
-    fn(base)  # warm-up: numba / Triton compilation (or loading the cache), allocator
+def warm_up(fn, steps: int, base: int) -> None:
+    """Both lengths once, so that every kernel is compiled (or loaded from the cache) at the
+    timed sizes, and the allocator has seen them."""
+    fn(base)
     fn(base + steps)
-    wall = cpu = float("inf")
-    for _ in range(repeats):
-        short, long = _clock(fn, base, sync), _clock(fn, base + steps, sync)
-        wall = min(wall, (long[0] - short[0]) / steps)
-        cpu = min(cpu, (long[1] - short[1]) / steps)
-    return wall, cpu
+
+
+def marginal(fn, steps: int, base: int, sync: bool = False) -> tuple[float, float]:
+    """(wall, cpu) seconds per epoch from one pair: (time of base + steps epochs - time of base
+    epochs) / steps, which leaves out the set-up of a training call."""
+    short, long = _clock(fn, base, sync), _clock(fn, base + steps, sync)
+    return (long[0] - short[0]) / steps, (long[1] - short[1]) / steps
+
+
+def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tuple[float, float]:
+    """(wall, cpu) seconds per epoch (`marginal`), the best of `repeats` pairs after `warm_up`."""
+    warm_up(fn, steps, base)
+    pairs = [marginal(fn, steps, base, sync) for _ in range(repeats)]
+    return min(p[0] for p in pairs), min(p[1] for p in pairs)
+
+
+def ratios(a: list[float], b: list[float], digits: int = 2, unit: str = "") -> str:
+    """The rounds' ratios a / b, paired round by round, as "median (min-max)"."""
+    r = [x / y for x, y in zip(a, b, strict=True)]
+    return f"{statistics.median(r):.{digits}f}{unit} ({min(r):.{digits}f}-{max(r):.{digits}f})"
 
 
 def trainers(task: str, runs: int, backend: str, threads: int, context_size: int, dtype: str,

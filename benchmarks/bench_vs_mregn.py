@@ -24,7 +24,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench_epochs import _clock, trainers
+from bench_epochs import marginal, ratios, trainers, warm_up
 
 from moex.config import Config
 from moex.mregn_format import write_targets
@@ -53,16 +53,6 @@ def c_epoch_ms(template: str, steps: int, base: int, **fields) -> float:
     short = _cpu_seconds(template.format(epochs=base, **fields), fields["cwd"])
     long = _cpu_seconds(template.format(epochs=base + steps, **fields), fields["cwd"])
     return 1e3 * (long - short) / steps
-
-
-def moex_epoch_ms(fn, steps: int, base: int, runs: int) -> float:
-    """Marginal CPU ms per network-epoch of moex, from one pair of trainings."""
-    short, long = _clock(fn, base, False), _clock(fn, base + steps, False)
-    return 1e3 * (long[1] - short[1]) / steps / runs
-
-
-def _spread(values: list[float]) -> str:
-    return f"{statistics.median(values):.1f}x ({min(values):.1f}-{max(values):.1f})"
 
 
 def main(argv=None) -> int:
@@ -94,14 +84,13 @@ def main(argv=None) -> int:
                 for runs in args.runs}
         for fns in moex.values():  # compile (or load) every kernel at the timed sizes first
             for fn in fns.values():
-                fn(args.base)
-                fn(args.base + args.steps)
+                warm_up(fn, args.steps, args.base)
         for _ in range(args.repeats):  # C and moex in turn, so that a drift hits both
             for phase, template in templates.items():
                 c_ms[phase].append(c_epoch_ms(template, args.steps, args.base, **fields))
                 for runs in args.runs:
-                    moex_ms[(phase, runs)].append(moex_epoch_ms(
-                        moex[runs][phase], args.steps, args.base, runs))
+                    moex_ms[(phase, runs)].append(
+                        1e3 * marginal(moex[runs][phase], args.steps, args.base)[1] / runs)
     print(f"# {os.uname().nodename}, {os.cpu_count()} CPUs; C: gcc -O2 -fopenmp, 1 thread; "
           f"moex: cpu backend, float64, 1 thread; {args.repeats} rounds, C and moex in turn")
     head = " | ".join(f"moex R = {r} | C / moex R = {r}" for r in args.runs)
@@ -109,7 +98,7 @@ def main(argv=None) -> int:
     for phase, c in c_ms.items():
         cells = " | ".join(
             f"{statistics.median(moex_ms[(phase, r)]):.2f} | "
-            f"{_spread([a / b for a, b in zip(c, moex_ms[(phase, r)], strict=True)])}"
+            f"{ratios(c, moex_ms[(phase, r)], 1, 'x')}"
             for r in args.runs)
         print(f"| {phase} | {statistics.median(c):.2f} | {cells} |")
     print("\nmedians over the rounds; a ratio is the median (min-max) of the rounds' ratios, each "
