@@ -24,6 +24,7 @@ from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, _gating_items
 from moex.kernels.cpu.symbols import nearest_symbols
 
 __all__ = ["ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up"]
+LATER = (_closed_blocks, _gating_items)  # the helper's two large kernels (`warm.cached`)
 
 
 def warm_up(precision: str) -> None:
@@ -31,4 +32,4 @@ def warm_up(precision: str) -> None:
     while it trains phase 1 (`warm`)."""
     from moex.kernels.cpu import warm
 
-    warm.start(precision, (_closed_blocks, _gating_items))
+    warm.start(precision, LATER)

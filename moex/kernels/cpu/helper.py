@@ -9,13 +9,11 @@ import numpy as np
 import torch
 
 from moex.closed_loop import random_state
-from moex.kernels.cpu import phases, warm
-from moex.kernels.cpu.closed_loop import _closed_blocks, closed_loop
+from moex.kernels.cpu import LATER, phases, warm
+from moex.kernels.cpu.closed_loop import closed_loop
 from moex.kernels.cpu.symbols import nearest_symbols
 from moex.model import ModelConfig, init_experts, init_gating
 from moex.train import GatingPhaseConfig
-
-LATER = (_closed_blocks, phases._gating_items)  # the two large ones (`warm.cached`)
 
 
 def compile_later_phases(dtype: str) -> None:
