@@ -422,10 +422,10 @@ def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(mo
     phase2 = GatingPhaseConfig(steps=12, adaptive_lr=True, learning_rate=20.0, log_every=1,
                                input_noise_var=noise)
     calls = []
-    stale = lanes._Forwarded.stale
+    original = lanes._Forwarded.stale
 
     def spy(self, params, active):  # (active runs, runs given a forward pass) per gradient step
-        result = stale(self, params, active)
+        result = original(self, params, active)
         calls.append((int(active.sum()), int(result.sum())))
         return result
 
