@@ -8,7 +8,7 @@
 #   2. ms per network-epoch of both phases, backend=gpu, 90 networks (a Table 2 batch) and 900,
 #      float64 and float32, beside backend=cpu on all cores, with each kernel's registers/spills;
 #   3. warps per program and lanes per program (MOEX_GPU_WARPS, MOEX_GPU_LANE_BUDGET) swept at
-#      90 networks;
+#      90 networks, then the adaptive rate's candidates per call (MOEX_GPU_TRIALS 1, 4, 8);
 #   4. the closed loop with one Lyapunov tangent, 90 networks x 50 samples, extrapolated to the
 #      paper's 100 000 steps, backend=gpu beside backend=cpu on all cores;
 #   5. Table 2 end to end at a tenth of the paper's training, full evaluation (wall seconds).
@@ -40,13 +40,13 @@ if [ $smoke = 1 ]; then  # the CPU, Triton's interpreter, toy sizes: every secti
   export TRITON_INTERPRET=1
   device=cpu; runs="2"; big=""; f32runs=2; size="--series 2 --length 20 --steps 1 --repeats 1 --base 1"
   lyap="--runs 2 --samples 2 --steps 5 --repeats 1"; lyap_cpu="$lyap"
-  sweep_warps="4"; sweep_budget="2048"; t=300
+  sweep_warps="4"; sweep_budget="4096"; sweep_trials="1 4"; t=300
   table2="task.num_series=2 task.length=30 num_runs=2 train.experts.steps=2 train.gating.steps=2 eval=quick eval.num_samples=2 eval.lyapunov_steps=20 eval.transient=5 eval.plot_steps=20 task.switch_prob=0.5"
   tests=(-m "not gpu" -k "gpu and closed_loop_kernel_leaves")
 else
   device=cuda; runs="90"; big="900"; f32runs=90; size="--steps 20 --repeats 2"
   lyap="--runs 90 --samples 50 --steps 1000 --repeats 2"; lyap_cpu="--runs 90 --samples 50 --steps 200 --repeats 1"
-  sweep_warps="2 4 8"; sweep_budget="1024 2048 4096"; t=1
+  sweep_warps="2 4 8"; sweep_budget="2048 4096 8192"; sweep_trials="1 4 8"; t=1
   table2="train.experts.steps=3000 train.gating.steps=1000"
   tests=(-m "gpu or not slow" -k "gpu")
 fi
@@ -85,13 +85,17 @@ for name in REGISTRY:
       epochs --runs $runs $big --kernels
       epochs --runs $f32runs --dtype float32
       $py $here/benchmarks/bench_epochs.py --backends cpu --runs $runs --threads $cores $size"
-  section 3 "warps x lanes per program (phase 1 and 2, float64, $runs networks)" \
-      $((150 * t + 60)) bash -c "
+  section 3 "warps x lanes per program, then candidates per call (float64, $runs networks)" \
+      $((200 * t + 60)) bash -c "
       $(declare -f epochs); py=$py; here=$here; device=$device; size='$size'
       for w in $sweep_warps; do for b in $sweep_budget; do
         echo \"warps \$w, lane budget \$b:\"
         MOEX_GPU_WARPS=\$w MOEX_GPU_LANE_BUDGET=\$b epochs --runs $runs | tail -3
-      done; done"
+      done; done
+      for k in $sweep_trials; do
+        echo \"adaptive-rate candidates per call \$k:\"
+        MOEX_GPU_TRIALS=\$k epochs --runs $runs | tail -3
+      done"
   section 4 "closed loop with one tangent" $((120 * t + 60)) bash -c "
       $py $here/benchmarks/bench_lyapunov.py $lyap --threads 1 --backends gpu --device $device --kernels
       $py $here/benchmarks/bench_lyapunov.py $lyap_cpu --threads $cores --backends cpu"

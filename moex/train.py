@@ -137,8 +137,10 @@ class _Flat:
         self.num_runs, self.size, self.dtype = first.shape[0], sum(sizes), first.dtype
         self.device = device
 
-    def zeros(self) -> torch.Tensor:
-        return torch.zeros((self.num_runs, self.size), dtype=self.dtype, device=self.device)
+    def zeros(self, *copies: int) -> torch.Tensor:
+        """(*copies, R, P) zeros."""
+        return torch.zeros((*copies, self.num_runs, self.size), dtype=self.dtype,
+                           device=self.device)
 
     def views(self, flat: torch.Tensor) -> dict[str, torch.Tensor]:
         return {k: flat[:, a:b].view((-1,) + self.shapes[k]) for k, (a, b) in
@@ -163,10 +165,12 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
             ) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Momentum gradient ascent (Eqs. 17-18), optionally with the adaptive rate of Sec. 2.1.4.
 
-    Parameters, gradients, momentum and the trial point of the adaptive retry live in
+    Parameters, gradients, momentum and the candidate points of the adaptive retry live in
     preallocated (R, P) tensors on the problem's device (`problem.device`); a step is one
-    `problem.value_and_grad` call, in-place updates, and one `problem.value` call per adaptive
-    trial. The host sees per-run statistics only. A run whose objective or gradient becomes
+    `problem.value_and_grad` call, in-place updates, and with the adaptive rate one
+    `problem.value` call per trial, or one `problem.value_of_candidates` call per `trials`
+    trials where the backend evaluates several at once (gpu). The host reads one flag per such
+    call and per-run statistics when it logs. A run whose objective or gradient becomes
     non-finite is marked failed and frozen; the other runs go on untouched. Without the adaptive
     rate, a step that makes a run's parameters non-finite is rolled back and the run marked failed.
 
@@ -187,14 +191,24 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     device = torch.device(problem.device)
     layout = _Flat(params, device)
     R = layout.num_runs
-    theta, grad, velocity, delta, trial = (layout.zeros() for _ in range(5))
+    batch = problem.trials if adaptive else 1  # candidate steps per call
+    theta, grad, velocity, delta = (layout.zeros() for _ in range(4))
+    candidates, shrunk = layout.zeros(batch), layout.zeros(batch + 1)
+    scratch, shrinks = candidates.unbind(0)[0], shrunk.unbind(0)  # (views, taken once)
     views, grads, moments = layout.views(theta), layout.views(grad), layout.views(velocity)
-    fixed = {k: v.to(device) for k, v in fixed.items()}
-    net, trial_net = {**views, **fixed}, {**layout.views(trial), **fixed}
+    fixed = {name: v.to(device) for name, v in fixed.items()}
+    net = {**views, **fixed}
+    candidate_net = {**layout.views(candidates.view(batch * R, -1)),
+                     **{name: v.repeat(batch, *[1] * (v.dim() - 1)) for name, v in fixed.items()}}
+    evaluate = problem.value if batch == 1 else (
+        lambda params, _: problem.value_of_candidates(params))
     for k, v in params.items():
         views[k].copy_(v)
     lr_scale = torch.ones(R, dtype=torch.float64, device=device)
-    ones = torch.ones_like(lr_scale)  # per-run factors of the adaptive rule (float64, exact)
+    # the adaptive rule's factors α_dec, α_inc, 1 (float64: exact), and α_dec for Δθ
+    dec, inc, one = torch.tensor([rule.adaptive.decrease, rule.adaptive.increase, 1.0],
+                                 dtype=torch.float64, device=device).unbind(0)
+    decrease = dec.to(layout.dtype)
     failed, rows, start = torch.zeros(R, dtype=torch.bool, device=device), [], 0
     if hooks.resume:
         state = hooks.resume
@@ -228,40 +242,51 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         grad.masked_fill_(failed[:, None], 0.0)  # (masks, never boolean indexing: no host sync)
         # ---- the step Δθ: Eq. 17 keeps Δθ in the buffer, the C code the sum of raw gradients
         if paper_form:
-            torch.mul(velocity, momentum, out=trial)
+            torch.mul(velocity, momentum, out=scratch)
             torch.mul(grad, rate, out=delta)
             delta *= lr_scale[:, None]
-            delta += trial
+            delta += scratch
         else:
             velocity *= momentum
             velocity += grad
             torch.mul(velocity, rate, out=delta)
             delta *= lr_scale[:, None]
         retries = torch.zeros(R, dtype=torch.int64, device=device)
-        # ---- adaptive rate: each run shrinks its own step until r <= r_th (Sec. 2.1.4); the
-        # host reads one flag per trial (whether any run is still rejected), nothing else
+        # ---- adaptive rate: each run shrinks its own step until r <= r_th (Sec. 2.1.4). The
+        # backend evaluates k candidate steps Δθ·α_dec^j (j < k) per call, each run takes its
+        # first accepted one, as trying them one by one would; the host reads one flag per
+        # call (whether any run rejected all k), nothing else
         pending = ~failed if adaptive else torch.zeros_like(failed)
-        base = stats[criterion]
-        for _ in range(rule.adaptive.max_retries if adaptive else 0):
-            torch.add(theta, delta, out=trial)
-            ratio = statistics(problem.value(trial_net, pending))[criterion] / base
-            rejected = pending & ~(ratio <= rule.adaptive.max_ratio)  # NaN fails too
-            lr_scale.mul_(ones.fill_(1.0).masked_fill_(pending & (ratio < 1),
-                                                       rule.adaptive.increase))
-            pending = rejected
-            if not bool(pending.any()):
-                break
+        base, left = stats[criterion], rule.adaptive.max_retries if adaptive else 0
+        while left > 0:
+            n = min(batch, left)
+            shrinks[0].copy_(delta)
             # a retry shrinks the whole step, momentum included: with the momentum term left
             # whole (a strict reading of Sec. 2.1.4) r can stay above r_th for every α, and the
             # rate collapsed to 0.7^1000 in a measured two-Lissajous run
-            shrink = ones.fill_(1.0).masked_fill_(rejected, rule.adaptive.decrease)  # x·1 = x
-            lr_scale.mul_(shrink)
-            delta.mul_(shrink.to(delta.dtype)[:, None])
-            retries += rejected
+            for j in range(n):
+                torch.mul(shrinks[j], decrease, out=shrinks[j + 1])
+            torch.add(theta, shrunk[:batch], out=candidates)
+            values = evaluate(candidate_net, pending)[criterion].view(batch, R)[:n]
+            ratio = values / base
+            accepted = ratio <= rule.adaptive.max_ratio  # NaN fails too
+            first = torch.where(pending, torch.where(
+                accepted.any(0), accepted.to(torch.uint8).argmax(0), n), 0)  # (argmax: the first)
+            for j in range(n):  # α·α_dec per rejection, in the order one by one would take
+                lr_scale.mul_(torch.where(first > j, dec, one))
+            took = pending & (first < n)
+            lr_scale.mul_(torch.where(took & (ratio.gather(0, first.clamp(max=n - 1)[None])[0]
+                                              < 1), inc, one))
+            delta.copy_(shrunk.gather(0, first.view(1, R, 1).expand(1, R, layout.size))[0])
+            retries += first
+            pending &= ~took
+            left -= n
+            if not bool(pending.any()):
+                break
         # ---- update; give up the step of runs still rejected, roll back non-finite runs
         if not adaptive:
-            torch.add(theta, delta, out=trial)
-            failed |= ~torch.isfinite(trial.sum(1))
+            torch.add(theta, delta, out=scratch)
+            failed |= ~torch.isfinite(scratch.sum(1))
         frozen = (pending | failed)[:, None]
         delta.masked_fill_(frozen, 0.0)
         theta += delta

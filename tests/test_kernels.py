@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from moex.closed_loop import closed_loop_lyapunov, generate, random_state
-from moex.kernels import REGISTRY, get_backend, reference
+from moex.kernels import REGISTRY, available, get_backend, reference
 from moex.metrics.lyapunov import initial_tangents, reorthonormalise
 from moex.model import ModelConfig, closed_loop_step, init_experts, init_gating
 from moex.tasks import TaskConfig, make_task
@@ -198,6 +198,42 @@ def test_training_trajectories_of_both_phases_match(backend, dtype, form, adapti
     assert [r["retries"] for r in ref[3]] == [r["retries"] for r in fast[3]]
     if adaptive:
         assert any(r["lr_scale"] != 1.0 for r in fast[3])
+
+
+def test_gpu_candidate_steps_in_one_call_train_as_one_by_one(monkeypatch):
+    """The gpu backend evaluates k adaptive-rate candidates per call and each run takes its first
+    accepted one: both phases give the same bits and history as k = 1 (one trial per call), with
+    retries accepted after 1-4 shrinks and steps given up after max_retries = 5 (not a multiple
+    of k = 3, so the last call is cut short)."""
+    gpu, why = available("gpu")
+    if gpu is None:
+        pytest.skip(f"backend gpu cannot run here: {why}")
+    from moex.kernels.gpu import phases
+
+    series = torch.as_tensor(make_task(TaskConfig(num_series=2, length=12), seed=0).series)
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 4, 5
+    rule = TrainConfig(adaptive=AdaptiveLRConfig(max_retries=5))
+    phase1 = ExpertPhaseConfig(steps=5, adaptive_lr=True, learning_rate=2.0, log_every=1)
+    phase2 = GatingPhaseConfig(steps=5, adaptive_lr=True, learning_rate=20.0, log_every=1)
+    out = []
+    for k in (1, 3):
+        monkeypatch.setattr(phases._Problem, "trials", k)
+        experts, beta, rows1 = train_experts(init_experts(model, 3, 2, generators([0, 1, 2])),
+                                             series, model, phase1, rule, backend=gpu)
+        gating, rows2 = train_gating(init_gating(model, 3, 2, generators([3, 4, 5])),
+                                     torch.softmax(beta, -1), series[:, :-1], model, phase2,
+                                     rule, backend=gpu)
+        out.append(({**experts, "beta": beta}, gating, rows1, rows2))
+    for one, batched in zip(*out, strict=True):
+        if isinstance(one, dict):
+            for name in one:
+                assert torch.equal(one[name], batched[name]), name
+        else:
+            assert one == batched
+    for rows in out[0][2:]:
+        retries = {r["retries"] for r in rows}
+        assert 5 in retries and retries & {1, 2, 3, 4}, retries
 
 
 def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(backend, steps=6):

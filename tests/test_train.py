@@ -8,6 +8,7 @@ from moex.model import ModelConfig, init_experts, init_gating
 from moex.run import run_seeds
 from moex.tasks import TaskConfig, make_task
 from moex.train import (
+    AdaptiveLRConfig,
     ExpertPhaseConfig,
     GatingPhaseConfig,
     Hooks,
@@ -219,24 +220,54 @@ def test_adaptive_retries_shrink_the_momentum_too():
     0.7^1000); shrinking the whole step recovers."""
     from moex.train import _ascend
 
-    class Parabola:
-        device = torch.device("cpu")
-
-        def value(self, p, active):
-            return {"objective": -(p["x"] ** 2).sum(1), "kl": (p["x"] ** 2).sum(1)}
-
-        def value_and_grad(self, p, grads, active):
-            grads["x"][...] = -2 * p["x"]
-            return self.value(p, active)
-
-        def resample(self, step):
-            pass
-
-    trained, rows = _ascend({"x": torch.ones((1, 1))}, {}, {"x": 0.9}, Parabola(), "kl", 30, 0.9,
-                            True, TrainConfig(), "toy", 1)
+    trained, rows = _ascend({"x": torch.ones((1, 1))}, {}, {"x": 0.9}, _Parabola(), "kl", 30,
+                            0.9, True, TrainConfig(), "toy", 1)
     assert rows[-1]["lr_scale"] > 1e-6  # the strict reading ends near 1e-155
     assert max(r["retries"] for r in rows) < 100
     assert abs(trained["x"].item()) < 0.1  # the strict reading stays at x = -0.8
+
+
+class _Parabola:
+    """Ascent on -Σx² per run; with `trials` > 1 it evaluates that many candidates per call."""
+
+    device = torch.device("cpu")
+
+    def __init__(self, trials=1):
+        self.trials, self.calls = trials, 0
+
+    def value(self, p, active):
+        self.calls += 1
+        return {"objective": -(p["x"] ** 2).sum(1), "kl": (p["x"] ** 2).sum(1)}
+
+    def value_of_candidates(self, p):
+        return self.value(p, None)
+
+    def value_and_grad(self, p, grads, active):
+        grads["x"][...] = -2 * p["x"]
+        return {"objective": -(p["x"] ** 2).sum(1), "kl": (p["x"] ** 2).sum(1)}
+
+    def resample(self, step):
+        pass
+
+
+@pytest.mark.parametrize("k", [2, 3, 7])
+def test_candidate_steps_in_one_call_train_as_one_by_one(k):
+    """The adaptive rate with k candidate steps per call (each run taking its first accepted
+    one) gives the bits and history of one trial per call, with fewer calls: 4 runs from
+    different starts, retries accepted and steps given up after max_retries = 5."""
+    from moex.train import _ascend
+
+    start = {"x": torch.tensor([[1.0, -2.0], [0.3, 0.1], [-3.0, 2.5], [0.05, 0.0]])}
+    rule = TrainConfig(adaptive=AdaptiveLRConfig(max_retries=5, max_ratio=1.01))
+    out = []
+    for problem in (_Parabola(), _Parabola(k)):
+        out.append((*_ascend({"x": start["x"].clone()}, {}, {"x": 1.7}, problem, "kl", 25, 0.9,
+                             True, rule, "toy", 1), problem.calls))
+    (one, rows_one, calls_one), (batched, rows, calls) = out
+    assert torch.equal(one["x"], batched["x"]) and rows == rows_one
+    retries = {r["retries"] for r in rows}
+    assert 5 in retries and retries & {1, 2, 3, 4}, retries
+    assert calls < calls_one
 
 
 def test_stopped_and_resumed_training_is_bit_identical(backend):

@@ -44,6 +44,7 @@ class Problem(Protocol):
 
     STATS: tuple[str, ...]
     device: torch.device
+    trials: int  # adaptive-rate candidate steps evaluated per call (>1: `value_of_candidates`)
 
     def resample(self, step: int) -> None:
         """Draw what the objective of training step `step` needs (phase-2 input noise)."""
@@ -55,6 +56,10 @@ class Problem(Protocol):
         """The same statistics without gradients (the adaptive-rate retry). A backend may keep
         its forward pass: the next `value_and_grad` at the same parameters (the accepted trial's
         point) may take it instead of running it again (the cpu backend does, bit for bit)."""
+
+    def value_of_candidates(self, params: dict) -> dict[str, torch.Tensor]:
+        """Where `trials` > 1 (gpu): statistics (k·R,) of k = `trials` parameter sets per run in
+        one call; params are (k·R, ...) groups, candidate j of run r in row j·R + r."""
 
 
 @dataclass(frozen=True)

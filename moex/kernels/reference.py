@@ -80,6 +80,8 @@ def gating_objective(gate_targets: torch.Tensor, inputs: torch.Tensor, model,
 class _Problem:
     """An objective on numpy parameters: values and autograd gradients, on `device`."""
 
+    trials = 1  # adaptive-rate candidates per call
+
     def __init__(self, objective: Objective, device: str):
         self.objective, self.device = objective, torch.device(device)
 

@@ -305,6 +305,7 @@ class _Problem:
     device = torch.device("cpu")
     STATS: tuple[str, ...] = ()
     KERNEL: tuple = ()  # (the compiled kernel, what the log calls it)
+    trials = 1  # adaptive-rate candidates per call: one (an accepted trial's pass is reused)
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes

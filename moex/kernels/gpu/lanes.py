@@ -1,9 +1,12 @@
 """The lane layout of the GPU backend's training kernels (as `moex.kernels.cpu.lanes` is the CPU
-backend's): every independent recurrence is a lane, a program runs a block of lanes, and `_Net`
-holds one leaky RNN's lanes, buffers and the two launches of `moex.kernels.gpu.rnn`.
+backend's): every independent recurrence is a lane, network n owns the lanes n·LPN + j, and a
+program runs one network's lanes in chunks (`moex.kernels.gpu.rnn`). `Net` holds one leaky RNN's
+lanes, buffers and the two launches; `launch` is every training kernel's launch.
 
-Two knobs for the GPU session's sweep, read once: MOEX_GPU_LANE_BUDGET (weight-tile entries per
-program, default 2048) and MOEX_GPU_WARPS (warps per program, default Triton's 4).
+Three knobs for the GPU session's sweep, read once: MOEX_GPU_LANE_BUDGET (entries of the lanes'
+(BL, H, H) products per program, default 4096), MOEX_GPU_WARPS (warps per program, default
+Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive rate per launch, default 4; the
+result is the same for any value).
 """
 
 import os
@@ -14,16 +17,22 @@ import triton
 
 from moex.kernels.gpu.rnn import rnn_backward, rnn_forward
 
-# weight-tile entries per program (BL · HP², the registers a tile may take) and warps per program
-LANE_BUDGET = int(os.environ.get("MOEX_GPU_LANE_BUDGET", "2048"))
+LANE_BUDGET = int(os.environ.get("MOEX_GPU_LANE_BUDGET", "4096"))
 NUM_WARPS = int(os.environ.get("MOEX_GPU_WARPS", "4"))
+TRIALS = max(1, int(os.environ.get("MOEX_GPU_TRIALS", "4")))
 COMPILED: dict[str, object] = {}  # kernel name -> the last compiled kernel launched (CUDA only)
+PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN kernels read
 
 
 def launched(name: str, kernel) -> None:
     """Keep a launch's compiled kernel (None in Triton's interpreter) for `kernel_report`."""
     if kernel is not None:
         COMPILED[name] = kernel
+
+
+def launch(kernel, programs: int, *args, **meta) -> None:
+    """One launch of a training kernel on `programs` programs."""
+    launched(kernel.fn.__name__, kernel[(programs,)](*args, num_warps=NUM_WARPS, **meta))
 
 
 def kernel_report() -> list[dict]:
@@ -39,55 +48,70 @@ def pow2(n: int) -> int:
     return triton.next_power_of_2(max(n, 1))
 
 
-class Net:
-    """One leaky RNN per network (B networks) and its lanes: which network, input row and u_0 row
-    each lane reads, and the buffers the two kernels fill."""
+def strides(tensors: dict, names) -> list[int]:
+    """Each group's run stride; the kernels need every run's entries contiguous (as in the
+    training loop's flat buffer, or a contiguous tensor)."""
+    out = []
+    for name in names:
+        x = tensors[name]
+        inner = x.shape[1:]
+        want = [int(np.prod(inner[d + 1:])) for d in range(len(inner))]
+        if [s for s, n in zip(x.stride()[1:], inner, strict=True) if n > 1] != [
+                s for s, n in zip(want, inner, strict=True) if n > 1]:
+            raise ValueError(f"parameter {name}: each run's entries must be contiguous")
+        out.append(x.stride(0))
+    return out
 
-    def __init__(self, num_lanes, T, NI, H, NO, net, xrow, u0row, learn_eps, sums, dtype, device):
-        self.L, self.T, self.NI, self.H, self.NO = num_lanes, T, NI, H, NO
-        self.learn_eps, self.sums = learn_eps, sums
+
+class Net:
+    """One leaky RNN per network (`networks` of them, `per_run` per run) and its lanes
+    (`lanes_per_net` each): which input row and u_0 row each lane reads, and the buffers the
+    two kernels fill.
+
+    Args:
+        xrow, u0j: (L,) each lane's row of X and its row of its run's u_0.
+        learn_eps: ε learned (keep u_t, write ∂τ); sums: keep Σu, Σu² (the attraction).
+        floor: the attraction's variance floor (σ̄²); keep: buffers for gradients (else values
+        only)."""
+
+    def __init__(self, networks, per_run, lanes_per_net, T, NI, H, NO, xrow, u0j, learn_eps,
+                 sums, floor, dtype, device, keep=True):
+        L = networks * lanes_per_net
+        self.networks, self.learn_eps, self.sums = networks, learn_eps, sums
 
         def index(x):
             return torch.as_tensor(np.asarray(x), dtype=torch.int64, device=device)
 
-        self.net, self.xrow, self.u0row = index(net), index(xrow), index(u0row)
-        self.pad = dict(NIP=pow2(NI), HP=pow2(H), NOP=pow2(NO))
-        self.block = max(1, min(32, LANE_BUDGET // self.pad["HP"] ** 2))
+        self.xrow, self.u0j = index(xrow), index(u0j)
+        self.floor = torch.tensor([floor], dtype=dtype, device=device)
+        HP = pow2(H)
+        block = max(1, min(pow2(lanes_per_net), LANE_BUDGET // HP ** 2))
+        self.meta = dict(T=T, NI=NI, H=H, NO=NO, NIP=pow2(NI), HP=HP, NOP=pow2(NO), BL=block,
+                         LPN=lanes_per_net, NPR=per_run,
+                         CHUNKS=triton.cdiv(lanes_per_net, block))
 
         def empty(*shape):
             return torch.zeros(shape, dtype=dtype, device=device)
 
-        self.O, self.C = empty(num_lanes, T, NO), empty(num_lanes, T, H)
-        self.U = empty(num_lanes, T, H) if learn_eps else empty(1)
-        self.S = empty(num_lanes, 2, H) if sums else empty(1)
-        self.grads = (empty(num_lanes, H, NI), empty(num_lanes, H, H), empty(num_lanes, NO, H),
-                      empty(num_lanes, H), empty(num_lanes, NO), empty(num_lanes, H),
-                      empty(num_lanes, H))
+        self.O = empty(L, T, NO)
+        self.DO, self.C = (empty(L, T, NO), empty(L, T, H)) if keep else (empty(1), empty(1))
+        self.U = empty(L, T, H) if learn_eps and keep else empty(1)
+        self.S = empty(L, 2, H) if sums else empty(1)
 
-    def _launch(self, kernel, *args, **flags):
-        grid = (triton.cdiv(self.L, self.block),)
-        launched(kernel.fn.__name__, kernel[grid](
-            *args, self.L, T=self.T, NI=self.NI, H=self.H, NO=self.NO, BL=self.block,
-            num_warps=NUM_WARPS, **self.pad, **flags))
-
-    def forward(self, X, w, u0, keep):
+    def forward(self, X, params, keep):
         """O (L, T, NO); with `keep` also the histories the backward pass reads."""
-        self._launch(rnn_forward, X, self.xrow, self.net, self.u0row, w["w_in"], w["w_rec"],
-                     w["w_out"], w["b_c"], w["b_o"], w["eps"], u0, self.O, self.C, self.U,
-                     self.S, KEEP_C=keep, KEEP_U=keep and self.learn_eps, KEEP_SUMS=self.sums)
+        p = [params[k] for k in PARAMS]
+        launch(rnn_forward, self.networks, X, self.xrow, self.u0j, *p, self.O, self.C, self.U,
+               self.S, *strides(params, PARAMS), KEEP_C=keep, KEEP_U=keep and self.learn_eps,
+               KEEP_SUMS=self.sums, **self.meta)
         return self.O
 
-    def backward(self, dO, X, w, u0):
-        """Per-lane gradients (w_in, w_rec, w_out, b_c, b_o, ε, u_0) for ∂L/∂O = dO."""
-        self._launch(rnn_backward, dO.contiguous(), X, self.xrow, self.net, self.u0row,
-                     w["w_in"], w["w_rec"], w["w_out"], w["b_c"], w["eps"], u0, self.C, self.U,
-                     *self.grads, LEARN_EPS=self.learn_eps)
-        return self.grads
-
-
-def weights(params: dict, lead: int) -> dict:
-    """Contiguous weights (B, ...) and ε = 1/τ of the B networks in the first `lead` axes."""
-    out = {k: params[k].flatten(0, lead - 1).contiguous()
-           for k in ("w_in", "w_rec", "w_out", "b_c", "b_o")}
-    out["eps"] = (1 / params["tau"]).flatten(0, lead - 1).contiguous()
-    return out
+    def backward(self, X, params, grads, active, attract):
+        """The networks' gradients for ∂L/∂O = self.DO, written into `grads` where `active`."""
+        learn = "tau" in grads
+        g = {k: grads[k] if k in grads else grads["b_c"] for k in PARAMS}  # (τ: not written)
+        read = ("w_rec", "w_out", "b_c", "tau", "u0")
+        launch(rnn_backward, self.networks, self.DO, X, self.xrow, self.u0j,
+               *(params[k] for k in read), self.C, self.U, self.S, active, self.floor,
+               *(g[k] for k in PARAMS), *strides(params, read), *strides(g, PARAMS),
+               LEARN_EPS=learn, ATTRACT=attract, **self.meta)

@@ -1,34 +1,187 @@
-"""The two training phases of the GPU backend (Triton): a step is the forward kernel of
-`moex.kernels.gpu.rnn` over every lane of every run (`moex.kernels.gpu.lanes`), the phase's
-objective on the outputs o_t and its gradient ∂L/∂o_t — the reference's own functions
-(`moex.objectives`) under autograd, with no time loop — then the backward kernel and a sum of the
-per-lane gradients over each network's lanes. Parameters, gradients and the optimiser state stay
-on the device; the per-run statistics (R values) are device tensors the host reads when it logs.
+"""The two training phases of the GPU backend (Triton), each step three launches: the forward
+kernel of `moex.kernels.gpu.rnn` over every lane of every run (`moex.kernels.gpu.lanes`), the
+phase's objective kernel here (one program per run: the statistics, ∂L/∂o_t for every lane and
+the gradients of the objective's own parameters), and the backward kernel, which sums each
+network's lanes into the training loop's gradient buffer. A value without gradients (the
+adaptive rate's trial) is the first two. Nothing is synchronised with the host: the statistics
+are device tensors (R,) the host reads when it logs.
+
+Phase 1's objective (Eqs. 9-13), per run, with y^k = tanh(o^k), ĝ = softmax β, σ_k² = e^{2 ln σ_k}
++ σ̄², z_k = ln ĝ_k + ln N(y; y^k, σ_k² I) and π = softmax z (the posterior of the experts):
+    ln L = Σ_{s,n} logsumexp_k z_k + Σ_{s,n<T,k} [-(β_{n+1} - β_n)²/(2ς²) - ln(√(2π) ς)],
+    ∂/∂o^k = π_k (y - y^k)/σ_k² (1 - (y^k)²),  ∂/∂β = π - ĝ + (β_{n+1} - 2β_n + β_{n-1})/ς²
+    (the neighbours that exist),  ∂/∂ln σ_k = Σ π_k (‖y - y^k‖²/σ_k² - D) e^{2 ln σ_k}/σ_k²,
+and E = ½ Σ ‖y - Σ_k ĝ_k y^k‖² / (S T D). Phase 2's (Eqs. 14-16), with ln g = log_softmax o:
+    ln L = Σ ĝ ln g,  KL = Σ ĝ ln ĝ - ln L,  ∂/∂o = ĝ - g Σ_k ĝ_k.
+The C code's u_0 attraction adds Σ_lanes -(u_0 - μ)²/(2v) (its gradient: in the backward kernel).
 """
+
+import math
 
 import numpy as np
 import torch
+import triton
+import triton.language as tl
 
-from moex import objectives
-from moex.kernels.gpu.lanes import Net, weights
+from moex.kernels.gpu.lanes import TRIALS, Net, launch, pow2, strides
+from moex.kernels.gpu.rnn import _row, _tanh
 from moex.kernels.noise import input_noise
 
+BT = 64  # time steps per tile of the objective kernels
+BJ = 16  # lanes per tile of the attraction sum
 
-def _attraction(u0, sums, count, floor):
-    """The C code's u_0 attraction from Σu and Σu² over {u_0..u_T} (statistics held constant),
-    per run; u0 and sums are (R, lanes of a run, H)."""
-    mean = sums[..., 0, :] / count
-    var = (sums[..., 1, :] / count - mean * mean).clamp_min(floor)
-    return (-(u0 - mean).square() / (2 * var)).flatten(1).sum(1)
+
+@triton.jit
+def _attraction(SUMS, U0, U0J, first, floor, LPR: tl.constexpr, T: tl.constexpr,
+                H: tl.constexpr, HP: tl.constexpr, BJ: tl.constexpr):
+    """Σ over the LPR lanes first.. of Σ_h -(u_0 - μ)²/(2v), μ and v = max(var, floor) from the
+    forward kernel's Σu, Σu² over {u_0..u_T}."""
+    h = tl.arange(0, HP)
+    total = tl.zeros((BJ, HP), dtype=floor.dtype)
+    for jb in range(tl.cdiv(LPR, BJ)):
+        j = jb * BJ + tl.arange(0, BJ)
+        ok = j < LPR
+        lane = first + j
+        u0 = _row(U0, tl.load(U0J + lane, mask=ok, other=0), ok, h, H)
+        mean = _row(SUMS, lane * 2, ok, h, H) / (T + 1)
+        var = tl.maximum(_row(SUMS, lane * 2 + 1, ok, h, H) / (T + 1) - mean * mean, floor)
+        dev = u0 - mean
+        total += tl.where(ok[:, None] & (h < H)[None, :], -(dev * dev) / (2.0 * var), 0.0)
+    return tl.sum(tl.sum(total, axis=1), axis=0)
+
+
+@triton.jit
+def _log_softmax(x, ok):
+    """(BT, KP) log-softmax over the K entries where `ok` ((KP,) bools); also the softmax."""
+    m = tl.max(tl.where(ok[None, :], x, -float("inf")), axis=1)
+    e = tl.where(ok[None, :], tl.exp(x - m[:, None]), 0.0)
+    total = tl.sum(e, axis=1)
+    return x - m[:, None] - tl.log(total)[:, None], e / total[:, None]
+
+
+@triton.jit
+def mixture_objective(OUT, TARGETS, BETA, LOG_SIGMA, SUMS, U0, U0J, CONST, ACTIVE, DO, G_BETA,
+                      G_LOG_SIGMA, sBETA, sLOG_SIGMA, sU0, sG_BETA, sG_LOG_SIGMA, num_runs,
+                      data_runs, STATS,
+                      S: tl.constexpr, T: tl.constexpr, K: tl.constexpr, D: tl.constexpr,
+                      KP: tl.constexpr, DP: tl.constexpr, H: tl.constexpr, HP: tl.constexpr,
+                      OWN: tl.constexpr, BT: tl.constexpr, BJ: tl.constexpr,
+                      WANT: tl.constexpr, ATTRACT: tl.constexpr):
+    """Phase 1 of run r = program: STATS (4, R) = objective, ln L, ln prior, E; with WANT also
+    DO (∂L/∂o of lane (r·K + k)·S + s), G_BETA and G_LOG_SIGMA where ACTIVE[r]. CONST holds
+    σ̄², 2π, ς² and ln(√(2π) ς). Run r reads the data of run r mod data_runs (candidates)."""
+    r = tl.program_id(0).to(tl.int64)
+    k, d, t = tl.arange(0, KP), tl.arange(0, DP), tl.arange(0, BT)
+    k_ok, d_ok = k < K, d < D
+    floor, two_pi = tl.load(CONST), tl.load(CONST + 1)
+    prior_var, prior_norm = tl.load(CONST + 2), tl.load(CONST + 3)
+    on = tl.load(ACTIVE + r + 0 * k) != 0  # (KP,): the interpreter's masks need a vector
+    log_sigma = tl.load(LOG_SIGMA + r * sLOG_SIGMA + k, mask=k_ok, other=0.0)
+    spread = tl.exp(2.0 * log_sigma)
+    var = spread + floor
+    log_norm = (-0.5 * D) * tl.log(two_pi * var)
+    log_lik = tl.zeros((BT,), dtype=var.dtype)
+    log_prior, sq_error = log_lik, log_lik
+    g_log_sigma = tl.zeros((KP,), dtype=var.dtype)
+    for s in range(S):
+        lanes = (r * K + k) * S + s
+        for tb in range(tl.cdiv(T, BT)):
+            n = tb * BT + t
+            n_ok, next_ok = n < T, n + 1 < T
+            m2 = n_ok[:, None] & k_ok[None, :]
+            m3 = m2[:, :, None] & d_ok[None, None, :]
+            at = (lanes[None, :, None] * T + n[:, None, None]) * D + d[None, None, :]
+            y = _tanh(tl.load(OUT + at, mask=m3, other=0.0))
+            row = (r % data_runs) * S * OWN + s
+            target = tl.load(TARGETS + (row * T + n[:, None]) * D + d[None, :],
+                             mask=n_ok[:, None] & d_ok[None, :], other=0.0)
+            err = y - target[:, None, :]
+            e = tl.sum(err * err, axis=2)
+            b_at = BETA + r * sBETA + (s * T + n[:, None]) * K + k[None, :]
+            beta = tl.load(b_at, mask=m2, other=0.0)
+            log_gate, gate = _log_softmax(beta, k_ok)
+            z = tl.where(k_ok[None, :], log_gate + (log_norm[None, :] - e / (2.0 * var[None, :])),
+                         -float("inf"))
+            z_max = tl.max(z, axis=1)
+            w = tl.exp(z - z_max[:, None])
+            w_sum = tl.sum(w, axis=1)
+            log_lik += tl.where(n_ok, z_max + tl.log(w_sum), 0.0)
+            mix = tl.sum(gate[:, :, None] * y, axis=1) - target
+            sq_error += tl.where(n_ok, tl.sum(mix * mix, axis=1), 0.0)
+            step = tl.load(b_at + K, mask=next_ok[:, None] & k_ok[None, :], other=0.0) - beta
+            log_prior += tl.where(next_ok, tl.sum(tl.where(
+                k_ok[None, :], -(step * step) / (2.0 * prior_var) - prior_norm, 0.0), axis=1), 0.0)
+            if WANT:
+                post = w / w_sum[:, None]
+                tl.store(DO + at, post[:, :, None] * (-err) / var[None, :, None] * (1.0 - y * y),
+                         mask=m3 & on[None, :, None])
+                g_log_sigma += tl.sum(tl.where(m2, post * (e / var[None, :] - D), 0.0), axis=0)
+                back = beta - tl.load(b_at - K, mask=(n > 0)[:, None] & k_ok[None, :], other=0.0)
+                g_beta = post - gate + (tl.where(next_ok[:, None], step, 0.0)
+                                        - tl.where((n > 0)[:, None], back, 0.0)) / prior_var
+                tl.store(G_BETA + r * sG_BETA + (s * T + n[:, None]) * K + k[None, :], g_beta,
+                         mask=m2 & on[None, :])
+    total_lik, total_prior = tl.sum(log_lik, axis=0), tl.sum(log_prior, axis=0)
+    objective = total_lik + total_prior
+    if ATTRACT:
+        objective += _attraction(SUMS, U0 + r * sU0, U0J, r * (K * S), floor, K * S, T, H, HP, BJ)
+    tl.store(STATS + r, objective)
+    tl.store(STATS + num_runs + r, total_lik)
+    tl.store(STATS + 2 * num_runs + r, total_prior)
+    tl.store(STATS + 3 * num_runs + r, 0.5 * tl.sum(sq_error, axis=0) / (S * T * D))
+    if WANT:
+        tl.store(G_LOG_SIGMA + r * sG_LOG_SIGMA + k, g_log_sigma * spread / var, mask=k_ok & on)
+
+
+@triton.jit
+def softmax_objective(OUT, TARGETS, ENTROPY, SUMS, U0, U0J, CONST, ACTIVE, DO, sU0, num_runs,
+                      data_runs, STATS, S: tl.constexpr, T: tl.constexpr, K: tl.constexpr,
+                      KP: tl.constexpr, H: tl.constexpr, HP: tl.constexpr, BT: tl.constexpr,
+                      BJ: tl.constexpr, WANT: tl.constexpr, ATTRACT: tl.constexpr):
+    """Phase 2 of run r = program: STATS (4, R) = objective, ln L, KL, E_g; with WANT also
+    DO (∂L/∂o of lane r·S + s) where ACTIVE[r]. CONST holds σ̄². Run r reads the targets of run
+    r mod data_runs (candidates)."""
+    r = tl.program_id(0).to(tl.int64)
+    k, t = tl.arange(0, KP), tl.arange(0, BT)
+    k_ok = k < K
+    on = tl.load(ACTIVE + r + 0 * k) != 0
+    floor = tl.load(CONST)
+    log_lik = tl.zeros((BT,), dtype=floor.dtype)
+    for s in range(S):
+        for tb in range(tl.cdiv(T, BT)):
+            n = tb * BT + t
+            m2 = (n < T)[:, None] & k_ok[None, :]
+            at = ((r * S + s) * T + n[:, None]) * K + k[None, :]
+            log_gate, gate = _log_softmax(tl.load(OUT + at, mask=m2, other=0.0), k_ok)
+            target = tl.load(TARGETS + (((r % data_runs) * S + s) * T + n[:, None]) * K
+                             + k[None, :], mask=m2, other=0.0)
+            log_lik += tl.sum(tl.where(m2, target * log_gate, 0.0), axis=1)
+            if WANT:
+                tl.store(DO + at, target - gate * tl.sum(target, axis=1)[:, None],
+                         mask=m2 & on[None, :])
+    total = tl.sum(log_lik, axis=0)
+    objective = total
+    if ATTRACT:
+        objective += _attraction(SUMS, U0 + r * sU0, U0J, r * S, floor, S, T, H, HP, BJ)
+    kl = tl.load(ENTROPY + r % data_runs) - total
+    tl.store(STATS + r, objective)
+    tl.store(STATS + num_runs + r, total)
+    tl.store(STATS + 2 * num_runs + r, kl)
+    tl.store(STATS + 3 * num_runs + r, kl / (S * T * K))
 
 
 class _Problem:
-    """value_and_grad / value on device tensors; subclasses compute the objective from O."""
+    """value_and_grad / value / value_of_candidates on device tensors; a subclass builds its
+    lanes (`_net`) and launches its objective kernel (`_objective`)."""
 
     STATS: tuple
+    trials = TRIALS  # candidate steps of the adaptive rate evaluated in one call
 
-    def __init__(self, device):
+    def __init__(self, device, num_runs):
         self.device = torch.device(device)
+        self.num_runs, self.candidates = num_runs, None
+        self.everyone = torch.ones(num_runs * self.trials, dtype=torch.bool, device=self.device)
+        self.rnn = self._net(1)
 
     def resample(self, step: int) -> None:
         """Nothing to draw (see `GatingProblem`)."""
@@ -36,18 +189,28 @@ class _Problem:
     def value_and_grad(self, params: dict, grads: dict, active) -> dict:
         """Objective statistics per run (R,); every gradient of an active run is written into
         `grads` (the others keep theirs)."""
-        return self._call(params, grads, torch.as_tensor(active, device=self.device))
+        return self._call(self.rnn, params, grads, torch.as_tensor(active, device=self.device))
 
     def value(self, params: dict, active) -> dict:
         """The same statistics without gradients (every run is computed)."""
-        with torch.no_grad():
-            return self._call(params, None, None)
+        return self._call(self.rnn, params, None, self.everyone[:self.num_runs])
 
-    @staticmethod
-    def _write(grads, name, value, active):
-        target = grads[name]
-        mask = active.view((-1,) + (1,) * (target.dim() - 1))
-        target.copy_(torch.where(mask, value.to(target.dtype), target))
+    def value_of_candidates(self, params: dict) -> dict:
+        """Statistics (k·R,) of k = `trials` parameter sets per run in one forward and one
+        objective launch: params are (k·R, ...) groups, candidate j of run r in row j·R + r."""
+        if self.candidates is None:
+            self.candidates = self._net(self.trials)
+        return self._call(self.candidates, params, None, self.everyone)
+
+    def _call(self, rnn, params, grads, active):
+        want = grads is not None
+        stats = torch.empty((len(self.STATS), len(active)), dtype=rnn.O.dtype,
+                            device=self.device)
+        rnn.forward(self.X, params, want)
+        self._objective(rnn, params, grads, active, stats, want)
+        if want:
+            rnn.backward(self.X, params, grads, active, self.phase.attraction)
+        return dict(zip(self.STATS, stats.unbind(0), strict=True))
 
 
 class ExpertProblem(_Problem):
@@ -61,63 +224,41 @@ class ExpertProblem(_Problem):
     STATS = ("objective", "log_likelihood", "log_prior", "E")
 
     def __init__(self, inputs, targets, model, phase, num_runs, device="cuda"):
-        super().__init__(device)
         S, T, D = targets.shape[-3:]
-        R, K, M = num_runs, model.num_experts, model.experts.context_size
-        dtype = getattr(torch, str(np.dtype(inputs.dtype)))
-        self.shape, self.model, self.phase = (R, S, T, K, D, M), model, phase
-        own = np.ndim(inputs) == 4  # data per run: X holds R·S series
+        K, M = model.num_experts, model.experts.context_size
+        self.dtype = getattr(torch, str(np.dtype(inputs.dtype)))
+        self.shape, self.model, self.phase = (S, T, K, D, M), model, phase
+        self.own = np.ndim(inputs) == 4  # data per run: X holds R·S series
+        self.device = torch.device(device)
         self.X = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(
-            dtype).reshape(-1, T, D)
-        self.targets = torch.as_tensor(np.ascontiguousarray(targets), device=self.device).to(dtype)
-        lane = np.arange(R * K * S)
-        r, k, s = lane // (K * S), lane // S % K, lane % S
-        self.rnn = Net(len(lane), T, D, M, D, r * K + k, r * S * own + s, (r * S + s) * K + k,
-                        model.learn_time_constants, phase.attraction, dtype, self.device)
+            self.dtype).reshape(-1, T, D)
+        self.targets = torch.as_tensor(np.ascontiguousarray(targets), device=self.device).to(
+            self.dtype)
+        std = phase.gate_prior_std
+        self.const = torch.tensor([model.sigma_min ** 2, 2 * math.pi, std ** 2,
+                                   0.5 * math.log(2 * math.pi * std ** 2)], dtype=self.dtype,
+                                  device=self.device)
+        self.meta = dict(S=S, T=T, K=K, D=D, KP=pow2(K), DP=pow2(D), H=M, HP=pow2(M),
+                         OWN=int(self.own), BT=min(BT, pow2(T)), BJ=BJ)
+        super().__init__(device, num_runs)
 
-    def _call(self, params, grads, active):
-        R, S, T, K, D, M = self.shape
-        want = grads is not None
-        w, u0 = weights(params, 2), params["u0"].contiguous()
-        out = self.rnn.forward(self.X, w, u0, want)
-        with torch.enable_grad() if want else torch.no_grad():
-            o = out.view(R, K, S, T, D).detach().requires_grad_(want)
-            beta = params["beta"].detach().requires_grad_(want)
-            log_sigma = params["log_sigma"].detach().requires_grad_(want)
-            u0_leaf = params["u0"].detach().requires_grad_(want and self.phase.attraction)
-            outputs = torch.tanh(o).permute(0, 2, 3, 1, 4)  # (R, S, T, K, D)
-            log_ghat = torch.log_softmax(beta, -1)
-            variances = torch.exp(2 * log_sigma) + self.model.sigma_min ** 2
-            log_lik = objectives.mixture_log_likelihood(outputs, self.targets, log_ghat,
-                                                        variances)
-            log_prior = objectives.gate_prior_log_density(beta, self.phase.gate_prior_std)
-            total = log_lik + log_prior
-            if self.phase.attraction:
-                sums = self.rnn.S.view(R, K, S, 2, M).transpose(1, 2).reshape(R, S * K, 2, M)
-                total = total + _attraction(u0_leaf.reshape(R, S * K, M), sums, T + 1,
-                                            self.model.sigma_min ** 2)
-            error = objectives.mixture_mse(outputs, self.targets, log_ghat.exp())
-            stats = {"objective": total, "log_likelihood": log_lik, "log_prior": log_prior,
-                     "E": error}
-            if want:
-                leaves = [o, beta, log_sigma] + ([u0_leaf] if self.phase.attraction else [])
-                d = torch.autograd.grad(total.sum(), leaves)
-        if want:
-            self._gradients(params, grads, active, w, u0, d)
-        return {n: v.detach() for n, v in stats.items()}
+    def _net(self, copies):
+        """The lanes of `copies` x R runs; run r' reads the data of run r' mod R."""
+        S, T, K, D, M = self.shape
+        lane = np.arange(copies * self.num_runs * K * S)
+        r, k, s = lane // (K * S) % self.num_runs, lane // S % K, lane % S
+        return Net(copies * self.num_runs * K, K, S, T, D, M, D, r * S * self.own + s, s * K + k,
+                   self.model.learn_time_constants, self.phase.attraction,
+                   self.model.sigma_min ** 2, self.dtype, self.device, keep=copies == 1)
 
-    def _gradients(self, params, grads, active, w, u0, d):
-        R, S, T, K, D, M = self.shape
-        lane = self.rnn.backward(d[0].reshape(R * K * S, T, D), self.X, w, u0)
-        g_wi, g_wr, g_wo, g_bc, g_bo, g_eps, g_u0 = (
-            x.view((R, K, S) + x.shape[1:]) for x in lane)
-        net = {"w_in": g_wi.sum(2), "w_rec": g_wr.sum(2), "w_out": g_wo.sum(2),
-               "b_c": g_bc.sum(2), "b_o": g_bo.sum(2), "beta": d[1], "log_sigma": d[2]}
-        net["u0"] = g_u0.transpose(1, 2) + (d[3] if self.phase.attraction else 0)
-        if "tau" in grads:  # ∂/∂τ = -ε² ∂/∂ε
-            net["tau"] = -g_eps.sum(2) * w["eps"].view(R, K, M) ** 2
-        for name in grads:
-            self._write(grads, name, net[name], active)
+    def _objective(self, rnn, params, grads, active, stats, want):
+        g = grads if want else params  # (not written without WANT)
+        launch(mixture_objective, len(active), rnn.O, self.targets, params["beta"],
+               params["log_sigma"], rnn.S, params["u0"], rnn.u0j, self.const, active,
+               rnn.DO, g["beta"], g["log_sigma"],
+               *strides(params, ("beta", "log_sigma", "u0")), *strides(g, ("beta", "log_sigma")),
+               len(active), self.num_runs, STATS=stats, WANT=want,
+               ATTRACT=self.phase.attraction, **self.meta)
 
 
 class GatingProblem(_Problem):
@@ -128,22 +269,32 @@ class GatingProblem(_Problem):
     STATS = ("objective", "log_likelihood", "kl", "E_g")
 
     def __init__(self, gate_targets, inputs, model, phase, seeds, device="cuda"):
-        super().__init__(device)
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
-        dtype = getattr(torch, str(np.dtype(gate_targets.dtype)))
+        self.dtype = getattr(torch, str(np.dtype(gate_targets.dtype)))
         self.shape, self.model, self.phase, self.seeds = (R, S, T_g, K, D, H), model, phase, seeds
-        ghat = torch.as_tensor(np.ascontiguousarray(gate_targets), device=self.device).to(dtype)
-        x = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(dtype)
+        self.device = torch.device(device)
+        ghat = torch.as_tensor(np.ascontiguousarray(gate_targets), device=self.device).to(
+            self.dtype)
+        x = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(self.dtype)
         self.targets = ghat[:, :, delay:].contiguous()
         feed = torch.cat([ghat[:, :, :T_g], x[..., :T_g, :].expand(R, -1, -1, -1)], -1)
         self.clean = feed.reshape(R * S, T_g, K + D).contiguous()
         self.X = self.clean.clone()
         self.entropy = torch.xlogy(self.targets, self.targets).sum((1, 2, 3))
-        lane = np.arange(R * S)
-        self.rnn = Net(len(lane), T_g, K + D, H, K, lane // S, lane, lane,
-                        model.learn_time_constants, phase.attraction, dtype, self.device)
+        self.const = torch.tensor([model.sigma_min ** 2], dtype=self.dtype, device=self.device)
+        self.meta = dict(S=S, T=T_g, K=K, KP=pow2(K), H=H, HP=pow2(H), BT=min(BT, pow2(T_g)),
+                         BJ=BJ)
+        super().__init__(device, R)
+
+    def _net(self, copies):
+        """The lanes of `copies` x R runs; run r' reads the inputs of run r' mod R."""
+        R, S, T_g, K, D, H = self.shape
+        lane = np.arange(copies * R * S)
+        return Net(copies * R, 1, S, T_g, K + D, H, K, lane % (R * S), lane % S,
+                   self.model.learn_time_constants, self.phase.attraction,
+                   self.model.sigma_min ** 2, self.dtype, self.device, keep=copies == 1)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""
@@ -155,35 +306,8 @@ class GatingProblem(_Problem):
         noise = torch.as_tensor(noise[:, :, :T_g].reshape(R * S, T_g, D), device=self.device)
         self.X[:, :, K:] = self.clean[:, :, K:] + noise
 
-    def _call(self, params, grads, active):
-        R, S, T_g, K, D, H = self.shape
-        want = grads is not None
-        w, u0 = weights(params, 1), params["u0"].contiguous()
-        out = self.rnn.forward(self.X, w, u0, want)
-        with torch.enable_grad() if want else torch.no_grad():
-            o = out.view(R, S, T_g, K).detach().requires_grad_(want)
-            u0_leaf = params["u0"].detach().requires_grad_(want and self.phase.attraction)
-            log_gates = torch.log_softmax(o, -1)
-            log_lik = objectives.gating_log_likelihood(log_gates, self.targets)
-            kl = self.entropy - log_lik
-            total = log_lik
-            if self.phase.attraction:
-                total = total + _attraction(u0_leaf, self.rnn.S.view(R, S, 2, H), T_g + 1,
-                                            self.model.sigma_min ** 2)
-            stats = {"objective": total, "log_likelihood": log_lik, "kl": kl,
-                     "E_g": kl / (S * T_g * K)}
-            if want:
-                leaves = [o] + ([u0_leaf] if self.phase.attraction else [])
-                d = torch.autograd.grad(total.sum(), leaves)
-        if want:
-            lane = self.rnn.backward(d[0].reshape(R * S, T_g, K), self.X, w, u0)
-            g_wi, g_wr, g_wo, g_bc, g_bo, g_eps, g_u0 = (
-                x.view((R, S) + x.shape[1:]) for x in lane)
-            net = {"w_in": g_wi.sum(1), "w_rec": g_wr.sum(1), "w_out": g_wo.sum(1),
-                   "b_c": g_bc.sum(1), "b_o": g_bo.sum(1),
-                   "u0": g_u0 + (d[1] if self.phase.attraction else 0)}
-            if "tau" in grads:
-                net["tau"] = -g_eps.sum(1) * w["eps"] ** 2
-            for name in grads:
-                self._write(grads, name, net[name], active)
-        return {n: v.detach() for n, v in stats.items()}
+    def _objective(self, rnn, params, grads, active, stats, want):
+        launch(softmax_objective, len(active), rnn.O, self.targets, self.entropy, rnn.S,
+               params["u0"], rnn.u0j, self.const, active, rnn.DO, *strides(params, ("u0",)),
+               len(active), self.num_runs, STATS=stats, WANT=want,
+               ATTRACT=self.phase.attraction, **self.meta)

@@ -1,15 +1,17 @@
 """The leaky RNN of Eqs. 1-3 / 5-8, teacher forced, as two Triton kernels: the forward pass and
-its backward pass (BPTT). Both training phases of the GPU backend (`moex.kernels.gpu.phases`) are
-these two kernels with the phase's objective between them.
+its backward pass (BPTT). A training step of either phase (`moex.kernels.gpu.phases`) is the
+forward kernel, the phase's objective kernel and the backward kernel: three launches.
 
 Layout (the same lanes as the CPU backend, `moex.kernels.cpu`): every independent recurrence is a
-*lane* — an (expert, series) pair of a run in phase 1, a series of a run in phase 2. A program
-runs a block of `BL` lanes through the whole time loop, each lane holding its own network's
-weights in registers as a (BL, rows, cols) tile; lane l reads its weights from network `net[l]`,
-its inputs from row `xrow[l]` of X (NX, T, NI) and its initial state from row `u0row[l]` of
-U0 (·, H). Sizes are padded to powers of two inside (masked).
+*lane* — an (expert, series) pair of a run in phase 1, a series of a run in phase 2. Network n
+(expert k = n mod NPR of run r = n div NPR; NPR networks per run) owns the LPN lanes n·LPN + j.
+A program runs one network: its weights once in registers, its lanes in chunks of BL through the
+whole time loop. Lane l reads row XROW[l] of X (NX, T, NI) and row U0J[l] of its run's u_0.
+Parameters are read where the training loop keeps them: the (R, ...) groups of its flat buffer,
+run r at r·stride (each group's stride an argument), the rest contiguous. Sizes are padded to
+powers of two inside (masked).
 
-Forward (per lane, Eqs. 1-2 with the output layer):
+Forward (per lane, Eqs. 1-2 with the output layer), ε = 1/τ:
     c_{-1} = tanh(u_0 + b),  u_t = u_{t-1} + ε (W_in x_t + W_rec c_{t-1} - u_{t-1}),
     c_t = tanh(u_t + b),     o_t = W_out c_t + b_o                       (t = 0..T-1)
 The kernel writes o_t (the objective applies tanh or softmax), c_t for the backward pass, u_t when
@@ -21,10 +23,13 @@ Backward, given δo_t = ∂L/∂o_t; with a_t = ∂L/∂u_t and q_t = u_t + b:
     ∂W_in += (ε a_t) x_tᵀ,  ∂W_rec += (ε a_t) c_{t-1}ᵀ,  ∂ε += a_t (u_t - u_{t-1}) / ε,
 and at the start, where c_{-1} = tanh(u_0 + b) feeds step 0 with r = W_recᵀ ε a_0:
     ∂u_0 = (1 - ε) a_0 + (1 - c_{-1}²) r,  ∂b += (1 - c_{-1}²) r.
-Gradients are per lane; the caller sums the lanes of each network.
+With the attraction, ∂u_0 += (μ - u_0) / v (μ, v: the lane's mean and floored variance of
+{u_0..u_T}, held constant). The program sums its lanes' gradients (in a fixed order: reruns are
+exact) and writes them, ∂τ = -ε² ∂ε included, into the training loop's gradient buffer; a run
+that is not active keeps what its gradients held.
 
 Real-valued constants are never kernel arguments: a Python float reaches a GPU kernel as a
-float32 scalar (ε = 0.2 became 0.2000000030 in float64 runs), so ε is read from memory.
+float32 scalar (ε = 0.2 became 0.2000000030 in float64 runs), so they are read from memory.
 Loop bounds are `tl.constexpr` (the interpreter that runs these kernels on a CPU needs it).
 """
 
@@ -40,23 +45,44 @@ def _tanh(x):
 
 
 @triton.jit
+def _reciprocal(x):
+    """1/x rounded correctly in both precisions (a float32 `/` is approximate on a GPU)."""
+    if x.dtype == tl.float32:
+        out = tl.math.div_rn(tl.full(x.shape, 1.0, x.dtype), x)
+    else:
+        out = 1.0 / x
+    return out
+
+
+@triton.jit
 def _matvec(w, v):
-    """(BL, R, C) · (BL, C) -> (BL, R)."""
-    return tl.sum(w * v[:, None, :], axis=2)
+    """(R, C) · (BL, C) -> (BL, R)."""
+    return tl.sum(w[None, :, :] * v[:, None, :], axis=2)
 
 
 @triton.jit
 def _matvec_t(w, v):
-    """(BL, R, C)ᵀ · (BL, R) -> (BL, C)."""
-    return tl.sum(w * v[:, :, None], axis=1)
+    """(R, C)ᵀ · (BL, R) -> (BL, C)."""
+    return tl.sum(w[None, :, :] * v[:, :, None], axis=1)
 
 
 @triton.jit
-def _tile(ptr, net, lane_ok, rows, cols, NR: tl.constexpr, NC: tl.constexpr):
-    """The (BL, RP, CP) weight tile of each lane's network from (networks, NR, NC) memory."""
-    offs = net[:, None, None] * (NR * NC) + rows[None, :, None] * NC + cols[None, None, :]
-    mask = lane_ok[:, None, None] & (rows < NR)[None, :, None] & (cols < NC)[None, None, :]
-    return tl.load(ptr + offs, mask=mask, other=0.0)
+def _tile(ptr, rows, cols, NR: tl.constexpr, NC: tl.constexpr):
+    """The (RP, CP) tile of the (NR, NC) matrix at `ptr`."""
+    mask = (rows < NR)[:, None] & (cols < NC)[None, :]
+    return tl.load(ptr + rows[:, None] * NC + cols[None, :], mask=mask, other=0.0)
+
+
+@triton.jit
+def _put_tile(ptr, rows, cols, value, on, NR: tl.constexpr, NC: tl.constexpr):
+    """Store an (RP, CP) tile where `on` ((RP,) bools: the run is active)."""
+    mask = on[:, None] & (rows < NR)[:, None] & (cols < NC)[None, :]
+    tl.store(ptr + rows[:, None] * NC + cols[None, :], value, mask=mask)
+
+
+@triton.jit
+def _vector(ptr, cols, NC: tl.constexpr, other):
+    return tl.load(ptr + cols, mask=cols < NC, other=other)
 
 
 @triton.jit
@@ -73,103 +99,137 @@ def _put(ptr, index, lane_ok, cols, value, NC: tl.constexpr):
 
 
 @triton.jit
-def _put_tile(ptr, lane, lane_ok, rows, cols, value, NR: tl.constexpr, NC: tl.constexpr):
-    offs = lane[:, None, None] * (NR * NC) + rows[None, :, None] * NC + cols[None, None, :]
-    mask = lane_ok[:, None, None] & (rows < NR)[None, :, None] & (cols < NC)[None, None, :]
-    tl.store(ptr + offs, value, mask=mask)
+def _network(NPR: tl.constexpr):
+    """This program's network n, its run r and its index k within the run (int64)."""
+    n = tl.program_id(0).to(tl.int64)
+    return n, n // NPR, n % NPR
 
 
 @triton.jit
-def _lanes(NET, XROW, num_lanes, BL: tl.constexpr):
-    """This program's BL lanes (int64: offsets past 2³¹), which exist, and each lane's network and
-    input row."""
-    lane = (tl.program_id(0) * BL + tl.arange(0, BL)).to(tl.int64)
-    ok = lane < num_lanes
-    return (lane, ok, tl.load(NET + lane, mask=ok, other=0),
-            tl.load(XROW + lane, mask=ok, other=0))
+def _chunk(XROW, U0J, n, chunk, LPN: tl.constexpr, BL: tl.constexpr):
+    """Lanes of network n in chunk `chunk`, which exist, their input rows and u_0 rows."""
+    j = chunk * BL + tl.arange(0, BL)
+    ok = j < LPN
+    lane = n * LPN + j
+    return (lane, ok, tl.load(XROW + lane, mask=ok, other=0),
+            tl.load(U0J + lane, mask=ok, other=0))
 
 
 @triton.jit
-def rnn_forward(X, XROW, NET, U0ROW, WI, WR, WO, BC, BO, EPS, U0, OUT, C, U, SUMS, num_lanes,
+def rnn_forward(X, XROW, U0J, WI, WR, WO, BC, BO, TAU, U0, OUT, C, U, SUMS,
+                sWI, sWR, sWO, sBC, sBO, sTAU, sU0,
                 T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
                 NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
+                LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
                 KEEP_C: tl.constexpr, KEEP_U: tl.constexpr, KEEP_SUMS: tl.constexpr):
-    """Forward pass of BL lanes: OUT (L, T, NO) always; C, U (L, T, H) and SUMS (L, 2, H) when
-    KEEP_C, KEEP_U, KEEP_SUMS."""
-    lane, ok, net, xrow = _lanes(NET, XROW, num_lanes, BL)
+    """Forward pass of one network's lanes: OUT (L, T, NO) always; C, U (L, T, H) and SUMS
+    (L, 2, H) when KEEP_C, KEEP_U, KEEP_SUMS."""
+    n, r, k = _network(NPR)
     h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
-    wi = _tile(WI, net, ok, h, i, H, NI)
-    wr = _tile(WR, net, ok, h, h, H, H)
-    wo = _tile(WO, net, ok, o, h, NO, H)
-    bc, eps = _row(BC, net, ok, h, H), _row(EPS, net, ok, h, H)
-    bo = _row(BO, net, ok, o, NO)
-    u = _row(U0, tl.load(U0ROW + lane, mask=ok, other=0), ok, h, H)
-    c = _tanh(u + bc)
-    s1, s2 = u, u * u
-    for t in range(T):
-        x = _row(X, xrow * T + t, ok, i, NI)
-        u = u + eps * (_matvec(wi, x) + _matvec(wr, c) - u)
+    wi = _tile(WI + r * sWI + k * (H * NI), h, i, H, NI)
+    wr = _tile(WR + r * sWR + k * (H * H), h, h, H, H)
+    wo = _tile(WO + r * sWO + k * (NO * H), o, h, NO, H)
+    bc = _vector(BC + r * sBC + k * H, h, H, 0.0)[None, :]
+    bo = _vector(BO + r * sBO + k * NO, o, NO, 0.0)[None, :]
+    eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
+    for chunk in range(CHUNKS):
+        lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
+        u = _row(U0 + r * sU0, u0j, ok, h, H)
         c = _tanh(u + bc)
+        s1, s2 = u, u * u
+        for t in range(T):
+            x = _row(X, xrow * T + t, ok, i, NI)
+            u = u + eps * (_matvec(wi, x) + _matvec(wr, c) - u)
+            c = _tanh(u + bc)
+            if KEEP_SUMS:
+                s1 += u
+                s2 += u * u
+            if KEEP_C:
+                _put(C, lane * T + t, ok, h, c, H)
+            if KEEP_U:
+                _put(U, lane * T + t, ok, h, u, H)
+            _put(OUT, lane * T + t, ok, o, _matvec(wo, c) + bo, NO)
         if KEEP_SUMS:
-            s1 += u
-            s2 += u * u
-        if KEEP_C:
-            _put(C, lane * T + t, ok, h, c, H)
-        if KEEP_U:
-            _put(U, lane * T + t, ok, h, u, H)
-        _put(OUT, lane * T + t, ok, o, _matvec(wo, c) + bo, NO)
-    if KEEP_SUMS:
-        _put(SUMS, lane * 2, ok, h, s1, H)
-        _put(SUMS, lane * 2 + 1, ok, h, s2, H)
+            _put(SUMS, lane * 2, ok, h, s1, H)
+            _put(SUMS, lane * 2 + 1, ok, h, s2, H)
 
 
 @triton.jit
-def rnn_backward(DO, X, XROW, NET, U0ROW, WI, WR, WO, BC, EPS, U0, C, U,
-                 G_WI, G_WR, G_WO, G_BC, G_BO, G_EPS, G_U0, num_lanes,
+def rnn_backward(DO, X, XROW, U0J, WR, WO, BC, TAU, U0, C, U, SUMS, ACTIVE, FLOOR,
+                 G_WI, G_WR, G_WO, G_BC, G_BO, G_TAU, G_U0,
+                 sWR, sWO, sBC, sTAU, sU0, sGWI, sGWR, sGWO, sGBC, sGBO, sGTAU, sGU0,
                  T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
                  NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
-                 LEARN_EPS: tl.constexpr):
-    """Backward pass of BL lanes given DO (L, T, NO) = ∂L/∂o_t: every per-lane gradient,
-    G_WI (L, H, NI), G_WR (L, H, H), G_WO (L, NO, H), G_BC, G_EPS, G_U0 (L, H), G_BO (L, NO)
-    (G_EPS only when LEARN_EPS; it then reads U)."""
-    lane, ok, net, xrow = _lanes(NET, XROW, num_lanes, BL)
+                 LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
+                 LEARN_EPS: tl.constexpr, ATTRACT: tl.constexpr):
+    """Backward pass of one network's lanes given DO (L, T, NO) = ∂L/∂o_t: the network's
+    gradients G_WI (H, NI), G_WR (H, H), G_WO (NO, H), G_BC (H), G_BO (NO), G_TAU (H, when
+    LEARN_EPS; it then reads U) and each lane's G_U0 (H), written where ACTIVE[r]."""
+    n, r, k = _network(NPR)
     h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
-    wr = _tile(WR, net, ok, h, h, H, H)
-    wo = _tile(WO, net, ok, o, h, NO, H)
-    bc, eps = _row(BC, net, ok, h, H), _row(EPS, net, ok, h, H)
-    u0 = _row(U0, tl.load(U0ROW + lane, mask=ok, other=0), ok, h, H)
-    c0 = _tanh(u0 + bc)
-    zero_h = tl.zeros((BL, HP), dtype=bc.dtype)
-    a, back, gbc, geps = zero_h, zero_h, zero_h, zero_h
-    gwi = tl.zeros((BL, HP, NIP), dtype=bc.dtype)
-    gwr = tl.zeros((BL, HP, HP), dtype=bc.dtype)
-    gwo = tl.zeros((BL, NOP, HP), dtype=bc.dtype)
-    gbo = tl.zeros((BL, NOP), dtype=bc.dtype)
-    for step in range(T):
-        t = T - 1 - step
-        c = _row(C, lane * T + t, ok, h, H)
-        first = t == 0
-        before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
-        prev = tl.where(first, c0, _row(C, lane * T + t - 1, before, h, H))
-        do = _row(DO, lane * T + t, ok, o, NO)
-        dq = (1.0 - c * c) * (_matvec_t(wo, do) + back)
-        gbc += dq
-        a = (1.0 - eps) * a + dq
-        ea = eps * a
-        gbo += do
-        gwo += do[:, :, None] * c[:, None, :]
-        gwi += ea[:, :, None] * _row(X, xrow * T + t, ok, i, NI)[:, None, :]
-        gwr += ea[:, :, None] * prev[:, None, :]
-        if LEARN_EPS:
-            u = _row(U, lane * T + t, ok, h, H)
-            u_prev = tl.where(first, u0, _row(U, lane * T + t - 1, before, h, H))
-            geps += a * (u - u_prev) / tl.where(eps != 0.0, eps, 1.0)  # padding: ε = 0
-        back = _matvec_t(wr, ea)
-    dq = (1.0 - c0 * c0) * back
-    _put(G_BC, lane, ok, h, gbc + dq, H)
-    _put(G_U0, lane, ok, h, (1.0 - eps) * a + dq, H)
-    _put(G_EPS, lane, ok, h, geps, H)
-    _put(G_BO, lane, ok, o, gbo, NO)
-    _put_tile(G_WI, lane, ok, h, i, gwi, H, NI)
-    _put_tile(G_WR, lane, ok, h, h, gwr, H, H)
-    _put_tile(G_WO, lane, ok, o, h, gwo, NO, H)
+    on_h = tl.load(ACTIVE + r + 0 * h) != 0  # (a vector: the interpreter's masks need one)
+    wr = _tile(WR + r * sWR + k * (H * H), h, h, H, H)
+    wo = _tile(WO + r * sWO + k * (NO * H), o, h, NO, H)
+    bc = _vector(BC + r * sBC + k * H, h, H, 0.0)[None, :]
+    eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
+    n_wi = tl.zeros((HP, NIP), dtype=wr.dtype)
+    n_wr = tl.zeros((HP, HP), dtype=wr.dtype)
+    n_wo = tl.zeros((NOP, HP), dtype=wr.dtype)
+    n_bc = tl.zeros((HP,), dtype=wr.dtype)
+    n_bo = tl.zeros((NOP,), dtype=wr.dtype)
+    n_eps = tl.zeros((HP,), dtype=wr.dtype)
+    for chunk in range(CHUNKS):
+        lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
+        ok = ok & (tl.load(ACTIVE + r + 0 * lane) != 0)
+        u0 = _row(U0 + r * sU0, u0j, ok, h, H)
+        c0 = _tanh(u0 + bc)
+        zero_h = tl.zeros((BL, HP), dtype=wr.dtype)
+        a, back, gbc, geps = zero_h, zero_h, zero_h, zero_h
+        gwi = tl.zeros((BL, HP, NIP), dtype=wr.dtype)
+        gwr = tl.zeros((BL, HP, HP), dtype=wr.dtype)
+        gwo = tl.zeros((BL, NOP, HP), dtype=wr.dtype)
+        gbo = tl.zeros((BL, NOP), dtype=wr.dtype)
+        for step in range(T):
+            t = T - 1 - step
+            c = _row(C, lane * T + t, ok, h, H)
+            first = t == 0
+            before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
+            prev = tl.where(first, c0, _row(C, lane * T + t - 1, before, h, H))
+            do = _row(DO, lane * T + t, ok, o, NO)
+            dq = (1.0 - c * c) * (_matvec_t(wo, do) + back)
+            gbc += dq
+            a = (1.0 - eps) * a + dq
+            ea = eps * a
+            gbo += do
+            gwo += do[:, :, None] * c[:, None, :]
+            gwi += ea[:, :, None] * _row(X, xrow * T + t, ok, i, NI)[:, None, :]
+            gwr += ea[:, :, None] * prev[:, None, :]
+            if LEARN_EPS:
+                u = _row(U, lane * T + t, ok, h, H)
+                u_prev = tl.where(first, u0, _row(U, lane * T + t - 1, before, h, H))
+                geps += a * (u - u_prev) / eps
+            back = _matvec_t(wr, ea)
+        dq = (1.0 - c0 * c0) * back
+        g_u0 = (1.0 - eps) * a + dq
+        if ATTRACT:
+            count = T + 1
+            mean = _row(SUMS, lane * 2, ok, h, H) / count
+            var = tl.maximum(_row(SUMS, lane * 2 + 1, ok, h, H) / count - mean * mean,
+                             tl.load(FLOOR))
+            g_u0 += (mean - u0) / var
+        _put(G_U0 + r * sGU0, u0j, ok, h, g_u0, H)
+        n_bc += tl.sum(gbc + dq, axis=0)
+        n_bo += tl.sum(gbo, axis=0)
+        n_eps += tl.sum(geps, axis=0)
+        n_wi += tl.sum(gwi, axis=0)
+        n_wr += tl.sum(gwr, axis=0)
+        n_wo += tl.sum(gwo, axis=0)
+    tl.store(G_BC + r * sGBC + k * H + h, n_bc, mask=on_h & (h < H))
+    tl.store(G_BO + r * sGBO + k * NO + o, n_bo, mask=(tl.load(ACTIVE + r + 0 * o) != 0) & (o < NO))
+    if LEARN_EPS:  # ∂/∂τ = -ε² ∂/∂ε
+        eps_h = tl.sum(eps, axis=0)
+        tl.store(G_TAU + r * sGTAU + k * H + h, -n_eps * (eps_h * eps_h), mask=on_h & (h < H))
+    _put_tile(G_WI + r * sGWI + k * (H * NI), h, i, n_wi, on_h, H, NI)
+    _put_tile(G_WR + r * sGWR + k * (H * H), h, h, n_wr, on_h, H, H)
+    _put_tile(G_WO + r * sGWO + k * (NO * H), o, h, n_wo, tl.load(ACTIVE + r + 0 * o) != 0,
+              NO, H)
