@@ -44,8 +44,8 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor) -> dict[
     params = init_experts(cfg.model, S, D, gens)
     fixed = {"tau": params.pop("tau")}
     params["beta"] = torch.zeros(R, S, T, K, dtype=series.dtype)
-    problem = phases.ExpertProblem(series[:, :-1].numpy(), series[:, 1:].numpy(), cfg.model,
-                                   ExpertPhaseConfig(), R)
+    problem = phases.ExpertProblem(series[:, :-1], series[:, 1:], cfg.model, ExpertPhaseConfig(),
+                                   R)
     grads = {k: torch.zeros_like(v) for k, v in params.items()}
     net = {**params, **fixed}
     active = torch.ones(R, dtype=torch.bool)

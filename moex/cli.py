@@ -4,14 +4,10 @@ Overrides are composed and validated with Hydra's compose API before the run sta
 value or unknown key ends with one line on stderr and exit code 2, and nothing is written.
 """
 
-import contextlib
 import copy
 import difflib
-import fcntl
-import json
 import logging
 import os
-import shutil
 import signal
 import sys
 import time
@@ -29,29 +25,13 @@ from omegaconf import OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from moex import checkpoint, config, pipeline, provenance, report
+from moex import config, folders, pipeline, provenance, report
 from moex.config import EvaluateConfig, register_configs
 from moex.errors import ConfigError, Interrupted, check, closest_first
-from moex.io import atomic_write, write_csv
 
 log = logging.getLogger("moex")
 CONF_DIR = str(config.CONF_DIR)
-LOCK = ".moex.lock"
-
-JOBS_INDEX = "jobs.csv"
 SHOWS_CONFIG = {"--cfg", "-c", "--info"}  # Hydra flags that print instead of running
-
-
-def _write_job_index(sweep_dir: Path) -> None:
-    """`jobs.csv` at the sweep root: every job folder so far and its overrides. Each job
-    rewrites it when it starts (atomically), so the last one to start lists them all."""
-    rows = []
-    for path in sorted(sweep_dir.glob("*/.hydra/overrides.yaml"),
-                       key=lambda p: (len(p.parent.parent.name), p.parent.parent.name)):
-        overrides = OmegaConf.to_container(OmegaConf.load(path))
-        rows.append({"folder": path.parent.parent.name, "overrides": " ".join(overrides)})
-    if rows:
-        write_csv(sweep_dir / JOBS_INDEX, rows)
 
 
 USAGE = """usage: moex <verb> [-m] [key=value ...]    (moex --version: the installed version)
@@ -185,7 +165,7 @@ def typed_job_config(sweep_config) -> object:
 def interrupted_jobs(folders: list[Path], exc: BaseException) -> None:
     """A packed batch stopped by a signal: each job folder says so, and how to continue."""
     for folder in folders:
-        _write_status(Path(folder), verb="train", status="interrupted", error=str(exc))
+        folders.write_status(Path(folder), verb="train", status="interrupted", error=str(exc))
     print(f"moex: interrupted ({exc}); every job's trained state is saved: re-run the same "
           f"command with hydra.sweep.dir={Path(folders[0]).parent} to continue", file=sys.stderr)
 
@@ -233,44 +213,7 @@ def _launcher_hint(exc: BaseException) -> str:
     return ""
 
 
-STATUS = "status.json"
-
-
-def _write_status(out_dir: Path, **status) -> None:
-    text = json.dumps(status, indent=1)
-    atomic_write(out_dir / STATUS, lambda tmp: Path(tmp).write_text(text))
-
-
-def _discard_if_empty(out_dir: Path, verb: str) -> bool:
-    """After a failed `evaluate` or `generate`: remove its new folder when it holds nothing but
-    Hydra's log (the run folder itself is never touched). True when removed."""
-    if verb == "train" or not out_dir.is_dir():
-        return False
-    logging.shutdown()  # release the log file before removing it
-    if {p.name for p in out_dir.iterdir()} - {f"{verb}.log", LOCK}:
-        return False
-    shutil.rmtree(out_dir)
-    if out_dir.parent.name == verb and not any(out_dir.parent.iterdir()):
-        out_dir.parent.rmdir()
-    return True
-
-
 _sweeps: set[Path] = set()  # the sweep folders this process ran jobs in (basic launcher)
-
-
-def _sweep_summary(sweep_dir: Path, verb: str) -> str:
-    """One line at the end of a sweep: where it is, how its jobs ended, and what to run next."""
-    ended: dict[str, int] = {}
-    seconds = 0.0
-    for path in sweep_dir.glob(f"*/{STATUS}"):
-        with contextlib.suppress(OSError, ValueError):
-            status = json.loads(path.read_text())
-            ended[status.get("status", "?")] = ended.get(status.get("status", "?"), 0) + 1
-            seconds += float(status.get("seconds", 0.0))
-    jobs = len(list(sweep_dir.glob("*/.hydra")))
-    counts = ", ".join(f"{n} {state}" for state, n in sorted(ended.items())) or f"{jobs} jobs"
-    hint = f"; compare them with: moex report {sweep_dir}" if verb == "train" else ""
-    return f"moex: sweep folder {sweep_dir}: {jobs} jobs ({counts}, {seconds / 60:.1f} min){hint}"
 
 
 def _job(run, verb: str):
@@ -285,12 +228,12 @@ def _job(run, verb: str):
         hydra_cfg = HydraConfig.get()
         out_dir = Path(hydra_cfg.runtime.output_dir)
         cfg = _typed(dict_cfg, hydra_cfg.runtime.choices)
-        status = (lambda **kw: _write_status(out_dir, verb=verb, **kw)) if verb == "train" \
+        status = (lambda **kw: folders.write_status(out_dir, verb=verb, **kw)) if verb == "train" \
             else (lambda **kw: None)
         started = time.time()
         if hydra_cfg.mode == RunMode.MULTIRUN:
             _sweeps.add(Path(hydra_cfg.sweep.dir).resolve())
-            _write_job_index(Path(hydra_cfg.sweep.dir))
+            folders.write_job_index(Path(hydra_cfg.sweep.dir))
         try:
             with logging_redirect_tqdm(), pipeline.StopRequest() as stop, provenance.recorded(
                     out_dir, verb, getattr(cfg, "backend", None), getattr(cfg, "device", None),
@@ -299,7 +242,7 @@ def _job(run, verb: str):
         except ConfigError as exc:
             log.error("%s", exc)
             status(status="failed", error=str(exc))
-            _discard_if_empty(out_dir, verb)
+            folders.discard_if_empty(out_dir, verb)
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
         except Interrupted as exc:
@@ -310,7 +253,7 @@ def _job(run, verb: str):
                 print(f"moex: interrupted ({exc}); re-run the same command with "
                       f"hydra.run.dir={out_dir} (or resume=true) to continue", file=sys.stderr)
             else:
-                _discard_if_empty(out_dir, verb)
+                folders.discard_if_empty(out_dir, verb)
                 print(f"moex: interrupted ({exc}); nothing was written", file=sys.stderr)
             sys.exit(128 + (stop.signum or signal.SIGINT))
         except Exception as exc:
@@ -318,7 +261,7 @@ def _job(run, verb: str):
             status(status="failed", error=f"{type(exc).__name__}: {exc}")
             if hydra_cfg.mode == RunMode.MULTIRUN:
                 return  # the sweep goes on; moex report lists failed jobs
-            where = "" if _discard_if_empty(out_dir, verb) else f" (traceback in {out_dir})"
+            where = "" if folders.discard_if_empty(out_dir, verb) else f" (traceback in {out_dir})"
             print(f"moex: error: {type(exc).__name__}: {exc}{where}", file=sys.stderr)
             sys.exit(1)
         status(status="done", seconds=round(time.time() - started, 1))
@@ -401,7 +344,7 @@ def main(argv: list[str] | None = None) -> None:
                 args = args + [f"hydra.run.dir={_latest_run(cfg.task.name)}"]
             if verb != "train" and cfg.out_dir:
                 args = args + [f"hydra.run.dir={cfg.out_dir}"]
-            claimed = _claim_folder(args, multirun, verb, cfg)
+            claimed = folders.claim(args, multirun, verb, cfg)
         except ConfigError as exc:
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
@@ -414,12 +357,12 @@ def main(argv: list[str] | None = None) -> None:
         entry()
     finally:
         if claimed is not None:
-            _release(claimed, args, multirun)
-    sweep = _named_folder(args, "hydra.sweep.dir")
+            folders.release(claimed, args, multirun)
+    sweep = folders.named_folder(args, "hydra.sweep.dir")
     if multirun and sweep is not None and sweep.is_dir():
         _sweeps.add(sweep.resolve())
     for folder in sorted(_sweeps):
-        print(_sweep_summary(folder, verb))
+        print(folders.sweep_summary(folder, verb))
 
 
 COMPLETION = ("install=bash", "install=zsh", "install=fish", "uninstall=bash", "uninstall=zsh",
@@ -447,51 +390,3 @@ def _shell_completion(args: list[str]) -> None:
     sys.argv = ["moex", "-sc", args[0]]
     hydra.main(version_base="1.3", config_path=CONF_DIR,
                config_name=VERBS[verb][0])(VERBS[verb][1])()
-
-
-def _named_folder(args: list[str], key: str) -> Path | None:
-    """The folder an explicit `key=...` override names (the last one wins), else None."""
-    values = [a.split("=", 1)[1] for a in args if a.startswith(f"{key}=")]
-    return Path(values[-1]) if values else None
-
-
-def _claim_folder(args: list[str], multirun: bool, verb: str, cfg) -> int | None:
-    """Before Hydra writes anything: check the folder a command was pointed at (a run folder,
-    an out_dir, a sweep folder) and lock it against a second moex process. A run folder that
-    holds a checkpoint must hold a readable one from the same training config, so that a
-    refused command never touches a finished run. Returns the lock's file descriptor."""
-    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
-    folder = _named_folder(args, key)
-    if folder is None:  # a new dated folder: nobody else writes it
-        return None
-    shown = "out_dir" if verb != "train" and not multirun else key
-    check(not folder.exists() or folder.is_dir(), f"{shown}={folder} is a file, not a folder")
-    if verb == "train" and not multirun and (folder / checkpoint.NAME).exists():
-        pipeline.check_same_training(checkpoint.load(folder / checkpoint.NAME).config, cfg,
-                                     folder / checkpoint.NAME)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as exc:
-        raise ConfigError(f"{shown}={folder} cannot be written ({exc.strerror})") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-        os.close(fd)
-        raise ConfigError(f"{shown}={folder} is being written by another moex process (pid "
-                          f"{holder}); wait for it to finish or choose another folder") from None
-    if not (folder / LOCK).exists() or os.stat(folder / LOCK).st_ino != os.fstat(fd).st_ino:
-        os.close(fd)  # the holder removed the file as we opened it: claim the new one
-        return _claim_folder(args, multirun, verb, cfg)
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, str(os.getpid()).encode(), 0)
-    return fd
-
-
-def _release(fd: int, args: list[str], multirun: bool) -> None:
-    """Remove the lock file (a finished folder keeps no trace of it), then unlock."""
-    folder = _named_folder(args, "hydra.sweep.dir" if multirun else "hydra.run.dir")
-    with contextlib.suppress(OSError):
-        (folder / LOCK).unlink()
-    os.close(fd)

@@ -5,9 +5,9 @@ memory. The dynamics themselves are `moex.model.closed_loop_step` and a backend'
 import torch
 
 from moex import progress
-from moex.errors import Interrupted
+from moex.errors import never, stop_if_asked
 from moex.kernels import Backend, get_backend
-from moex.metrics.lyapunov import benettin, initial_tangents
+from moex.metrics.lyapunov import benettin, chunks, initial_tangents
 from moex.model import ClosedLoopState
 
 CHUNK = 500  # closed-loop steps per call of the time loop (bounds the memory of the records)
@@ -54,11 +54,6 @@ def random_state(experts, gating, num_samples, num_features, delay,
                            e / e.sum(-1, keepdim=True))
 
 
-def _chunks(total: int):
-    for start in range(0, total, CHUNK):
-        yield min(CHUNK, total - start)
-
-
 def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
     """(R, N, steps, D) Gaussian noise on x_m, or None; drawn one step at a time so that the
     random stream does not depend on how the steps are chunked."""
@@ -67,16 +62,6 @@ def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
     x = state.inputs[..., 0, :]
     return torch.stack([noise_std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
                         for _ in range(steps)], 2)
-
-
-def never() -> bool:
-    return False
-
-
-def _check_stop(should_stop) -> None:
-    """Between chunks (well under a second each): stop when a signal asked for it."""
-    if should_stop():
-        raise Interrupted("the closed loop was stopped by a signal before it finished")
 
 
 def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: float = 0.0,
@@ -90,8 +75,8 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: flo
     """
     backend = backend or get_backend()
     parts = []
-    for size in _chunks(steps):
-        _check_stop(should_stop)
+    for _, size in chunks(steps, CHUNK):  # (well under a second each)
+        stop_if_asked(should_stop, "the closed loop was")
         run = backend.closed_loop(experts, gating, state, size,
                                   _noise(state, size, noise_std, generator))
         state = run.state

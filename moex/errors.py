@@ -13,6 +13,17 @@ class Interrupted(Exception):
     before writing anything. Re-running the same command continues."""
 
 
+def never() -> bool:
+    """A `should_stop` that never asks to stop."""
+    return False
+
+
+def stop_if_asked(should_stop, what: str) -> None:
+    """Between chunks of long work: `Interrupted` when `should_stop()` says a signal came."""
+    if should_stop():
+        raise Interrupted(f"{what} stopped by a signal before finishing")
+
+
 def check(condition: bool, message: str) -> None:
     """Raise `ConfigError(message)` unless `condition` holds."""
     if not condition:

@@ -16,11 +16,10 @@ from moex.closed_loop import (
     CHUNK,
     closed_loop_lyapunov,
     generate,
-    never,
     random_state,
     trained_state,
 )
-from moex.errors import check, check_positive
+from moex.errors import check, check_positive, never
 from moex.kernels import Backend, get_backend
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse

@@ -13,7 +13,7 @@ import pandas as pd
 import torch
 
 from moex import budget, checkpoint, importer, io, plotting, provenance, run_page
-from moex.closed_loop import generate, never, random_state, trained_state
+from moex.closed_loop import generate, random_state, trained_state
 from moex.config import (
     Config,
     EvaluateConfig,
@@ -23,7 +23,7 @@ from moex.config import (
     config_from_dict,
     paper_eval_sizes,
 )
-from moex.errors import check
+from moex.errors import check, never
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.table import LOGGED, METRICS

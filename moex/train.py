@@ -353,7 +353,7 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
         history rows with the columns objective, log_likelihood, log_prior, E.
     """
     backend = backend or get_backend()
-    data = series.detach().cpu().numpy()
+    data = series.detach()
     inputs, targets = data[..., : -model.delay, :], data[..., model.delay:, :]
     S, T, D = targets.shape[-3:]
     R, K = experts["log_sigma"].shape
@@ -407,8 +407,7 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     # the C code's scaling: weights at α̃/(T_g N), initial states at α̃/N
     rates = {k: cfg.learning_rate / (S * T_g * K) for k in params}
     rates["u0"] = cfg.learning_rate / K
-    problem = backend.gating_problem(np.ascontiguousarray(gate_targets.detach().cpu().numpy()),
-                                     inputs.detach().cpu().numpy(), model, cfg,
+    problem = backend.gating_problem(gate_targets.detach(), inputs.detach(), model, cfg,
                                      list(range(R)) if seeds is None else seeds)
     trained, rows = _ascend(params, fixed, rates, problem, "kl", cfg.steps, cfg.momentum,
                             cfg.adaptive_lr, rule, "gating", cfg.log_every, hooks, "E_g")

@@ -46,10 +46,10 @@ def _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype, seed=0, fas
     ghat = torch.softmax(torch.randn(R, S, T, K, generator=g), -1).to(dtype)
     phase1, phase2 = ExpertPhaseConfig(attraction=attraction), GatingPhaseConfig(
         attraction=attraction)
-    x = series.numpy()
+    x = series
     out = []
     for backend in (REFERENCE, fast):
-        problems = [(backend.gating_problem(ghat.numpy(), x[:, :T], model, phase2,
+        problems = [(backend.gating_problem(ghat, x[:, :T], model, phase2,
                                             list(range(R))), _on(gating, backend.device))]
         if D:
             problems.append((backend.expert_problem(x[:, :-delay], x[:, delay:], model, phase1,

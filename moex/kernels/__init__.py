@@ -1,8 +1,9 @@
 """Backends: where the time loops of training and evaluation run.
 
 Three backends (`REGISTRY`), each a module with the same names (`BackendModule`): the two training
-problems (`Problem`), a closed loop and a symbol readout, torch tensors in and out (the problems
-also take their fixed data as numpy), each honouring the device the `Backend` binds it to:
+problems (`Problem`), a closed loop and a symbol readout, torch tensors in and out (data given on
+another device is moved; the cpu backend's kernels read numpy views of it), each honouring the
+device the `Backend` binds it to:
 
 - `ExpertProblem(inputs, targets, model, phase, num_runs, device)`: phase 1 (Eqs. 9-13);
 - `GatingProblem(gate_targets, inputs, model, phase, seeds, device)`: phase 2 (Eqs. 14-16);

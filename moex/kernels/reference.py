@@ -108,14 +108,17 @@ class _Problem:
         return {"objective": total, **stats}
 
 
+def _on(x, device) -> torch.Tensor:
+    """A tensor of the problem's data (a tensor, or an array) on `device`, contiguous."""
+    return torch.as_tensor(x).to(device).contiguous()
+
+
 class ExpertProblem(_Problem):
     """Phase 1 of R runs; see `expert_objective`."""
 
     def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
-        def tensor(x):
-            return torch.from_numpy(np.ascontiguousarray(x)).to(device)
-
-        super().__init__(expert_objective(tensor(inputs), tensor(targets), model, phase), device)
+        super().__init__(expert_objective(_on(inputs, device), _on(targets, device), model,
+                                          phase), device)
 
 
 class GatingProblem(_Problem):
@@ -123,19 +126,18 @@ class GatingProblem(_Problem):
     `resample(step)` adds fresh noise to the inputs x_n (`moex.kernels.noise`)."""
 
     def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
-        def tensor(x):
-            return torch.from_numpy(np.ascontiguousarray(x)).to(device)
-
-        self.targets, self.inputs, self.seeds = tensor(gate_targets), inputs, seeds
-        self.model, self.phase = model, phase
-        super().__init__(gating_objective(self.targets, tensor(inputs), model, phase), device)
+        self.targets, self.inputs = _on(gate_targets, device), _on(inputs, device)
+        self.model, self.phase, self.seeds = model, phase, seeds
+        super().__init__(gating_objective(self.targets, self.inputs, model, phase), device)
 
     def resample(self, step: int) -> None:
         if self.phase.input_noise_var > 0:
-            noisy = self.inputs + input_noise(self.seeds, step, self.inputs.shape[-3:],
-                                              self.phase.input_noise_var, self.inputs.dtype)
-            self.objective = gating_objective(self.targets, torch.from_numpy(noisy).to(
-                self.device), self.model, self.phase)
+            noise = input_noise(self.seeds, step, self.inputs.shape[-3:],
+                                self.phase.input_noise_var,
+                                np.dtype(str(self.inputs.dtype).removeprefix("torch.")))
+            self.objective = gating_objective(
+                self.targets, self.inputs + torch.from_numpy(noise).to(self.device), self.model,
+                self.phase)
 
 
 def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],

@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import torch
 
-from moex.errors import Interrupted
+from moex.errors import never, stop_if_asked
 
 # (tangents (B..., dim, k), steps, counted, done) -> (tangents, Σ ln |R_vv| over those steps)
 Advance = Callable[[torch.Tensor, int, bool, int], tuple[torch.Tensor, torch.Tensor]]
@@ -27,8 +27,14 @@ def reorthonormalise(tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     return q, torch.log(torch.diagonal(r, dim1=-2, dim2=-1).abs())
 
 
+def chunks(total: int, size: int):
+    """(steps done before, steps) of each chunk of at most `size` steps of `total`."""
+    for done in range(0, total, size):
+        yield done, min(size, total - done)
+
+
 def benettin(advance: Advance, tangents: torch.Tensor, steps: int, transient: int, chunk: int,
-             should_stop: Callable[[], bool] = lambda: False) -> torch.Tensor:
+             should_stop: Callable[[], bool] = never) -> torch.Tensor:
     """The first k exponents per trajectory (B..., k), per step (natural log): `transient` steps
     align the tangents, the log growth of the next `steps` is averaged.
 
@@ -42,11 +48,9 @@ def benettin(advance: Advance, tangents: torch.Tensor, steps: int, transient: in
     """
     growth = 0
     for counted, total in ((False, transient), (True, steps)):
-        for done in range(0, total, chunk):
-            if should_stop():
-                raise Interrupted("the Lyapunov exponents were stopped by a signal before they "
-                                  "were finished")
-            tangents, log_growth = advance(tangents, min(chunk, total - done), counted, done)
+        for done, size in chunks(total, chunk):
+            stop_if_asked(should_stop, "the Lyapunov exponents were")
+            tangents, log_growth = advance(tangents, size, counted, done)
             if counted:
                 growth = growth + log_growth
     return growth / steps

@@ -18,19 +18,19 @@ def _spread_run(lane, N, params, lane_params):  # pragma: no cover
     b, v = lane // LB, lane % LB
     r = min(lane // N, params[0].shape[0] - 1)
     w_in, w_rec, w_out, b_c, b_o, tau = params
-    wi, wr, wo, bc, bo, eps = lane_params
+    lane_w_in, lane_w_rec, lane_w_out, lane_b_c, lane_b_o, eps = lane_params
     for k in range(w_in.shape[1]):
         for i in range(w_rec.shape[2]):
-            bc[b, k, i, v] = b_c[r, k, i]
+            lane_b_c[b, k, i, v] = b_c[r, k, i]
             eps[b, k, i, v] = 1.0 / tau[r, k, i]
             for d in range(w_in.shape[3]):
-                wi[b, k, i, d, v] = w_in[r, k, i, d]
+                lane_w_in[b, k, i, d, v] = w_in[r, k, i, d]
             for j in range(w_rec.shape[3]):
-                wr[b, k, i, j, v] = w_rec[r, k, i, j]
+                lane_w_rec[b, k, i, j, v] = w_rec[r, k, i, j]
         for o in range(w_out.shape[2]):
-            bo[b, k, o, v] = b_o[r, k, o]
+            lane_b_o[b, k, o, v] = b_o[r, k, o]
             for i in range(w_out.shape[3]):
-                wo[b, k, o, i, v] = w_out[r, k, o, i]
+                lane_w_out[b, k, o, i, v] = w_out[r, k, o, i]
 
 
 @njit(nogil=True, **JIT)
@@ -48,11 +48,11 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
     the norms when `count`. Records y, the gates that mixed it and u^g (if out_u is not empty)."""
     # one compiled function for the whole loop: a callee per block would be compiled twice
     # (alone, then again inside its caller; BENCHMARKS.md)
-    E_wi, E_wr, E_wo, E_bc, E_bo, E_eps = E_all
-    G_wi, G_wr, G_wo, G_bc, G_bo, G_eps = G_all
+    E_w_in, E_w_rec, E_w_out, E_b_c, E_b_o, E_eps = E_all
+    G_w_in, G_w_rec, G_w_out, G_b_c, G_b_o, G_eps = G_all
     EU, GU, XL, GL = state_all
-    KE, M = E_wi.shape[1], E_wi.shape[2]
-    H, K = G_wr.shape[2], G_wo.shape[2]
+    KE, M = E_w_in.shape[1], E_w_in.shape[2]
+    H, K = G_w_rec.shape[2], G_w_out.shape[2]
     TAU = GL.shape[1] // K
     D = XL.shape[1] // TAU
     NV, steps = V_all.shape[1], out_y_all.shape[1]
@@ -74,21 +74,21 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
         for lane in range(b * LB, (b + 1) * LB):
             _spread_run(lane, N, experts, E_all)
             _spread_run(lane, N, gating, G_all)
-        e_wi, e_wr, e_wo, e_bc, e_bo, e_eps = E_wi[b], E_wr[b], E_wo[b], E_bc[b], E_bo[b], \
-            E_eps[b]
-        g_wi, g_wr, g_wo, g_bc, g_bo, g_eps = G_wi[b, 0], G_wr[b, 0], G_wo[b, 0], G_bc[b, 0], \
-            G_bo[b, 0], G_eps[b, 0]
+        e_w_in, e_w_rec, e_w_out = E_w_in[b], E_w_rec[b], E_w_out[b]
+        e_b_c, e_b_o, e_eps = E_b_c[b], E_b_o[b], E_eps[b]
+        g_w_in, g_w_rec, g_w_out = G_w_in[b, 0], G_w_rec[b, 0], G_w_out[b, 0]
+        g_b_c, g_b_o, g_eps = G_b_c[b, 0], G_b_o[b, 0], G_eps[b, 0]
         eu, gu, xl, gl = EU[b], GU[b], XL[b], GL[b]
         V, noise, out_y, out_g = V_all[b], noise_all[b], out_y_all[b], out_g_all[b]
         out_u, growth = out_u_all[b], growth_all[b]
         for q in range(KE * M):
             for v in range(LB):
                 ue[q, v] = eu[q, v]
-                ce[q, v] = tanh(ue[q, v] + e_bc[q // M, q % M, v])
+                ce[q, v] = tanh(ue[q, v] + e_b_c[q // M, q % M, v])
         for h in range(H):
             for v in range(LB):
                 ug[h, v] = gu[h, v]
-                cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
+                cg[h, v] = tanh(ug[h, v] + g_b_c[h, v])
         for t in range(steps):
             for d in range(D):
                 for v in range(LB):
@@ -106,23 +106,23 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
                         acc[v] = 0.0
                     for d in range(D):
                         for v in range(LB):
-                            acc[v] = fma(e_wi[e, i, d, v], x[d, v], acc[v])
+                            acc[v] = fma(e_w_in[e, i, d, v], x[d, v], acc[v])
                     for j in range(M):
                         for v in range(LB):
-                            acc[v] = fma(e_wr[e, i, j, v], ce[e * M + j, v], acc[v])
+                            acc[v] = fma(e_w_rec[e, i, j, v], ce[e * M + j, v], acc[v])
                     for v in range(LB):
                         ue[e * M + i, v] = (1.0 - e_eps[e, i, v]) * ue[e * M + i, v] \
                             + e_eps[e, i, v] * acc[v]
                 for i in range(M):
                     for v in range(LB):
-                        ce[e * M + i, v] = tanh(ue[e * M + i, v] + e_bc[e, i, v])
+                        ce[e * M + i, v] = tanh(ue[e * M + i, v] + e_b_c[e, i, v])
                         dce[e * M + i, v] = 1.0 - ce[e * M + i, v] * ce[e * M + i, v]
                 for d in range(D):
                     for v in range(LB):
-                        acc[v] = e_bo[e, d, v]
+                        acc[v] = e_b_o[e, d, v]
                     for i in range(M):
                         for v in range(LB):
-                            acc[v] = fma(e_wo[e, d, i, v], ce[e * M + i, v], acc[v])
+                            acc[v] = fma(e_w_out[e, d, i, v], ce[e * M + i, v], acc[v])
                     for v in range(LB):
                         outs[e * D + d, v] = tanh(acc[v])
             for d in range(D):  # Eq. 4; without experts (symbolic tasks) D = 0
@@ -140,25 +140,25 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
                     acc[v] = 0.0
                 for k in range(K):
                     for v in range(LB):
-                        acc[v] = fma(g_wi[h, k, v], g[k, v], acc[v])
+                        acc[v] = fma(g_w_in[h, k, v], g[k, v], acc[v])
                 for d in range(D):
                     for v in range(LB):
-                        acc[v] = fma(g_wi[h, K + d, v], x[d, v], acc[v])
+                        acc[v] = fma(g_w_in[h, K + d, v], x[d, v], acc[v])
                 for j in range(H):
                     for v in range(LB):
-                        acc[v] = fma(g_wr[h, j, v], cg[j, v], acc[v])
+                        acc[v] = fma(g_w_rec[h, j, v], cg[j, v], acc[v])
                 for v in range(LB):
                     ug[h, v] = (1.0 - g_eps[h, v]) * ug[h, v] + g_eps[h, v] * acc[v]
             for h in range(H):
                 for v in range(LB):
-                    cg[h, v] = tanh(ug[h, v] + g_bc[h, v])
+                    cg[h, v] = tanh(ug[h, v] + g_b_c[h, v])
                     dcg[h, v] = 1.0 - cg[h, v] * cg[h, v]
             for k in range(K):
                 for v in range(LB):
-                    acc[v] = g_bo[k, v]
+                    acc[v] = g_b_o[k, v]
                 for h in range(H):
                     for v in range(LB):
-                        acc[v] = fma(g_wo[k, h, v], cg[h, v], acc[v])
+                        acc[v] = fma(g_w_out[k, h, v], cg[h, v], acc[v])
                 for v in range(LB):
                     ng[k, v] = acc[v]
             for v in range(LB):
@@ -185,10 +185,10 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
                             acc[v] = 0.0
                         for d in range(D):
                             for v in range(LB):
-                                acc[v] = fma(e_wi[e, i, d, v], V[n, ox + d, v], acc[v])
+                                acc[v] = fma(e_w_in[e, i, d, v], V[n, ox + d, v], acc[v])
                         for j in range(M):
                             for v in range(LB):
-                                acc[v] = fma(e_wr[e, i, j, v], dc[e * M + j, v], acc[v])
+                                acc[v] = fma(e_w_rec[e, i, j, v], dc[e * M + j, v], acc[v])
                         for v in range(LB):
                             nv[e * M + i, v] = (1.0 - e_eps[e, i, v]) * V[n, e * M + i, v] \
                                 + e_eps[e, i, v] * acc[v]
@@ -203,7 +203,7 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
                             acc[v] = 0.0
                         for i in range(M):
                             for v in range(LB):
-                                acc[v] = fma(e_wo[e, d, i, v], dc[e * M + i, v], acc[v])
+                                acc[v] = fma(e_w_out[e, d, i, v], dc[e * M + i, v], acc[v])
                         for v in range(LB):
                             weight = 1.0 / KE if uniform_gates else g[e, v]
                             dy[d, v] += V[n, ot + e, v] * outs[e * D + d, v] + weight \
@@ -216,13 +216,13 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
                         acc[v] = 0.0
                     for k in range(K):
                         for v in range(LB):
-                            acc[v] = fma(g_wi[h, k, v], V[n, ot + k, v], acc[v])
+                            acc[v] = fma(g_w_in[h, k, v], V[n, ot + k, v], acc[v])
                     for d in range(D):
                         for v in range(LB):
-                            acc[v] = fma(g_wi[h, K + d, v], V[n, ox + d, v], acc[v])
+                            acc[v] = fma(g_w_in[h, K + d, v], V[n, ox + d, v], acc[v])
                     for j in range(H):
                         for v in range(LB):
-                            acc[v] = fma(g_wr[h, j, v], dcgv[j, v], acc[v])
+                            acc[v] = fma(g_w_rec[h, j, v], dcgv[j, v], acc[v])
                     for v in range(LB):
                         nv[og + h, v] = (1.0 - g_eps[h, v]) * V[n, og + h, v] + g_eps[h, v] * acc[v]
                 for h in range(H):
@@ -235,7 +235,7 @@ def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, n
                         acc[v] = 0.0
                     for h in range(H):
                         for v in range(LB):
-                            acc[v] = fma(g_wo[k, h, v], dcgv[h, v], acc[v])
+                            acc[v] = fma(g_w_out[k, h, v], dcgv[h, v], acc[v])
                     for v in range(LB):
                         dl[k, v] = acc[v]
                         total[v] = fma(ng[k, v], acc[v], total[v])

@@ -5,7 +5,6 @@ phase 1. Nothing imports this module; it imports what it calls."""
 
 import sys
 
-import numpy as np
 import torch
 
 from moex.closed_loop import random_state
@@ -32,12 +31,12 @@ def compile_later_phases(dtype: str) -> None:
     tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
     tangents[..., 0, 0] = 1.0
     closed_loop(experts, gating, state, 2, None, tangents, True)
-    ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype).numpy()
-    problem = phases.GatingProblem(ghat, np.zeros((1, 4, 2), dtype), model, GatingPhaseConfig(),
-                                   [0])
+    ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype)
+    problem = phases.GatingProblem(ghat, torch.zeros((1, 4, 2), dtype=torch_dtype), model,
+                                   GatingPhaseConfig(), [0])
     grads = {k: torch.zeros_like(v) for k, v in gating.items()}
     problem.value_and_grad(gating, grads, torch.ones(1, dtype=torch.bool))
-    nearest_symbols(np.zeros((1, 2, 2)), np.zeros((2, 2)), np.arange(2))
+    nearest_symbols(torch.zeros((1, 2, 2)), torch.zeros((2, 2)), torch.arange(2))
 
 
 if __name__ == "__main__" and not warm.cached(sys.argv[1], LATER):

@@ -22,7 +22,7 @@ def _spread(lane, S, params, u0, net):  # pragma: no cover
     Network parameters are (R, K', ...) with K' experts per run (1 for the gating RNN); u0 is
     (R, S, K', H)."""
     w_in, w_rec, w_out, b_c, b_o, tau = params
-    wi, wr, wo, bc, bo, eps, u0_lane = net
+    lane_w_in, lane_w_rec, lane_w_out, lane_b_c, lane_b_o, eps, u0_lane = net
     R, KK = w_in.shape[0], w_in.shape[1]
     b, v = lane // LB, lane % LB
     g, s = lane // S, lane % S
@@ -30,17 +30,17 @@ def _spread(lane, S, params, u0, net):  # pragma: no cover
     real = g < R * KK
     H, NI, NO = w_rec.shape[2], w_in.shape[3], w_out.shape[2]
     for i in range(H):
-        bc[b, i, v] = b_c[r, k, i] if real else 0.0
+        lane_b_c[b, i, v] = b_c[r, k, i] if real else 0.0
         eps[b, i, v] = 1.0 / tau[r, k, i] if real else 1.0
         u0_lane[b, i, v] = u0[r, s, k, i] if real else 0.0
         for d in range(NI):
-            wi[b, i, d, v] = w_in[r, k, i, d] if real else 0.0
+            lane_w_in[b, i, d, v] = w_in[r, k, i, d] if real else 0.0
         for j in range(H):
-            wr[b, i, j, v] = w_rec[r, k, i, j] if real else 0.0
+            lane_w_rec[b, i, j, v] = w_rec[r, k, i, j] if real else 0.0
     for o in range(NO):
-        bo[b, o, v] = b_o[r, k, o] if real else 0.0
+        lane_b_o[b, o, v] = b_o[r, k, o] if real else 0.0
         for i in range(H):
-            wo[b, o, i, v] = w_out[r, k, o, i] if real else 0.0
+            lane_w_out[b, o, i, v] = w_out[r, k, o, i] if real else 0.0
 
 
 @njit(inline="always", **JIT)
@@ -56,24 +56,24 @@ def _lane_sum(x, lo, hi):  # pragma: no cover
 def _gather(g, S, tau, lane_grads, grads, learn_eps):  # pragma: no cover
     """Sum the per-lane gradients of network g's S lanes into its parameter gradients
     (∂/∂τ = -ε² ∂/∂ε); layouts as in `_spread`."""
-    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps = lane_grads
+    l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps = lane_grads
     g_w_in, g_w_rec, g_w_out, g_b_c, g_b_o, g_tau = grads
     KK = g_w_in.shape[1]
     r, k = g // KK, g % KK
     H, NI, NO = g_w_rec.shape[2], g_w_in.shape[3], g_w_out.shape[2]
     lo, hi = g * S, g * S + S
     for i in range(H):
-        g_b_c[r, k, i] = _lane_sum(l_bc[:, i], lo, hi)
+        g_b_c[r, k, i] = _lane_sum(l_b_c[:, i], lo, hi)
         if learn_eps:
             g_tau[r, k, i] = -_lane_sum(l_eps[:, i], lo, hi) / (tau[r, k, i] * tau[r, k, i])
         for d in range(NI):
-            g_w_in[r, k, i, d] = _lane_sum(l_wi[:, i, d], lo, hi)
+            g_w_in[r, k, i, d] = _lane_sum(l_w_in[:, i, d], lo, hi)
         for j in range(H):
-            g_w_rec[r, k, i, j] = _lane_sum(l_wr[:, i, j], lo, hi)
+            g_w_rec[r, k, i, j] = _lane_sum(l_w_rec[:, i, j], lo, hi)
     for o in range(NO):
-        g_b_o[r, k, o] = _lane_sum(l_bo[:, o], lo, hi)
+        g_b_o[r, k, o] = _lane_sum(l_b_o[:, o], lo, hi)
         for i in range(H):
-            g_w_out[r, k, o, i] = _lane_sum(l_wo[:, o, i], lo, hi)
+            g_w_out[r, k, o, i] = _lane_sum(l_w_out[:, o, i], lo, hi)
 
 
 @njit(inline="always", **JIT)
@@ -268,5 +268,6 @@ class _Staging:
 
 
 def _host(x) -> np.ndarray:
-    """The numpy view of a CPU tensor (the training loop's buffers), or the array itself."""
-    return x.numpy() if isinstance(x, torch.Tensor) else x
+    """The numpy view of a CPU tensor (the training loop's buffers; a tensor elsewhere is
+    copied to the host), or the array itself."""
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)

@@ -190,10 +190,10 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     every run, in turn: _FORWARD (blocks), _MIXTURE (series r·S + s), _BACKWARD (blocks), _RUNS
     (runs)."""
     C0, C, Y, U, S1, S2, DY, partial, var = work
-    wi, wr, wo, bc, bo, eps, u0_lane = net
-    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
+    w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
+    l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
     R, S, T, K = beta.shape
-    NB = wi.shape[0]
+    NB = w_in.shape[0]
     if stage == _CHUNKS:
         for c in range(lo, hi):
             first, last = c * chunk, min((c + 1) * chunk, R)
@@ -211,15 +211,15 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
             for lane in range(i * LB, (i + 1) * LB):
                 _spread(lane, S, params, u0, net)
             if _block_active(i, block_runs, stale):
-                _forward(X[i], wi[i], wr[i], wo[i], bc[i], bo[i], eps[i], u0_lane[i], True,
-                         C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                _forward(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i], u0_lane[i],
+                         True, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
         elif stage == _MIXTURE:
             if active[i // S]:
                 _mixture(i // S, i % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
         elif stage == _BACKWARD:
             if want_grad and _block_active(i, block_runs, active):
-                _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], wr[i], wo[i], eps[i],
-                          l_wi[i], l_wr[i], l_wo[i], l_bc[i], l_bo[i], l_eps[i], l_u0[i])
+                _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i], eps[i],
+                          l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i], l_eps[i], l_u0[i])
         elif active[i]:
             _run_sums(i, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_log_sigma,
                       floor, attraction, want_grad, out)
@@ -271,8 +271,8 @@ def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0
     otherwise runs, after every block
     (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes)."""
     C0, C, Y, U, S1, S2, DY, log_lik = work
-    wi, wr, wo, bc, bo, eps, u0_lane = net
-    l_wi, l_wr, l_wo, l_bc, l_bo, l_eps, l_u0 = lane_grads
+    w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
+    l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
     S = u0.shape[1]
     T, K = targets.shape[1], targets.shape[2]
     for i in range(lo, hi):
@@ -281,12 +281,13 @@ def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0
                 _spread(lane, S, params, u0, net)
             if _block_active(i, block_runs, active):
                 if _block_active(i, block_runs, stale):
-                    _forward(X[i], wi[i], wr[i], wo[i], bc[i], bo[i], eps[i], u0_lane[i], False,
-                             C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                    _forward(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
+                             u0_lane[i], False, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
                 _softmax_objective(Y[i], targets[i], want_grad, DY[i], log_lik[i])
                 if want_grad:
-                    _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], wr[i], wo[i], eps[i],
-                              l_wi[i], l_wr[i], l_wo[i], l_bc[i], l_bo[i], l_eps[i], l_u0[i])
+                    _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
+                              eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
+                              l_eps[i], l_u0[i])
         elif active[i]:
             total = _lane_sum(log_lik, i * S, (i + 1) * S)
             out[1, i] = total
@@ -344,6 +345,7 @@ class ExpertProblem(_Problem):
     KERNEL = (_expert_items, "phase-1 kernel")
 
     def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
+        inputs, targets = _host(inputs), _host(targets)
         S, T, D = targets.shape[-3:]
         R, K, M = num_runs, model.num_experts, model.experts.context_size
         dtype = np.dtype(inputs.dtype)
@@ -351,10 +353,10 @@ class ExpertProblem(_Problem):
         self.lanes = _Lanes(T, M, D, D, R * K * S, K * S, R, model.learn_time_constants,
                             phase.attraction, dtype)
         # lane (r·K + k)·S + s reads series s of run r
-        x = np.broadcast_to(np.asarray(inputs), (R, S, T, D)).transpose(2, 3, 0, 1)
+        x = np.broadcast_to(inputs, (R, S, T, D)).transpose(2, 3, 0, 1)
         self.inputs = _in_lanes(np.broadcast_to(x[:, :, :, None], (T, D, R, K, S)).reshape(
             T, D, R * K * S))
-        self.targets = np.ascontiguousarray(np.asarray(targets).reshape(-1, S, T, D))
+        self.targets = np.ascontiguousarray(targets.reshape(-1, S, T, D))
         self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype)]
         self.chunk = LB // math.gcd(K * S, LB)  # the fewest runs whose lanes fill whole blocks
         self.staging = _Staging({
@@ -408,6 +410,7 @@ class GatingProblem(_Problem):
     KERNEL = (_gating_items, "phase-2 kernel")
 
     def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
+        gate_targets, inputs = _host(gate_targets), _host(inputs)
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
@@ -415,8 +418,8 @@ class GatingProblem(_Problem):
         self.shape, self.model, self.phase = (R, S, T_g, K), model, phase
         self.lanes = _Lanes(T_g, H, K + D, K, R * S, S, R, model.learn_time_constants,
                             phase.attraction, dtype)
-        ghat = np.asarray(gate_targets)
-        x = np.broadcast_to(np.asarray(inputs), (R, S, T, D))
+        ghat = gate_targets
+        x = np.broadcast_to(inputs, (R, S, T, D))
         # lane r·S + s reads [ĝ_n, x_n] of run r, series s and is fitted to ĝ_{n+τ} (Eq. 5)
         feed = np.concatenate([ghat[:, :, :T_g], x[:, :, :T_g]], -1)  # (R, S, T_g, K + D)
         self.inputs = _in_lanes(feed.transpose(2, 3, 0, 1).reshape(T_g, K + D, R * S))

@@ -22,12 +22,13 @@ from moex.kernels.cpu.simd import JIT, LB, fma, lanes, stack, tanh
 
 
 @njit(**JIT)
-def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pragma: no cover
+def _forward(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1,
+             S2):  # pragma: no cover
     """One block of lanes (every array is that block's (..., LB) part): Y (T, NO, LB) = tanh(o_t)
     if `squash` else o_t; C (T, H, LB), U (T, H, LB) and the sums S1, S2 (H, LB) of u and u²
     over {u_0..u_T} are filled where their arrays are not empty."""
     T, NI = X.shape[0], X.shape[1]
-    H, NO = wr.shape[0], wo.shape[0]
+    H, NO = w_rec.shape[0], w_out.shape[0]
     keep_c, keep_u, keep_sums = C.shape[0] > 0, U.shape[0] > 0, S1.shape[0] > 0
     u, c = stack(X, H), stack(X, H)
     s1, s2 = stack(S1, H), stack(S1, H)  # float64 sums: the variance is taken by difference
@@ -35,7 +36,7 @@ def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pr
     for i in range(H):
         for v in range(LB):
             u[i, v] = u0[i, v]
-            c[i, v] = tanh(u[i, v] + bc[i, v])
+            c[i, v] = tanh(u[i, v] + b_c[i, v])
             s1[i, v] = u[i, v]
             s2[i, v] = u[i, v] * u[i, v]
         for v in range(LB):
@@ -46,15 +47,15 @@ def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pr
                 acc[v] = 0.0
             for d in range(NI):
                 for v in range(LB):
-                    acc[v] = fma(wi[i, d, v], X[t, d, v], acc[v])
+                    acc[v] = fma(w_in[i, d, v], X[t, d, v], acc[v])
             for j in range(H):
                 for v in range(LB):
-                    acc[v] = fma(wr[i, j, v], c[j, v], acc[v])
+                    acc[v] = fma(w_rec[i, j, v], c[j, v], acc[v])
             for v in range(LB):
                 u[i, v] = fma(eps[i, v], acc[v] - u[i, v], u[i, v])  # (1 - ε) u + ε acc
         for i in range(H):
             for v in range(LB):
-                c[i, v] = tanh(u[i, v] + bc[i, v])
+                c[i, v] = tanh(u[i, v] + b_c[i, v])
                 s1[i, v] += u[i, v]
                 s2[i, v] = fma(u[i, v], u[i, v], s2[i, v])
         if keep_c:
@@ -67,10 +68,10 @@ def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pr
                     U[t, i, v] = u[i, v]
         for o in range(NO):
             for v in range(LB):
-                acc[v] = bo[o, v]
+                acc[v] = b_o[o, v]
             for i in range(H):
                 for v in range(LB):
-                    acc[v] = fma(wo[o, i, v], c[i, v], acc[v])
+                    acc[v] = fma(w_out[o, i, v], c[i, v], acc[v])
             if squash:
                 for v in range(LB):
                     Y[t, o, v] = tanh(acc[v])
@@ -85,34 +86,34 @@ def _forward(X, wi, wr, wo, bc, bo, eps, u0, squash, C0, C, Y, U, S1, S2):  # pr
 
 
 @njit(**JIT)
-def _backward(DY, X, C0, C, U, u0, wr, wo, eps, g_wi, g_wr, g_wo, g_bc, g_bo, g_eps,
+def _backward(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_out, g_b_c, g_b_o, g_eps,
               g_u0):  # pragma: no cover
     """One block of lanes, given DY (T, NO, LB) = ∂L/∂o_t: every per-lane gradient (BPTT). g_eps
     is filled when U holds the potentials (learned time constants). Gradients are summed in
     stack arrays (they cannot alias the histories they read) and written once."""
     T, NI = X.shape[0], X.shape[1]
-    H, NO = wr.shape[0], wo.shape[0]
+    H, NO = w_rec.shape[0], w_out.shape[0]
     learn_eps = U.shape[0] > 0
     a, ea, back = stack(X, H), stack(X, H), stack(X, H)  # ∂L/∂u_t, ε ⊙ a_t, W_recᵀ(ε ⊙ a_{t+1})
-    gbc, geps = stack(X, H), stack(X, H)
-    gwr, gwi, gwo = stack(X, H * H), stack(X, H * NI), stack(X, NO * H)
-    gbo = stack(X, NO)
+    sum_b_c, sum_eps = stack(X, H), stack(X, H)
+    sum_w_rec, sum_w_in, sum_w_out = stack(X, H * H), stack(X, H * NI), stack(X, NO * H)
+    sum_b_o = stack(X, NO)
     acc = lanes(X)
     for i in range(H):
         for v in range(LB):
-            a[i, v] = back[i, v] = gbc[i, v] = geps[i, v] = 0.0
+            a[i, v] = back[i, v] = sum_b_c[i, v] = sum_eps[i, v] = 0.0
     for q in range(H * H):
         for v in range(LB):
-            gwr[q, v] = 0.0
+            sum_w_rec[q, v] = 0.0
     for q in range(H * NI):
         for v in range(LB):
-            gwi[q, v] = 0.0
+            sum_w_in[q, v] = 0.0
     for q in range(NO * H):
         for v in range(LB):
-            gwo[q, v] = 0.0
+            sum_w_out[q, v] = 0.0
     for o in range(NO):
         for v in range(LB):
-            gbo[o, v] = 0.0
+            sum_b_o[o, v] = 0.0
     for t in range(T - 1, -1, -1):
         prev = C[t - 1] if t > 0 else C0
         for i in range(H):  # a_t = (1 - c_t²)(W_outᵀ δo_t + back) + (1 - ε) a_{t+1}
@@ -120,54 +121,54 @@ def _backward(DY, X, C0, C, U, u0, wr, wo, eps, g_wi, g_wr, g_wo, g_bc, g_bo, g_
                 acc[v] = back[i, v]
             for o in range(NO):
                 for v in range(LB):
-                    acc[v] = fma(wo[o, i, v], DY[t, o, v], acc[v])
+                    acc[v] = fma(w_out[o, i, v], DY[t, o, v], acc[v])
             for v in range(LB):
                 dq = fma(-C[t, i, v], C[t, i, v], 1.0) * acc[v]
-                gbc[i, v] += dq
+                sum_b_c[i, v] += dq
                 a[i, v] = fma(1.0 - eps[i, v], a[i, v], dq)
                 ea[i, v] = eps[i, v] * a[i, v]
         for o in range(NO):
             for v in range(LB):
-                gbo[o, v] += DY[t, o, v]
+                sum_b_o[o, v] += DY[t, o, v]
             for i in range(H):
                 for v in range(LB):
-                    gwo[o * H + i, v] = fma(DY[t, o, v], C[t, i, v], gwo[o * H + i, v])
+                    sum_w_out[o * H + i, v] = fma(DY[t, o, v], C[t, i, v], sum_w_out[o * H + i, v])
         for i in range(H):
             for d in range(NI):
                 for v in range(LB):
-                    gwi[i * NI + d, v] = fma(ea[i, v], X[t, d, v], gwi[i * NI + d, v])
+                    sum_w_in[i * NI + d, v] = fma(ea[i, v], X[t, d, v], sum_w_in[i * NI + d, v])
             for j in range(H):
                 for v in range(LB):
-                    gwr[i * H + j, v] = fma(ea[i, v], prev[j, v], gwr[i * H + j, v])
+                    sum_w_rec[i * H + j, v] = fma(ea[i, v], prev[j, v], sum_w_rec[i * H + j, v])
         if learn_eps:  # ∂u_t/∂ε = s_t - u_{t-1} = (u_t - u_{t-1}) / ε
             u_prev = U[t - 1] if t > 0 else u0
             for i in range(H):
                 for v in range(LB):
-                    geps[i, v] += a[i, v] * (U[t, i, v] - u_prev[i, v]) \
+                    sum_eps[i, v] += a[i, v] * (U[t, i, v] - u_prev[i, v]) \
                         / eps[i, v]
         for j in range(H):
             for v in range(LB):
                 acc[v] = 0.0
             for i in range(H):
                 for v in range(LB):
-                    acc[v] = fma(wr[i, j, v], ea[i, v], acc[v])
+                    acc[v] = fma(w_rec[i, j, v], ea[i, v], acc[v])
             for v in range(LB):
                 back[j, v] = acc[v]
     for i in range(H):  # c_{-1} = tanh(u_0 + b_c) feeds step 0
         for v in range(LB):
             dq = (1.0 - C0[i, v] * C0[i, v]) * back[i, v]
-            g_bc[i, v] = gbc[i, v] + dq
+            g_b_c[i, v] = sum_b_c[i, v] + dq
             g_u0[i, v] = (1.0 - eps[i, v]) * a[i, v] + dq
-            g_eps[i, v] = geps[i, v]
+            g_eps[i, v] = sum_eps[i, v]
         for d in range(NI):
             for v in range(LB):
-                g_wi[i, d, v] = gwi[i * NI + d, v]
+                g_w_in[i, d, v] = sum_w_in[i * NI + d, v]
         for j in range(H):
             for v in range(LB):
-                g_wr[i, j, v] = gwr[i * H + j, v]
+                g_w_rec[i, j, v] = sum_w_rec[i * H + j, v]
     for o in range(NO):
         for v in range(LB):
-            g_bo[o, v] = gbo[o, v]
+            g_b_o[o, v] = sum_b_o[o, v]
         for i in range(H):
             for v in range(LB):
-                g_wo[o, i, v] = gwo[o * H + i, v]
+                g_w_out[o, i, v] = sum_w_out[o * H + i, v]

@@ -91,7 +91,8 @@ def _load(ptr, offs, mask):
 
 
 @triton.jit
-def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, GEPS,
+def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
+                       G_W_IN, G_W_REC, G_W_OUT, G_B_C, G_B_O, G_EPS,
                        EU, GU, XL, GL, VEU, VGU, VXL, VGL, NOISE, OUT_Y, OUT_G, OUT_U, GROWTH, N,
                        STEPS: tl.constexpr, K: tl.constexpr, M: tl.constexpr, D: tl.constexpr,
                        H: tl.constexpr, TAU: tl.constexpr, KP: tl.constexpr, MP: tl.constexpr,
@@ -118,23 +119,23 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
     mm = m < M
     # ---- the run's weights: experts (KP, ...), gating (HP, ...)
     k3, m3 = k[:, None, None], m[None, :, None]
-    ewi = _load(EWI, r * K * M * D + k3 * M * D + m3 * D + d[None, None, :],
+    e_w_in = _load(E_W_IN, r * K * M * D + k3 * M * D + m3 * D + d[None, None, :],
                 km[:, None, None] & mm[None, :, None] & dm[None, None, :])
-    ewr = _load(EWR, r * K * M * M + k3 * M * M + m3 * M + m[None, None, :],
+    e_w_rec = _load(E_W_REC, r * K * M * M + k3 * M * M + m3 * M + m[None, None, :],
                 km[:, None, None] & mm[None, :, None] & mm[None, None, :])
-    ewo = _load(EWO, r * K * D * M + k3 * D * M + d[None, :, None] * M + m[None, None, :],
+    e_w_out = _load(E_W_OUT, r * K * D * M + k3 * D * M + d[None, :, None] * M + m[None, None, :],
                 km[:, None, None] & dm[None, :, None] & mm[None, None, :])
     e_km = km[:, None] & mm[None, :]
-    ebc = _load(EBC, r * K * M + k[:, None] * M + m[None, :], e_km)
-    eeps = _load(EEPS, r * K * M + k[:, None] * M + m[None, :], e_km)
-    ebo = _load(EBO, r * K * D + k[:, None] * D + d[None, :], km[:, None] & dm[None, :])
+    e_b_c = _load(E_B_C, r * K * M + k[:, None] * M + m[None, :], e_km)
+    e_eps = _load(E_EPS, r * K * M + k[:, None] * M + m[None, :], e_km)
+    e_b_o = _load(E_B_O, r * K * D + k[:, None] * D + d[None, :], km[:, None] & dm[None, :])
     NI = K + D
-    gwg = _load(GWI, r * H * NI + h[:, None] * NI + k[None, :], hm[:, None] & km[None, :])
-    gwx = _load(GWI, r * H * NI + h[:, None] * NI + K + d[None, :], hm[:, None] & dm[None, :])
-    gwr = _load(GWR, r * H * H + h[:, None] * H + h[None, :], hm[:, None] & hm[None, :])
-    gwo = _load(GWO, r * K * H + k[:, None] * H + h[None, :], km[:, None] & hm[None, :])
-    gbc, geps = _load(GBC, r * H + h, hm), _load(GEPS, r * H + h, hm)
-    gbo = _load(GBO, r * K + k, km)
+    gwg = _load(G_W_IN, r * H * NI + h[:, None] * NI + k[None, :], hm[:, None] & km[None, :])
+    gwx = _load(G_W_IN, r * H * NI + h[:, None] * NI + K + d[None, :], hm[:, None] & dm[None, :])
+    g_w_rec = _load(G_W_REC, r * H * H + h[:, None] * H + h[None, :], hm[:, None] & hm[None, :])
+    g_w_out = _load(G_W_OUT, r * K * H + k[:, None] * H + h[None, :], km[:, None] & hm[None, :])
+    g_b_c, g_eps = _load(G_B_C, r * H + h, hm), _load(G_EPS, r * H + h, hm)
+    g_b_o = _load(G_B_O, r * K + k, km)
     # ---- the state of each trajectory
     ok3 = ok[:, None, None]
     e_off = row[:, None, None] * K * M + k[None, :, None] * M + m[None, None, :]
@@ -157,7 +158,7 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
         v_lm = tok3 & tm[None, :, None] & km[None, None, :]
         veu, vgu = _load(VEU, v_e, v_em), _load(VGU, v_g, v_gm)
         vxl, vgl = _load(VXL, v_x, v_xm), _load(VGL, v_l, v_lm)
-        growth = tl.zeros((BN // KTP, KTP), dtype=gbc.dtype)
+        growth = tl.zeros((BN // KTP, KTP), dtype=g_b_c.dtype)
     rec_d, rec_k = first[:, None] & dm[None, :], first[:, None] & km[None, :]
     for t in range(STEPS):
         x, g = _first(xl, tt), _first(gl, tt)
@@ -166,21 +167,22 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
                        ok[:, None] & dm[None, :])
         y = x
         if EXPERTS:  # Eqs. 1-4, every expert on the same input
-            c_old = _tanh(eu + ebc[None])
-            drive = tl.sum(ewi[None] * x[:, None, None, :], axis=3)
-            eu_new = eu + eeps[None] * (drive + tl.sum(ewr[None] * c_old[:, :, None, :], axis=3)
-                                        - eu)
-            c = _tanh(eu_new + ebc[None])
-            out = _tanh(tl.sum(ewo[None] * c[:, :, None, :], axis=3) + ebo[None])  # (BN, KP, DP)
+            c_old = _tanh(eu + e_b_c[None])
+            drive = tl.sum(e_w_in[None] * x[:, None, None, :], axis=3)
+            eu_new = eu + e_eps[None] * (
+                drive + tl.sum(e_w_rec[None] * c_old[:, :, None, :], axis=3) - eu)
+            c = _tanh(eu_new + e_b_c[None])
+            out = _tanh(tl.sum(e_w_out[None] * c[:, :, None, :], axis=3)
+                        + e_b_o[None])  # (BN, KP, DP)
             y = tl.sum(g[:, :, None] * out, axis=1)
         # Eqs. 5-8: the gating RNN reads (g_m, x_m) and emits g_{m+τ}
-        cg_old = _tanh(gu + gbc[None])
+        cg_old = _tanh(gu + g_b_c[None])
         drive_g = tl.sum(gwg[None] * g[:, None, :], axis=2) + tl.sum(gwx[None] * x[:, None, :],
                                                                      axis=2)
-        gu_new = gu + geps[None] * (drive_g + tl.sum(gwr[None] * cg_old[:, None, :], axis=2)
+        gu_new = gu + g_eps[None] * (drive_g + tl.sum(g_w_rec[None] * cg_old[:, None, :], axis=2)
                                     - gu)
-        cg = _tanh(gu_new + gbc[None])
-        logits = tl.sum(gwo[None] * cg[:, None, :], axis=2) + gbo[None]
+        cg = _tanh(gu_new + g_b_c[None])
+        logits = tl.sum(g_w_out[None] * cg[:, None, :], axis=2) + g_b_o[None]
         logits = tl.where(km[None, :], logits, float("-inf"))
         e = tl.exp(logits - tl.max(logits, axis=1)[:, None])
         new_g = e / tl.sum(e, axis=1)[:, None]
@@ -193,11 +195,11 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
             dx, dg = _first(vxl, tt), _first(vgl, tt)
             dy = dx
             if EXPERTS:
-                d_drive = tl.sum(ewi[None] * dx[:, None, None, :], axis=3)
-                d_rec = tl.sum(ewr[None] * ((1.0 - c_old * c_old) * veu)[:, :, None, :], axis=3)
-                veu = (1.0 - eeps[None]) * veu + eeps[None] * (d_drive + d_rec)
+                d_drive = tl.sum(e_w_in[None] * dx[:, None, None, :], axis=3)
+                d_rec = tl.sum(e_w_rec[None] * ((1.0 - c_old * c_old) * veu)[:, :, None, :], axis=3)
+                veu = (1.0 - e_eps[None]) * veu + e_eps[None] * (d_drive + d_rec)
                 d_out = (1.0 - out * out) * tl.sum(
-                    ewo[None] * ((1.0 - c * c) * veu)[:, :, None, :], axis=3)
+                    e_w_out[None] * ((1.0 - c * c) * veu)[:, :, None, :], axis=3)
                 if UNIFORM:  # 1/K in the state's precision (a Python 1.0 / K would be float32)
                     weight = tl.where(km[None, :], g * 0.0 + 1.0, 0.0) / K
                 else:
@@ -205,9 +207,9 @@ def closed_loop_kernel(EWI, EWR, EWO, EBC, EBO, EEPS, GWI, GWR, GWO, GBC, GBO, G
                 dy = tl.sum(dg[:, :, None] * out + weight[:, :, None] * d_out, axis=1)
             d_drive_g = tl.sum(gwg[None] * dg[:, None, :], axis=2) + tl.sum(
                 gwx[None] * dx[:, None, :], axis=2)
-            d_rec_g = tl.sum(gwr[None] * ((1.0 - cg_old * cg_old) * vgu)[:, None, :], axis=2)
-            vgu = (1.0 - geps[None]) * vgu + geps[None] * (d_drive_g + d_rec_g)
-            d_logits = tl.sum(gwo[None] * ((1.0 - cg * cg) * vgu)[:, None, :], axis=2)
+            d_rec_g = tl.sum(g_w_rec[None] * ((1.0 - cg_old * cg_old) * vgu)[:, None, :], axis=2)
+            vgu = (1.0 - g_eps[None]) * vgu + g_eps[None] * (d_drive_g + d_rec_g)
+            d_logits = tl.sum(g_w_out[None] * ((1.0 - cg * cg) * vgu)[:, None, :], axis=2)
             d_g = new_g * (d_logits - tl.sum(new_g * d_logits, axis=1)[:, None])
             vxl, vgl = _shift(vxl, dy, tt, TAU), _shift(vgl, d_g, tt, TAU)
             veu, vgu, vxl, vgl, growth = _orthonormalise(veu, vgu, vxl, vgl, growth, BN // KTP, KT,

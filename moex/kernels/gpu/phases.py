@@ -226,14 +226,12 @@ class ExpertProblem(_Problem):
     def __init__(self, inputs, targets, model, phase, num_runs, device="cuda"):
         S, T, D = targets.shape[-3:]
         K, M = model.num_experts, model.experts.context_size
-        self.dtype = getattr(torch, str(np.dtype(inputs.dtype)))
-        self.shape, self.model, self.phase = (S, T, K, D, M), model, phase
-        self.own = np.ndim(inputs) == 4  # data per run: X holds R·S series
         self.device = torch.device(device)
-        self.X = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(
-            self.dtype).reshape(-1, T, D)
-        self.targets = torch.as_tensor(np.ascontiguousarray(targets), device=self.device).to(
-            self.dtype)
+        inputs, self.targets = (torch.as_tensor(x).to(self.device).contiguous()
+                                for x in (inputs, targets))
+        self.dtype, self.own = inputs.dtype, inputs.dim() == 4  # own: X holds R·S series
+        self.shape, self.model, self.phase = (S, T, K, D, M), model, phase
+        self.X = inputs.reshape(-1, T, D)
         std = phase.gate_prior_std
         self.const = torch.tensor([model.sigma_min ** 2, 2 * math.pi, std ** 2,
                                    0.5 * math.log(2 * math.pi * std ** 2)], dtype=self.dtype,
@@ -272,12 +270,11 @@ class GatingProblem(_Problem):
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
-        self.dtype = getattr(torch, str(np.dtype(gate_targets.dtype)))
         self.shape, self.model, self.phase, self.seeds = (R, S, T_g, K, D, H), model, phase, seeds
         self.device = torch.device(device)
-        ghat = torch.as_tensor(np.ascontiguousarray(gate_targets), device=self.device).to(
-            self.dtype)
-        x = torch.as_tensor(np.ascontiguousarray(inputs), device=self.device).to(self.dtype)
+        ghat = torch.as_tensor(gate_targets).to(self.device)
+        self.dtype = ghat.dtype
+        x = torch.as_tensor(inputs).to(self.device, self.dtype)
         self.targets = ghat[:, :, delay:].contiguous()
         feed = torch.cat([ghat[:, :, :T_g], x[..., :T_g, :].expand(R, -1, -1, -1)], -1)
         self.clean = feed.reshape(R * S, T_g, K + D).contiguous()

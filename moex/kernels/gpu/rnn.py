@@ -116,8 +116,8 @@ def _chunk(XROW, U0J, n, chunk, LPN: tl.constexpr, BL: tl.constexpr):
 
 
 @triton.jit
-def rnn_forward(X, XROW, U0J, WI, WR, WO, BC, BO, TAU, U0, OUT, C, U, SUMS,
-                sWI, sWR, sWO, sBC, sBO, sTAU, sU0,
+def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, SUMS,
+                sW_IN, sW_REC, sW_OUT, sB_C, sB_O, sTAU, sU0,
                 T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
                 NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
                 LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
@@ -126,21 +126,21 @@ def rnn_forward(X, XROW, U0J, WI, WR, WO, BC, BO, TAU, U0, OUT, C, U, SUMS,
     (L, 2, H) when KEEP_C, KEEP_U, KEEP_SUMS."""
     n, r, k = _network(NPR)
     h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
-    wi = _tile(WI + r * sWI + k * (H * NI), h, i, H, NI)
-    wr = _tile(WR + r * sWR + k * (H * H), h, h, H, H)
-    wo = _tile(WO + r * sWO + k * (NO * H), o, h, NO, H)
-    bc = _vector(BC + r * sBC + k * H, h, H, 0.0)[None, :]
-    bo = _vector(BO + r * sBO + k * NO, o, NO, 0.0)[None, :]
+    w_in = _tile(W_IN + r * sW_IN + k * (H * NI), h, i, H, NI)
+    w_rec = _tile(W_REC + r * sW_REC + k * (H * H), h, h, H, H)
+    w_out = _tile(W_OUT + r * sW_OUT + k * (NO * H), o, h, NO, H)
+    b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
+    b_o = _vector(B_O + r * sB_O + k * NO, o, NO, 0.0)[None, :]
     eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         u = _row(U0 + r * sU0, u0j, ok, h, H)
-        c = _tanh(u + bc)
+        c = _tanh(u + b_c)
         s1, s2 = u, u * u
         for t in range(T):
             x = _row(X, xrow * T + t, ok, i, NI)
-            u = u + eps * (_matvec(wi, x) + _matvec(wr, c) - u)
-            c = _tanh(u + bc)
+            u = u + eps * (_matvec(w_in, x) + _matvec(w_rec, c) - u)
+            c = _tanh(u + b_c)
             if KEEP_SUMS:
                 s1 += u
                 s2 += u * u
@@ -148,47 +148,48 @@ def rnn_forward(X, XROW, U0J, WI, WR, WO, BC, BO, TAU, U0, OUT, C, U, SUMS,
                 _put(C, lane * T + t, ok, h, c, H)
             if KEEP_U:
                 _put(U, lane * T + t, ok, h, u, H)
-            _put(OUT, lane * T + t, ok, o, _matvec(wo, c) + bo, NO)
+            _put(OUT, lane * T + t, ok, o, _matvec(w_out, c) + b_o, NO)
         if KEEP_SUMS:
             _put(SUMS, lane * 2, ok, h, s1, H)
             _put(SUMS, lane * 2 + 1, ok, h, s2, H)
 
 
 @triton.jit
-def rnn_backward(DO, X, XROW, U0J, WR, WO, BC, TAU, U0, C, U, SUMS, ACTIVE, FLOOR,
-                 G_WI, G_WR, G_WO, G_BC, G_BO, G_TAU, G_U0,
-                 sWR, sWO, sBC, sTAU, sU0, sGWI, sGWR, sGWO, sGBC, sGBO, sGTAU, sGU0,
+def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, FLOOR,
+                 G_W_IN, G_W_REC, G_W_OUT, G_B_C, G_B_O, G_TAU, G_U0,
+                 sW_REC, sW_OUT, sB_C, sTAU, sU0,
+                 sG_W_IN, sG_W_REC, sG_W_OUT, sG_B_C, sG_B_O, sG_TAU, sG_U0,
                  T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
                  NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
                  LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
                  LEARN_EPS: tl.constexpr, ATTRACT: tl.constexpr):
     """Backward pass of one network's lanes given DO (L, T, NO) = ∂L/∂o_t: the network's
-    gradients G_WI (H, NI), G_WR (H, H), G_WO (NO, H), G_BC (H), G_BO (NO), G_TAU (H, when
+    gradients G_W_IN (H, NI), G_W_REC (H, H), G_W_OUT (NO, H), G_B_C (H), G_B_O (NO), G_TAU (H, when
     LEARN_EPS; it then reads U) and each lane's G_U0 (H), written where ACTIVE[r]."""
     n, r, k = _network(NPR)
     h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
     on_h = tl.load(ACTIVE + r + 0 * h) != 0  # (a vector: the interpreter's masks need one)
-    wr = _tile(WR + r * sWR + k * (H * H), h, h, H, H)
-    wo = _tile(WO + r * sWO + k * (NO * H), o, h, NO, H)
-    bc = _vector(BC + r * sBC + k * H, h, H, 0.0)[None, :]
+    w_rec = _tile(W_REC + r * sW_REC + k * (H * H), h, h, H, H)
+    w_out = _tile(W_OUT + r * sW_OUT + k * (NO * H), o, h, NO, H)
+    b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
     eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
-    n_wi = tl.zeros((HP, NIP), dtype=wr.dtype)
-    n_wr = tl.zeros((HP, HP), dtype=wr.dtype)
-    n_wo = tl.zeros((NOP, HP), dtype=wr.dtype)
-    n_bc = tl.zeros((HP,), dtype=wr.dtype)
-    n_bo = tl.zeros((NOP,), dtype=wr.dtype)
-    n_eps = tl.zeros((HP,), dtype=wr.dtype)
+    n_w_in = tl.zeros((HP, NIP), dtype=w_rec.dtype)
+    n_w_rec = tl.zeros((HP, HP), dtype=w_rec.dtype)
+    n_w_out = tl.zeros((NOP, HP), dtype=w_rec.dtype)
+    n_b_c = tl.zeros((HP,), dtype=w_rec.dtype)
+    n_b_o = tl.zeros((NOP,), dtype=w_rec.dtype)
+    n_eps = tl.zeros((HP,), dtype=w_rec.dtype)
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         ok = ok & (tl.load(ACTIVE + r + 0 * lane) != 0)
         u0 = _row(U0 + r * sU0, u0j, ok, h, H)
-        c0 = _tanh(u0 + bc)
-        zero_h = tl.zeros((BL, HP), dtype=wr.dtype)
-        a, back, gbc, geps = zero_h, zero_h, zero_h, zero_h
-        gwi = tl.zeros((BL, HP, NIP), dtype=wr.dtype)
-        gwr = tl.zeros((BL, HP, HP), dtype=wr.dtype)
-        gwo = tl.zeros((BL, NOP, HP), dtype=wr.dtype)
-        gbo = tl.zeros((BL, NOP), dtype=wr.dtype)
+        c0 = _tanh(u0 + b_c)
+        zero_h = tl.zeros((BL, HP), dtype=w_rec.dtype)
+        a, back, g_b_c, g_eps = zero_h, zero_h, zero_h, zero_h
+        g_w_in = tl.zeros((BL, HP, NIP), dtype=w_rec.dtype)
+        g_w_rec = tl.zeros((BL, HP, HP), dtype=w_rec.dtype)
+        g_w_out = tl.zeros((BL, NOP, HP), dtype=w_rec.dtype)
+        g_b_o = tl.zeros((BL, NOP), dtype=w_rec.dtype)
         for step in range(T):
             t = T - 1 - step
             c = _row(C, lane * T + t, ok, h, H)
@@ -196,19 +197,19 @@ def rnn_backward(DO, X, XROW, U0J, WR, WO, BC, TAU, U0, C, U, SUMS, ACTIVE, FLOO
             before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
             prev = tl.where(first, c0, _row(C, lane * T + t - 1, before, h, H))
             do = _row(DO, lane * T + t, ok, o, NO)
-            dq = (1.0 - c * c) * (_matvec_t(wo, do) + back)
-            gbc += dq
+            dq = (1.0 - c * c) * (_matvec_t(w_out, do) + back)
+            g_b_c += dq
             a = (1.0 - eps) * a + dq
             ea = eps * a
-            gbo += do
-            gwo += do[:, :, None] * c[:, None, :]
-            gwi += ea[:, :, None] * _row(X, xrow * T + t, ok, i, NI)[:, None, :]
-            gwr += ea[:, :, None] * prev[:, None, :]
+            g_b_o += do
+            g_w_out += do[:, :, None] * c[:, None, :]
+            g_w_in += ea[:, :, None] * _row(X, xrow * T + t, ok, i, NI)[:, None, :]
+            g_w_rec += ea[:, :, None] * prev[:, None, :]
             if LEARN_EPS:
                 u = _row(U, lane * T + t, ok, h, H)
                 u_prev = tl.where(first, u0, _row(U, lane * T + t - 1, before, h, H))
-                geps += a * (u - u_prev) / eps
-            back = _matvec_t(wr, ea)
+                g_eps += a * (u - u_prev) / eps
+            back = _matvec_t(w_rec, ea)
         dq = (1.0 - c0 * c0) * back
         g_u0 = (1.0 - eps) * a + dq
         if ATTRACT:
@@ -217,19 +218,19 @@ def rnn_backward(DO, X, XROW, U0J, WR, WO, BC, TAU, U0, C, U, SUMS, ACTIVE, FLOO
             var = tl.maximum(_row(SUMS, lane * 2 + 1, ok, h, H) / count - mean * mean,
                              tl.load(FLOOR))
             g_u0 += (mean - u0) / var
-        _put(G_U0 + r * sGU0, u0j, ok, h, g_u0, H)
-        n_bc += tl.sum(gbc + dq, axis=0)
-        n_bo += tl.sum(gbo, axis=0)
-        n_eps += tl.sum(geps, axis=0)
-        n_wi += tl.sum(gwi, axis=0)
-        n_wr += tl.sum(gwr, axis=0)
-        n_wo += tl.sum(gwo, axis=0)
-    tl.store(G_BC + r * sGBC + k * H + h, n_bc, mask=on_h & (h < H))
-    tl.store(G_BO + r * sGBO + k * NO + o, n_bo, mask=(tl.load(ACTIVE + r + 0 * o) != 0) & (o < NO))
+        _put(G_U0 + r * sG_U0, u0j, ok, h, g_u0, H)
+        n_b_c += tl.sum(g_b_c + dq, axis=0)
+        n_b_o += tl.sum(g_b_o, axis=0)
+        n_eps += tl.sum(g_eps, axis=0)
+        n_w_in += tl.sum(g_w_in, axis=0)
+        n_w_rec += tl.sum(g_w_rec, axis=0)
+        n_w_out += tl.sum(g_w_out, axis=0)
+    tl.store(G_B_C + r * sG_B_C + k * H + h, n_b_c, mask=on_h & (h < H))
+    on_o = tl.load(ACTIVE + r + 0 * o) != 0
+    tl.store(G_B_O + r * sG_B_O + k * NO + o, n_b_o, mask=on_o & (o < NO))
     if LEARN_EPS:  # ∂/∂τ = -ε² ∂/∂ε
         eps_h = tl.sum(eps, axis=0)
-        tl.store(G_TAU + r * sGTAU + k * H + h, -n_eps * (eps_h * eps_h), mask=on_h & (h < H))
-    _put_tile(G_WI + r * sGWI + k * (H * NI), h, i, n_wi, on_h, H, NI)
-    _put_tile(G_WR + r * sGWR + k * (H * H), h, h, n_wr, on_h, H, H)
-    _put_tile(G_WO + r * sGWO + k * (NO * H), o, h, n_wo, tl.load(ACTIVE + r + 0 * o) != 0,
-              NO, H)
+        tl.store(G_TAU + r * sG_TAU + k * H + h, -n_eps * (eps_h * eps_h), mask=on_h & (h < H))
+    _put_tile(G_W_IN + r * sG_W_IN + k * (H * NI), h, i, n_w_in, on_h, H, NI)
+    _put_tile(G_W_REC + r * sG_W_REC + k * (H * H), h, h, n_w_rec, on_h, H, H)
+    _put_tile(G_W_OUT + r * sG_W_OUT + k * (NO * H), o, h, n_w_out, on_o, NO, H)
