@@ -193,8 +193,9 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     R = layout.num_runs
     batch = problem.trials if adaptive else 1  # candidate steps per call
     theta, grad, velocity, delta = (layout.zeros() for _ in range(4))
-    candidates, shrunk = layout.zeros(batch), layout.zeros(batch + 1)
-    scratch, shrinks = candidates.unbind(0)[0], shrunk.unbind(0)  # (views, taken once)
+    candidates = layout.zeros(batch)  # the first is also scratch space
+    shrunk = layout.zeros(batch + 1) if batch > 1 else None  # Δθ·α_dec^j, j <= batch
+    scratch, shrinks = candidates.unbind(0)[0], () if shrunk is None else shrunk.unbind(0)
     views, grads, moments = layout.views(theta), layout.views(grad), layout.views(velocity)
     fixed = {name: v.to(device) for name, v in fixed.items()}
     net = {**views, **fixed}
@@ -260,13 +261,12 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         base, left = stats[criterion], rule.adaptive.max_retries if adaptive else 0
         while left > 0:
             n = min(batch, left)
-            shrinks[0].copy_(delta)
-            # a retry shrinks the whole step, momentum included: with the momentum term left
-            # whole (a strict reading of Sec. 2.1.4) r can stay above r_th for every α, and the
-            # rate collapsed to 0.7^1000 in a measured two-Lissajous run
-            for j in range(n):
-                torch.mul(shrinks[j], decrease, out=shrinks[j + 1])
-            torch.add(theta, shrunk[:batch], out=candidates)
+            torch.add(theta, delta, out=scratch)
+            if n > 1:  # the shrunk steps Δθ·α_dec^j, multiplied in the order one by one would
+                shrunk[0].copy_(delta)
+                for j in range(n):
+                    torch.mul(shrinks[j], decrease, out=shrinks[j + 1])
+                torch.add(theta, shrunk[1:n], out=candidates[1:n])
             values = evaluate(candidate_net, pending)[criterion].view(batch, R)[:n]
             ratio = values / base
             accepted = ratio <= rule.adaptive.max_ratio  # NaN fails too
@@ -277,12 +277,17 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
             took = pending & (first < n)
             lr_scale.mul_(torch.where(took & (ratio.gather(0, first.clamp(max=n - 1)[None])[0]
                                               < 1), inc, one))
-            delta.copy_(shrunk.gather(0, first.view(1, R, 1).expand(1, R, layout.size))[0])
+            if n > 1:  # each run's accepted step, or Δθ·α_dec^n
+                delta.copy_(shrunk.gather(0, first.view(1, R, 1).expand(1, R, layout.size))[0])
             retries += first
             pending &= ~took
             left -= n
             if not bool(pending.any()):
                 break
+            if n == 1:  # a retry shrinks the whole step, momentum included: with the momentum
+                # term left whole (a strict reading of Sec. 2.1.4) r can stay above r_th for
+                # every α, and the rate collapsed to 0.7^1000 in a measured two-Lissajous run
+                delta.mul_(torch.where(pending, dec, one).to(delta.dtype)[:, None])
         # ---- update; give up the step of runs still rejected, roll back non-finite runs
         if not adaptive:
             torch.add(theta, delta, out=scratch)

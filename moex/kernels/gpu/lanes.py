@@ -5,8 +5,8 @@ lanes, buffers and the two launches; `launch` is every training kernel's launch.
 
 Three knobs for the GPU session's sweep, read once: MOEX_GPU_LANE_BUDGET (entries of the lanes'
 (BL, H, H) products per program, default 4096), MOEX_GPU_WARPS (warps per program, default
-Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive rate per launch, default 4; the
-result is the same for any value).
+Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive rate per launch, default 4 on a
+GPU and 1 in Triton's interpreter; the result is the same for any value).
 """
 
 import os
@@ -19,7 +19,9 @@ from moex.kernels.gpu.rnn import rnn_backward, rnn_forward
 
 LANE_BUDGET = int(os.environ.get("MOEX_GPU_LANE_BUDGET", "4096"))
 NUM_WARPS = int(os.environ.get("MOEX_GPU_WARPS", "4"))
-TRIALS = max(1, int(os.environ.get("MOEX_GPU_TRIALS", "4")))
+# k candidates cost a GPU little more than one; in Triton's interpreter (a CPU) k times as much
+TRIALS = max(1, int(os.environ.get(
+    "MOEX_GPU_TRIALS", "1" if os.environ.get("TRITON_INTERPRET") == "1" else "4")))
 COMPILED: dict[str, object] = {}  # kernel name -> the last compiled kernel launched (CUDA only)
 PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN kernels read
 
