@@ -109,13 +109,17 @@ def _difference(a, b, permutations: int = 20000) -> tuple[float, float, float]:
 
 def collect(out: Path) -> Path:
     """Every control network's metrics (<out>/<design>/moex/metrics.csv, written by `moex import`)
-    into docs/mregn_control_networks.csv, one row per network."""
+    into docs/mregn_control_networks.csv, one row per network; the rows of a design not imported
+    under <out> are kept from the file as it was (designs are imported in different sittings)."""
     import pandas as pd
 
-    frames = [pd.read_csv(out / d / "moex" / "metrics.csv").assign(design=d)
-              for d in COMPARED if (out / d / "moex" / "metrics.csv").exists()]
-    check(bool(frames), f"nothing imported under {out}/<design>/moex/")
+    found = [d for d in COMPARED if (out / d / "moex" / "metrics.csv").exists()]
+    check(bool(found), f"nothing imported under {out}/<design>/moex/")
+    frames = [pd.read_csv(out / d / "moex" / "metrics.csv").assign(design=d) for d in found]
     path = DOCS / "mregn_control_networks.csv"
+    if path.exists():
+        kept = pd.read_csv(path)
+        frames.insert(0, kept[~kept["design"].isin(found)])
     pd.concat(frames, ignore_index=True).to_csv(path, index=False)
     return path
 
