@@ -169,8 +169,8 @@ def _trajectory_cases():
 @pytest.mark.parametrize("backend, dtype, form, adaptive", _trajectory_cases(),
                          indirect=["backend"])
 def test_training_trajectories_of_both_phases_match(backend, dtype, form, adaptive):
-    steps = 6 if backend.caps.interpreted else 12
-    task = make_task(TaskConfig(num_series=2, length=40), seed=0)
+    steps, length = (6, 24) if backend.caps.interpreted else (12, 40)
+    task = make_task(TaskConfig(num_series=2, length=length), seed=0)
     series = torch.as_tensor(task.series, dtype=dtype)
     model = ModelConfig(learn_time_constants=True)
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -210,7 +210,7 @@ def test_gpu_candidate_steps_in_one_call_train_as_one_by_one(monkeypatch):
         pytest.skip(f"backend gpu cannot run here: {why}")
     from moex.kernels.gpu import phases
 
-    series = torch.as_tensor(make_task(TaskConfig(num_series=2, length=12), seed=0).series)
+    series = torch.as_tensor(make_task(TaskConfig(num_series=2, length=8), seed=0).series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
     rule = TrainConfig(adaptive=AdaptiveLRConfig(max_retries=5))
