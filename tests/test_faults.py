@@ -169,9 +169,12 @@ def test_a_second_process_on_the_same_folder_is_refused(tmp_path):
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.time() + 120
-        while not (run_dir / ".hydra" / "config.yaml").exists() and time.time() < deadline:
+        # Hydra writes config.yaml, hydra.yaml, then overrides.yaml: the last one there means
+        # config.yaml is whole (waiting for config.yaml alone once read it half-written)
+        while not (run_dir / ".hydra" / "overrides.yaml").exists() and time.time() < deadline:
             time.sleep(0.2)
         config = (run_dir / ".hydra" / "config.yaml").read_text()
+        assert config
         result = _moex(["train", "task=lissajous2", *slow, f"hydra.run.dir={run_dir}"],
                        cwd=tmp_path)
         _one_error_line(result, "is being written by another moex process",
