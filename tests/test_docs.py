@@ -260,6 +260,27 @@ def test_the_control_table_is_the_one_the_csvs_give():
     assert table in (ROOT / "docs" / "mregn_control.md").read_text()
 
 
+def test_collecting_the_control_keeps_the_designs_imported_in_another_sitting(tmp_path,
+                                                                          monkeypatch):
+    """`mregn_control.py compare` reads the designs imported under <out>; the rows of designs
+    imported before (their folders gone) stay, and an imported design's rows are replaced."""
+    import pandas as pd
+
+    control = _script("mregn_control")
+    monkeypatch.setattr(control, "DOCS", tmp_path)
+    pd.DataFrame({"run": [0, 1, 0], "max_lyapunov": [0.1, 0.2, 9.0],
+                  "design": ["reber_nc20", "reber_nc20", "table2_p05"]}).to_csv(
+        tmp_path / "mregn_control_networks.csv", index=False)
+    imported = tmp_path / "out" / "table2_p05" / "moex"
+    imported.mkdir(parents=True)
+    pd.DataFrame({"run": [0, 1], "max_lyapunov": [-1e-4, -2e-4]}).to_csv(
+        imported / "metrics.csv", index=False)
+    rows = pd.read_csv(control.collect(tmp_path / "out"))
+    assert sorted(rows["design"]) == ["reber_nc20"] * 2 + ["table2_p05"] * 2
+    assert rows[rows["design"] == "table2_p05"]["max_lyapunov"].tolist() == [-1e-4, -2e-4]
+    assert rows[rows["design"] == "reber_nc20"]["max_lyapunov"].tolist() == [0.1, 0.2]
+
+
 def test_the_pooled_mean_weighs_data_sets_by_their_own_spread_and_the_between_data_spread():
     """Random-effects pooling of data sets (docs/verdicts.py): one data set gives the plain mean
     and sd/√n; data sets drawn around one mean with no between-data spread give about sd/√N over
