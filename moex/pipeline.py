@@ -39,20 +39,30 @@ def evaluation_generator(cfg: Config) -> torch.Generator:
     return torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
 
 
-_LAST: dict[tuple, Dataset] = {}  # the last generated data set of this process, by its settings
+_BUILT: dict[tuple, Dataset] = {}  # generated data sets of this process by their settings, oldest
+_BUILT_BYTES = 256 * 2**20  # first; the oldest go when their arrays exceed this
+
+
+def _nbytes(dataset: Dataset | None) -> int:
+    if dataset is None:
+        return 0
+    arrays = (dataset.series, dataset.labels, dataset.gate_targets)
+    return sum(a.nbytes for a in arrays if a is not None) + _nbytes(dataset.test)
 
 
 def _generated(cfg: Config) -> Dataset:
     """`make_task` for the config, built once per process when the task is generated (not read
     from files): `moex train` checks its config on the data (`cli.validate`) and then trains on
-    the same data set. Nothing changes a `Dataset` in place."""
+    the same data set; a packed sweep checks every job's and then trains them all. Nothing
+    changes a `Dataset` in place."""
     if cfg.task.path:
         return make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
     key = (repr(cfg.task), cfg.seed, cfg.model.delay)
-    if key not in _LAST:
-        _LAST.clear()
-        _LAST[key] = make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
-    return _LAST[key]
+    if key not in _BUILT:
+        _BUILT[key] = make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
+        while len(_BUILT) > 1 and sum(map(_nbytes, _BUILT.values())) > _BUILT_BYTES:
+            del _BUILT[next(iter(_BUILT))]
+    return _BUILT[key]
 
 
 def load_task(cfg: Config) -> Dataset:
