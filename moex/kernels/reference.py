@@ -3,7 +3,6 @@ gradients by autograd, on any device. Every other backend is tested against it."
 
 from collections.abc import Callable
 
-import numpy as np
 import torch
 
 from moex import objectives
@@ -133,8 +132,7 @@ class GatingProblem(_Problem):
     def resample(self, step: int) -> None:
         if self.phase.input_noise_var > 0:
             noise = input_noise(self.seeds, step, self.inputs.shape[-3:],
-                                self.phase.input_noise_var,
-                                np.dtype(str(self.inputs.dtype).removeprefix("torch.")))
+                                self.phase.input_noise_var, self.inputs.dtype)
             self.objective = gating_objective(
                 self.targets, self.inputs + torch.from_numpy(noise).to(self.device), self.model,
                 self.phase)

@@ -73,11 +73,10 @@ class Net:
     Args:
         xrow, u0j: (L,) each lane's row of X and its row of its run's u_0.
         learn_eps: ε learned (keep u_t, write ∂τ); sums: keep Σu, Σu² (the attraction).
-        floor: the attraction's variance floor (σ̄²); keep: buffers for gradients (else values
-        only)."""
+        keep: buffers for gradients (else values only)."""
 
     def __init__(self, networks, per_run, lanes_per_net, T, NI, H, NO, xrow, u0j, learn_eps,
-                 sums, floor, dtype, device, keep=True):
+                 sums, dtype, device, keep=True):
         L = networks * lanes_per_net
         self.networks, self.learn_eps, self.sums = networks, learn_eps, sums
 
@@ -85,7 +84,6 @@ class Net:
             return torch.as_tensor(np.asarray(x), dtype=torch.int64, device=device)
 
         self.xrow, self.u0j = index(xrow), index(u0j)
-        self.floor = torch.tensor([floor], dtype=dtype, device=device)
         HP = pow2(H)
         block = max(1, min(pow2(lanes_per_net), LANE_BUDGET // HP ** 2))
         self.meta = dict(T=T, NI=NI, H=H, NO=NO, NIP=pow2(NI), HP=HP, NOP=pow2(NO), BL=block,
@@ -108,12 +106,13 @@ class Net:
                KEEP_SUMS=self.sums, **self.meta)
         return self.O
 
-    def backward(self, X, params, grads, active, attract):
-        """The networks' gradients for ∂L/∂O = self.DO, written into `grads` where `active`."""
+    def backward(self, X, params, grads, active, attract, floor):
+        """The networks' gradients for ∂L/∂O = self.DO, written into `grads` where `active`;
+        `floor` (a device tensor, its first entry read): the attraction's variance floor σ̄²."""
         learn = "tau" in grads
         g = {k: grads[k] if k in grads else grads["b_c"] for k in PARAMS}  # (τ: not written)
         read = ("w_rec", "w_out", "b_c", "tau", "u0")
         launch(rnn_backward, self.networks, self.DO, X, self.xrow, self.u0j,
-               *(params[k] for k in read), self.C, self.U, self.S, active, self.floor,
+               *(params[k] for k in read), self.C, self.U, self.S, active, floor,
                *(g[k] for k in PARAMS), *strides(params, read), *strides(g, PARAMS),
                LEARN_EPS=learn, ATTRACT=attract, **self.meta)

@@ -177,8 +177,8 @@ class _Problem:
     STATS: tuple
     trials = TRIALS  # candidate steps of the adaptive rate evaluated in one call
 
-    def __init__(self, device, num_runs):
-        self.device = torch.device(device)
+    def __init__(self, num_runs):
+        """After a subclass has set its device, shape, model, phase and dtype."""
         self.num_runs, self.candidates = num_runs, None
         self.everyone = torch.ones(num_runs * self.trials, dtype=torch.bool, device=self.device)
         self.rnn = self._net(1)
@@ -209,7 +209,7 @@ class _Problem:
         rnn.forward(self.X, params, want)
         self._objective(rnn, params, grads, active, stats, want)
         if want:
-            rnn.backward(self.X, params, grads, active, self.phase.attraction)
+            rnn.backward(self.X, params, grads, active, self.phase.attraction, self.const)
         return dict(zip(self.STATS, stats.unbind(0), strict=True))
 
 
@@ -238,7 +238,7 @@ class ExpertProblem(_Problem):
                                   device=self.device)
         self.meta = dict(S=S, T=T, K=K, D=D, KP=pow2(K), DP=pow2(D), H=M, HP=pow2(M),
                          OWN=int(self.own), BT=min(BT, pow2(T)), BJ=BJ)
-        super().__init__(device, num_runs)
+        super().__init__(num_runs)
 
     def _net(self, copies):
         """The lanes of `copies` x R runs; run r' reads the data of run r' mod R."""
@@ -246,8 +246,8 @@ class ExpertProblem(_Problem):
         lane = np.arange(copies * self.num_runs * K * S)
         r, k, s = lane // (K * S) % self.num_runs, lane // S % K, lane % S
         return Net(copies * self.num_runs * K, K, S, T, D, M, D, r * S * self.own + s, s * K + k,
-                   self.model.learn_time_constants, self.phase.attraction,
-                   self.model.sigma_min ** 2, self.dtype, self.device, keep=copies == 1)
+                   self.model.learn_time_constants, self.phase.attraction, self.dtype,
+                   self.device, keep=copies == 1)
 
     def _objective(self, rnn, params, grads, active, stats, want):
         g = grads if want else params  # (not written without WANT)
@@ -283,15 +283,15 @@ class GatingProblem(_Problem):
         self.const = torch.tensor([model.sigma_min ** 2], dtype=self.dtype, device=self.device)
         self.meta = dict(S=S, T=T_g, K=K, KP=pow2(K), H=H, HP=pow2(H), BT=min(BT, pow2(T_g)),
                          BJ=BJ)
-        super().__init__(device, R)
+        super().__init__(R)
 
     def _net(self, copies):
         """The lanes of `copies` x R runs; run r' reads the inputs of run r' mod R."""
         R, S, T_g, K, D, H = self.shape
         lane = np.arange(copies * R * S)
         return Net(copies * R, 1, S, T_g, K + D, H, K, lane % (R * S), lane % S,
-                   self.model.learn_time_constants, self.phase.attraction,
-                   self.model.sigma_min ** 2, self.dtype, self.device, keep=copies == 1)
+                   self.model.learn_time_constants, self.phase.attraction, self.dtype,
+                   self.device, keep=copies == 1)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""
@@ -299,7 +299,7 @@ class GatingProblem(_Problem):
             return
         R, S, T_g, K, D, H = self.shape
         noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),
-                            self.phase.input_noise_var, np.dtype(str(self.X.dtype)[6:]))
+                            self.phase.input_noise_var, self.X.dtype)
         noise = torch.as_tensor(noise[:, :, :T_g].reshape(R * S, T_g, D), device=self.device)
         self.X[:, :, K:] = self.clean[:, :, K:] + noise
 
