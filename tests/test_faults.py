@@ -242,3 +242,13 @@ def test_sigint_during_trains_evaluation_keeps_the_trained_checkpoint(tmp_path):
     result = _moex(args, cwd=tmp_path)  # the same training, evaluated this time
     assert result.returncode == 0, result.stderr
     assert (run_dir / "metrics.csv").exists()
+
+
+@pytest.mark.parametrize("knob", ["MOEX_GPU_TRIALS=0", "MOEX_GPU_WARPS=four"])
+def test_a_bad_gpu_knob_is_refused_in_one_line_and_writes_nothing(tmp_path, knob):
+    name, value = knob.split("=")
+    env = {**os.environ, name: value, "TRITON_INTERPRET": "1"}
+    result = subprocess.run(MOEX + ["train", "backend=gpu", f"hydra.run.dir={tmp_path / 'run'}"],
+                            cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    _one_error_line(result, f"{knob} must be a whole number >= 1")
+    assert not (tmp_path / "run").exists()

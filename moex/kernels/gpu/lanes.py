@@ -15,13 +15,21 @@ import numpy as np
 import torch
 import triton
 
+from moex.errors import check
 from moex.kernels.gpu.rnn import rnn_backward, rnn_forward
 
-LANE_BUDGET = int(os.environ.get("MOEX_GPU_LANE_BUDGET", "4096"))
-NUM_WARPS = int(os.environ.get("MOEX_GPU_WARPS", "4"))
+
+def _knob(name: str, default: str) -> int:
+    """A whole number >= 1 from the environment (a `ConfigError` naming it otherwise)."""
+    value = os.environ.get(name, default)
+    check(value.isdigit() and int(value) >= 1, f"{name}={value} must be a whole number >= 1")
+    return int(value)
+
+
+LANE_BUDGET = _knob("MOEX_GPU_LANE_BUDGET", "4096")
+NUM_WARPS = _knob("MOEX_GPU_WARPS", "4")
 # k candidates cost a GPU little more than one; in Triton's interpreter (a CPU) k times as much
-TRIALS = max(1, int(os.environ.get(
-    "MOEX_GPU_TRIALS", "1" if os.environ.get("TRITON_INTERPRET") == "1" else "4")))
+TRIALS = _knob("MOEX_GPU_TRIALS", "1" if os.environ.get("TRITON_INTERPRET") == "1" else "4")
 COMPILED: dict[str, object] = {}  # kernel name -> the last compiled kernel launched (CUDA only)
 PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN kernels read
 
