@@ -1,7 +1,10 @@
 """`moex <verb> [overrides]`, the only module that imports Hydra.
 
 Overrides are composed and validated with Hydra's compose API before the run starts, so a bad
-value or unknown key ends with one line on stderr and exit code 2, and nothing is written.
+value or unknown key ends with one line on stderr and exit code 2, and nothing is written. A
+single run then runs on that composed config (Hydra's `run_job`, as `hydra.main` would call it):
+the command line is composed once. Sweeps and Hydra's own flags (--cfg, --info, --help) go
+through `hydra.main`, whose launcher composes each job.
 """
 
 import copy
@@ -16,12 +19,15 @@ from pathlib import Path
 
 import hydra
 from hydra import compose, initialize_config_dir
+from hydra._internal.callbacks import Callbacks
+from hydra._internal.utils import run_and_report
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.utils import run_job
 from hydra.errors import HydraException, OverrideParseException
-from hydra.types import RunMode
-from omegaconf import OmegaConf, open_dict
+from hydra.types import HydraContext, RunMode
+from omegaconf import OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -170,19 +176,30 @@ def interrupted_jobs(folders: list[Path], exc: BaseException) -> None:
           f"command with hydra.sweep.dir={Path(folders[0]).parent} to continue", file=sys.stderr)
 
 
+class Composed:
+    """What `validate` composed: the first variant's config (with Hydra's node) and the loader
+    that composed it, for `run_composed`."""
+
+    def __init__(self, config, loader):
+        self.config, self.loader = config, loader
+
+
 def validate(config_name: str, args: list[str], flags: list[str] = ()):
     """Compose every override variant, build its config and load its data (or run folder);
-    raise `ConfigError` on the first problem. Returns the first variant's config."""
+    raise `ConfigError` on the first problem. Returns the first variant's config and what was
+    composed for it (`Composed`)."""
     register_configs()
     GlobalHydra.instance().clear()
     search = _search_path(args, list(flags))
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             try:
-                configs = []
+                configs, first = [], None
                 for overrides in _override_variants(args):
                     composed = compose(config_name, overrides=search + overrides,
                                        return_hydra_config=True)
+                    first = first or Composed(copy.deepcopy(composed),
+                                              GlobalHydra.instance().config_loader())
                     choices = dict(composed.hydra.runtime.choices)
                     _check_launcher(composed.hydra.launcher)
                     with open_dict(composed):
@@ -190,11 +207,31 @@ def validate(config_name: str, args: list[str], flags: list[str] = ()):
                     configs.append(_typed(composed, choices))
                 for cfg in configs:
                     VERBS_CHECK[config_name](cfg)
-                return configs[0]
+                return configs[0], first
             except (HydraException, OmegaConfBaseException) as exc:
                 raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
     finally:
         GlobalHydra.instance().clear()
+
+
+def run_composed(config_name: str, composed: Composed, run_dir: str | None, task_function):
+    """One run on the config `validate` composed, as `hydra.main` runs it after composing
+    (`Hydra.run`): its callbacks, `run_job` (the folder, .hydra/, the log) and the task function;
+    `run_dir` (resume=true, out_dir=) sets hydra.run.dir as the override would."""
+    cfg = composed.config
+    with read_write(cfg.hydra), open_dict(cfg.hydra):
+        cfg.hydra.mode = RunMode.RUN
+        if run_dir is not None:
+            cfg.hydra.run.dir = run_dir
+            cfg.hydra.overrides.hydra.append(f"hydra.run.dir={run_dir}")
+        cfg.hydra.overrides.hydra.append("hydra.mode=RUN")  # as hydra.main records it
+    callbacks = Callbacks(cfg)
+    callbacks.on_run_start(config=cfg, config_name=config_name)
+    done = run_job(hydra_context=HydraContext(config_loader=composed.loader, callbacks=callbacks),
+                   task_function=task_function, config=cfg, job_dir_key="hydra.run.dir",
+                   job_subdir_key=None)
+    callbacks.on_run_end(config=cfg, config_name=config_name, job_return=done)
+    return done.return_value  # raises the task function's error, as Hydra's run does
 
 
 def _check_launcher(launcher) -> None:
@@ -334,27 +371,32 @@ def main(argv: list[str] | None = None) -> None:
         print(f"moex: error: {sorted(shown)[0]} shows the config of one run: drop -m and give "
               f"one value per key", file=sys.stderr)
         sys.exit(2)
-    claimed = None
+    multirun = bool({"-m", "--multirun"} & set(hydra_flags))
+    claimed = composed = run_dir = None
     if not ({"--help", "-h", "--hydra-help"} | SHOWS_CONFIG) & set(hydra_flags):
         try:
-            cfg = validate(config_name, overrides, hydra_flags)
-            multirun = bool({"-m", "--multirun"} & set(hydra_flags))
+            cfg, composed = validate(config_name, overrides, hydra_flags)
             if verb == "train" and cfg.resume and not multirun \
                     and not any(a.startswith("hydra.run.dir=") for a in args):
-                args = args + [f"hydra.run.dir={_latest_run(cfg.task.name)}"]
+                run_dir = str(_latest_run(cfg.task.name))
             if verb != "train" and cfg.out_dir:
-                args = args + [f"hydra.run.dir={cfg.out_dir}"]
+                run_dir = cfg.out_dir
+            if run_dir is not None:
+                args = args + [f"hydra.run.dir={run_dir}"]
             claimed = folders.claim(args, multirun, verb, cfg)
         except ConfigError as exc:
             print(f"moex: error: {exc}", file=sys.stderr)
             sys.exit(2)
-    register_configs()
-    entry = hydra.main(version_base="1.3", config_path=CONF_DIR,
-                       config_name=config_name)(task_function)
     sys.argv = [f"moex {verb}"] + args
-    multirun = bool({"-m", "--multirun"} & set(hydra_flags))
+    flag_names = {f.split("=", 1)[0] for f in hydra_flags if f.startswith("-")}
+    once = composed is not None and not multirun and flag_names <= {"--config-dir", "-cd"}
     try:
-        entry()
+        if once:  # the config validate composed, not composed again
+            run_and_report(lambda: run_composed(config_name, composed, run_dir, task_function))
+        else:
+            register_configs()
+            hydra.main(version_base="1.3", config_path=CONF_DIR,
+                       config_name=config_name)(task_function)()
     finally:
         if claimed is not None:
             folders.release(claimed, args, multirun)

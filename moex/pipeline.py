@@ -324,6 +324,9 @@ def load_run(tool: RunFolder) -> TrainedRun:
         budget.check_evaluate(cfg)
     if isinstance(tool, GenerateConfig):
         budget.check_generate(cfg, tool.steps, tool.num_samples)
+        S = saved.series.shape[0]
+        check(-1 <= tool.from_series < S, f"from_series={tool.from_series} is outside [-1, "
+                                          f"{S - 1}]")
     backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name, device=cfg.device, precision=cfg.precision,
                     run_dir=str(tool.run_dir))
@@ -353,8 +356,7 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
     cfg, saved, dataset = run.cfg, run.saved, run.dataset
     experts, gating = saved.experts, saved.gating
     generator = torch.Generator().manual_seed(tool.seed)
-    S, _, D = dataset.series.shape
-    check(-1 <= tool.from_series < S, f"from_series={tool.from_series} is outside [-1, {S - 1}]")
+    D = dataset.series.shape[2]
     if tool.from_series < 0:
         state = random_state(experts, gating, tool.num_samples, D, cfg.model.delay, generator)
     else:  # the trained initial state of one series, repeated for every (noisy) sample

@@ -1,4 +1,6 @@
+import logging
 import os
+import subprocess
 
 import pytest
 import torch
@@ -46,6 +48,31 @@ def backend_params(reference: bool = True, slow_interpreted: bool = False) -> li
     return [pytest.param(name, id=name, marks=pytest.mark.slow
                          if slow_interpreted and name in INTERPRETED else ())
             for name in REGISTRY if reference or name != "reference"]
+
+
+@pytest.fixture
+def moex_here(capsys, monkeypatch):
+    """The `moex` command run in this process (`moex.cli.main`, in the folder `cwd`), for commands
+    refused before any work starts: a `CompletedProcess` with the exit code and the output, as a
+    subprocess would give it, without a subprocess's seconds of imports."""
+    from moex.cli import main
+
+    def run(args: list[str], cwd) -> subprocess.CompletedProcess:
+        monkeypatch.chdir(cwd)
+        capsys.readouterr()
+        handlers = list(logging.getLogger().handlers)
+        try:
+            main(list(args))
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+        out = capsys.readouterr()
+        started = logging.getLogger().handlers != handlers  # Hydra set up a run's logging
+        logging.getLogger().handlers[:] = handlers
+        assert not started, f"moex {' '.join(args)} started a run: test it in a subprocess"
+        return subprocess.CompletedProcess(args, code, out.out, out.err)
+
+    return run
 
 
 @pytest.fixture(params=backend_params())

@@ -23,7 +23,7 @@ def _moex(args, cwd):
                           timeout=300)
 
 
-def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
+def test_train_from_another_directory_leaves_the_documented_files(tmp_path, moex_here):
     run_dir = tmp_path / "run"
     work = tmp_path / "elsewhere"
     work.mkdir()
@@ -93,16 +93,16 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path):
     assert result.returncode == 0, result.stderr
     outputs = np.load(tmp_path / "from1" / "samples.npz")["outputs"]
     assert np.array_equal(outputs[:, 0], outputs[:, 1])
-    result = _moex(["generate", f"run_dir={run_dir}", "from_series=5"], cwd=work)
+    result = moex_here(["generate", f"run_dir={run_dir}", "from_series=5"], cwd=work)
     assert result.returncode == 2 and "from_series=5 is outside [-1, 1]" in result.stderr
-    result = _moex(["generate", f"run_dir={run_dir}", f"out_dir={run_dir}"], cwd=work)
+    result = moex_here(["generate", f"run_dir={run_dir}", f"out_dir={run_dir}"], cwd=work)
     assert result.returncode == 2 and "is the run folder itself" in result.stderr
     assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()
             and "evaluate" not in p.parts} == trained
     assert list(work.iterdir()) == []
 
 
-def test_a_failed_evaluation_leaves_nothing_behind(tmp_path):
+def test_a_failed_evaluation_leaves_nothing_behind(tmp_path, moex_here):
     run_dir = tmp_path / "run"
     result = _moex(["train", "task=lissajous2", *TINY, "eval.enabled=false",
                     f"hydra.run.dir={run_dir}"], cwd=tmp_path)
@@ -112,7 +112,7 @@ def test_a_failed_evaluation_leaves_nothing_behind(tmp_path):
     torch.save(checkpoint, run_dir / "checkpoint.pt")
     before = sorted(p.name for p in run_dir.iterdir())
     for verb in ("evaluate", "generate"):
-        result = _moex([verb, f"run_dir={run_dir}"], cwd=tmp_path)
+        result = moex_here([verb, f"run_dir={run_dir}"], cwd=tmp_path)
         assert result.returncode == 2, result.stderr
         assert result.stderr.strip() == (f"moex: error: {run_dir}/checkpoint.pt: its gating "
                                          f"network lacks w_rec; it is not a usable moex "
@@ -121,7 +121,7 @@ def test_a_failed_evaluation_leaves_nothing_behind(tmp_path):
         assert sorted(p.name for p in run_dir.iterdir()) == before
 
 
-def test_resume_true_continues_the_latest_run_of_the_task(tmp_path):
+def test_resume_true_continues_the_latest_run_of_the_task(tmp_path, moex_here):
     args = ["train", "task=lissajous2", *TINY, "eval.enabled=false"]
     assert _moex(args, cwd=tmp_path).returncode == 0
     (run_dir,) = (tmp_path / "outputs" / "lissajous2").iterdir()
@@ -131,7 +131,7 @@ def test_resume_true_continues_the_latest_run_of_the_task(tmp_path):
     assert str(run_dir) in result.stdout
     assert list((tmp_path / "outputs" / "lissajous2").iterdir()) == [run_dir]
     assert (run_dir / "checkpoint.pt").stat().st_mtime_ns == before  # finished: not redone
-    result = _moex(["train", "task=reber", "resume=true"], cwd=tmp_path)
+    result = moex_here(["train", "task=reber", "resume=true"], cwd=tmp_path)
     assert result.returncode == 2 and "outputs/reber/ holds no run" in result.stderr
 
 
@@ -172,9 +172,9 @@ def test_reber_trains_the_gating_network_only(tmp_path):
 ] + ([] if torch.cuda.is_available() else [
     ("device=cuda", "device=cuda but this machine has no CUDA device"),
 ]))
-def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_path):
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_path, moex_here):
     multirun = ["-m"] if "," in override else []
-    result = _moex(["train", *multirun, override, f"hydra.run.dir={tmp_path}/run",
+    result = moex_here(["train", *multirun, override, f"hydra.run.dir={tmp_path}/run",
                     f"hydra.sweep.dir={tmp_path}/sweep"], cwd=tmp_path)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
@@ -184,7 +184,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_
     assert sorted(p.name for p in Path(tmp_path).iterdir()) == []
 
 
-def test_bad_transition_matrix_and_csv(tmp_path):
+def test_bad_transition_matrix_and_csv(tmp_path, moex_here):
     (tmp_path / "bad.csv").write_text("0.1,0.2\n0.3,nan\n" * 5)
     (tmp_path / "ragged.csv").write_text("0.1,0.2\n0.3\n" * 5)
     (tmp_path / "short.csv").write_text("0.1,0.2\n0.3,0.1\n")
@@ -204,23 +204,23 @@ def test_bad_transition_matrix_and_csv(tmp_path):
         (["task=csv", f"task.path={tmp_path}/bad.csv"], "has NaN or inf values (first at step 1)"),
         (["task=csv"], "task.path"),
     ]:
-        result = _moex(["train", *args, f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path)
+        result = moex_here(["train", *args, f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path)
         assert result.returncode == 2 and message in result.stderr, result.stderr
         assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("verb", ["evaluate", "generate"])
-def test_run_dir_without_checkpoint(verb, tmp_path):
-    result = _moex([verb, f"run_dir={tmp_path}/none"], cwd=tmp_path)
+def test_run_dir_without_checkpoint(verb, tmp_path, moex_here):
+    result = moex_here([verb, f"run_dir={tmp_path}/none"], cwd=tmp_path)
     assert result.returncode == 2
     assert result.stderr.strip() == f"moex: error: run_dir={tmp_path}/none holds no checkpoint.pt"
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
-    result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
+    result = moex_here([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
     assert result.returncode == 2 and "cannot be read" in result.stderr
     assert "it is not a usable moex checkpoint" in result.stderr
     torch.save({"format_version": 99}, tmp_path / "checkpoint.pt")
-    result = _moex([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
+    result = moex_here([verb, f"run_dir={tmp_path}"], cwd=tmp_path)
     assert result.returncode == 2
     assert "its format is 99; this moex reads formats 1 and 2" in result.stderr
 
@@ -357,11 +357,11 @@ def test_backend_gpu_without_cuda_is_refused_and_writes_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_misspelt_choices_and_keys_get_the_closest_first(tmp_path):
-    task = _moex(["train", "task=lisajous2"], tmp_path)
+def test_misspelt_choices_and_keys_get_the_closest_first(tmp_path, moex_here):
+    task = moex_here(["train", "task=lisajous2"], tmp_path)
     assert task.returncode == 2
     assert "task=lisajous2 is unknown; choose one of lissajous2, lissajous9, " in task.stderr
-    key = _moex(["train", "train.expert.steps=3"], tmp_path)
+    key = moex_here(["train", "train.expert.steps=3"], tmp_path)
     assert key.returncode == 2
     assert "unknown key train.expert.steps; did you mean train.experts.steps" in key.stderr
     assert list(tmp_path.iterdir()) == []
@@ -377,7 +377,44 @@ def test_version_answers_without_importing_the_stack(tmp_path):
     assert probe.stdout.split()[-2:] == ["False", "False"], probe.stdout + probe.stderr
 
 
-def test_cfg_with_multirun_is_one_line_not_a_traceback(tmp_path):
-    done = _moex(["train", "-m", "num_runs=1,2", "--cfg", "job"], tmp_path)
+def test_cfg_with_multirun_is_one_line_not_a_traceback(tmp_path, moex_here):
+    done = moex_here(["train", "-m", "num_runs=1,2", "--cfg", "job"], tmp_path)
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert "drop -m" in done.stderr and list(tmp_path.iterdir()) == []
+
+
+def test_a_single_run_composes_its_config_once_and_builds_its_data_once(tmp_path, monkeypatch):
+    """`moex train` composes the command line once (the validation's config is the one the run
+    uses, with .hydra/ as `hydra.main` writes it) and builds its data set once."""
+    import logging
+
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+
+    from moex import cli, pipeline
+
+    counts = {"composed": 0, "built": 0}
+    compose, make = ConfigLoaderImpl.load_configuration, pipeline.make_task
+
+    def composing(self, *args, **kwargs):
+        counts["composed"] += 1
+        return compose(self, *args, **kwargs)
+
+    def building(*args, **kwargs):
+        counts["built"] += 1
+        return make(*args, **kwargs)
+
+    monkeypatch.setattr(ConfigLoaderImpl, "load_configuration", composing)
+    monkeypatch.setattr(pipeline, "make_task", building)
+    monkeypatch.chdir(tmp_path)
+    run_dir = tmp_path / "run"
+    handlers = list(logging.getLogger().handlers)
+    try:  # a seed of its own: no data set of another test in this process's cache
+        cli.main(["train", "task=lissajous2", *TINY, "seed=8123", "eval.enabled=false",
+                  f"hydra.run.dir={run_dir}"])
+    finally:
+        logging.getLogger().handlers[:] = handlers  # Hydra set up the run's log
+    assert counts == {"composed": 1, "built": 1}
+    hydra_cfg = (run_dir / ".hydra" / "hydra.yaml").read_text()
+    assert "    - hydra.mode=RUN\n" in hydra_cfg and "name: train\n" in hydra_cfg
+    assert (run_dir / ".hydra" / "overrides.yaml").read_text().startswith("- task=lissajous2\n")
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["phase"] == "done"

@@ -42,7 +42,7 @@ def trained(tmp_path_factory) -> Path:
     return run_dir
 
 
-def test_user_files_nan_in_a_stack_complex_values_and_a_byte_order_mark(tmp_path):
+def test_user_files_nan_in_a_stack_complex_values_and_a_byte_order_mark(tmp_path, moex_here):
     stack = np.random.default_rng(0).uniform(-0.5, 0.5, (3, 30, 2))
     stack[2, 7, 1] = np.nan
     np.save(tmp_path / "nan.npy", stack)
@@ -50,7 +50,7 @@ def test_user_files_nan_in_a_stack_complex_values_and_a_byte_order_mark(tmp_path
     for name, fragments in [("nan.npy", ["nan.npy (series 2) has NaN or inf values",
                                          "first at step 7"]),
                             ("complex.npy", ["complex128 values", "real numbers"])]:
-        result = _moex(["train", "task=csv", f"task.path={tmp_path}/{name}",
+        result = moex_here(["train", "task=csv", f"task.path={tmp_path}/{name}",
                         f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path)
         _one_error_line(result, *fragments)
         assert not (tmp_path / "run").exists()
@@ -65,13 +65,13 @@ def test_user_files_nan_in_a_stack_complex_values_and_a_byte_order_mark(tmp_path
     assert series.shape == (1, 20, 2) and series[0, 0, 0] == 0.0
 
 
-def test_data_beyond_the_tanh_range_is_refused_or_scaled_and_mapped_back(tmp_path):
+def test_data_beyond_the_tanh_range_is_refused_or_scaled_and_mapped_back(tmp_path, moex_here):
     rng = np.random.default_rng(2)
     frame = pd.DataFrame({"time": np.arange(40.0) * 0.6, "x": rng.uniform(-0.5, 0.5, 40)})
     frame.to_csv(tmp_path / "wide.csv", index=False)
     args = ["train", "task=csv", f"task.path={tmp_path}/wide.csv", "train.experts.steps=2",
             "train.gating.steps=2", "eval=quick"]
-    result = _moex([*args, f"hydra.run.dir={tmp_path}/none"], cwd=tmp_path)
+    result = moex_here([*args, f"hydra.run.dir={tmp_path}/none"], cwd=tmp_path)
     _one_error_line(result, "feature 0 spans [0, 23.4], outside [-1, 1]", "task.scale=auto")
     assert not (tmp_path / "none").exists()
     run_dir = tmp_path / "scaled"
@@ -92,7 +92,8 @@ def test_data_beyond_the_tanh_range_is_refused_or_scaled_and_mapped_back(tmp_pat
     assert within and np.abs(outputs[..., 0]).max() > 1  # data units, not the model's
 
 
-def test_a_damaged_checkpoint_in_a_finished_folder_is_refused_untouched(trained, tmp_path):
+def test_a_damaged_checkpoint_in_a_finished_folder_is_refused_untouched(trained, tmp_path,
+                                                                        moex_here):
     run_dir = tmp_path / "copy"
     run_dir.mkdir()
     for path, data in _files(trained).items():
@@ -104,15 +105,15 @@ def test_a_damaged_checkpoint_in_a_finished_folder_is_refused_untouched(trained,
     before = _files(run_dir)
     for args in (["train", "task=lissajous2", *TINY, f"hydra.run.dir={run_dir}"],
                  ["evaluate", f"run_dir={run_dir}"], ["generate", f"run_dir={run_dir}"]):
-        _one_error_line(_moex(args, cwd=tmp_path), "checkpoint.pt: it cannot be read")
+        _one_error_line(moex_here(args, cwd=tmp_path), "checkpoint.pt: it cannot be read")
         assert _files(run_dir) == before
     # a finished folder trained with other settings: refused before Hydra writes its config
-    result = _moex(["train", "task=lissajous2", *TINY, "seed=5", f"hydra.run.dir={trained}"],
+    result = moex_here(["train", "task=lissajous2", *TINY, "seed=5", f"hydra.run.dir={trained}"],
                    cwd=tmp_path)
     _one_error_line(result, "was trained with a different seed config")
 
 
-def test_report_names_a_damaged_file(trained, tmp_path):
+def test_report_names_a_damaged_file(trained, tmp_path, moex_here):
     sweep = tmp_path / "sweep"
     for job, damage in enumerate([("metrics.csv", b"\x00\x01garbage,\n\x02"),
                                   ("status.json", b"{not json"),
@@ -123,7 +124,7 @@ def test_report_names_a_damaged_file(trained, tmp_path):
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(data)
         (job_dir / damage[0]).write_bytes(damage[1])
-        result = _moex(["report", str(sweep)], cwd=tmp_path)
+        result = moex_here(["report", str(sweep)], cwd=tmp_path)
         _one_error_line(result, f"{job_dir / damage[0]}", "fix or remove it")
         (job_dir / damage[0]).write_bytes((trained / damage[0]).read_bytes())
 
@@ -135,9 +136,9 @@ def test_report_names_a_damaged_file(trained, tmp_path):
     ("task.length=1000000000", "GiB of memory"),
     ("num_runs=100000", "GiB of memory"),
 ])
-def test_more_bad_input_before_any_work(override, fragment, tmp_path):
+def test_more_bad_input_before_any_work(override, fragment, tmp_path, moex_here):
     start = time.perf_counter()
-    result = _moex(["train", override, "num_runs=1", f"hydra.run.dir={tmp_path}/run"]
+    result = moex_here(["train", override, "num_runs=1", f"hydra.run.dir={tmp_path}/run"]
                    if override != "num_runs=100000" else
                    ["train", override, f"hydra.run.dir={tmp_path}/run"], cwd=tmp_path)
     _one_error_line(result, fragment)
@@ -145,18 +146,18 @@ def test_more_bad_input_before_any_work(override, fragment, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_folders_that_are_files_or_too_big_a_generation(trained, tmp_path):
+def test_folders_that_are_files_or_too_big_a_generation(trained, tmp_path, moex_here):
     # a folder that cannot be created (read-only file systems answer alike; root may write
     # anywhere else, so /proc stands in for them)
-    result = _moex(["train", "task=lissajous2", "hydra.run.dir=/proc/moex-test/run"],
+    result = moex_here(["train", "task=lissajous2", "hydra.run.dir=/proc/moex-test/run"],
                    cwd=tmp_path)
     _one_error_line(result, "hydra.run.dir=/proc/moex-test/run cannot be written")
     (tmp_path / "file").write_text("x")
-    result = _moex(["train", "task=lissajous2", f"hydra.run.dir={tmp_path}/file"], cwd=tmp_path)
+    result = moex_here(["train", "task=lissajous2", f"hydra.run.dir={tmp_path}/file"], cwd=tmp_path)
     _one_error_line(result, f"hydra.run.dir={tmp_path}/file is a file, not a folder")
-    result = _moex(["evaluate", f"run_dir={trained}", f"out_dir={tmp_path}/file"], cwd=tmp_path)
+    result = moex_here(["evaluate", f"run_dir={trained}", f"out_dir={tmp_path}/file"], cwd=tmp_path)
     _one_error_line(result, f"out_dir={tmp_path}/file is a file, not a folder")
-    result = _moex(["generate", f"run_dir={trained}", "steps=10000000000"], cwd=tmp_path)
+    result = moex_here(["generate", f"run_dir={trained}", "steps=10000000000"], cwd=tmp_path)
     _one_error_line(result, "generating 2 runs x 4 samples x 10000000000 steps", "GiB")
     assert not (trained / "generate").exists()
 

@@ -137,10 +137,10 @@ def test_the_slurm_preset_composes(tmp_path):
     assert "cluster: slurm" in done.stdout and "packed_launcher.PackedLauncher" in done.stdout
 
 
-def test_a_negative_max_runs_is_refused_before_anything_runs(tmp_path):
+def test_a_negative_max_runs_is_refused_before_anything_runs(tmp_path, moex_here):
     sweep = tmp_path / "sweep"
-    done = _moex(["train", "-m", *SWEEP, "hydra/launcher=packed", "hydra.launcher.max_runs=-1",
-                  f"hydra.sweep.dir={sweep}"], tmp_path)
+    done = moex_here(["train", "-m", *SWEEP, "hydra/launcher=packed",
+                      "hydra.launcher.max_runs=-1", f"hydra.sweep.dir={sweep}"], tmp_path)
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
         "moex: error: hydra.launcher.max_runs=-1 must be >= 0 (the most networks in one batch; "

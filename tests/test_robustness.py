@@ -154,8 +154,8 @@ def test_slurm_path_through_submitit_local_survives_a_killed_job(tmp_path):
     from its last checkpoint and skips the finished job."""
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     sweep = tmp_path / "sweep"
-    args = ["train", "-m", "hydra/launcher=submitit_local", *ARGS[2:], "train.experts.steps=4000",
-            "train.gating.steps=1000", "train.checkpoint_every=100",
+    args = ["train", "-m", "hydra/launcher=submitit_local", *ARGS[2:], "train.experts.steps=2000",
+            "train.gating.steps=500", "train.checkpoint_every=100",
             "model.gating.context_size=4,5", f"hydra.sweep.dir={sweep}"]
     sweep_proc = _run(args, tmp_path)
     deadline = time.time() + 240

@@ -25,17 +25,17 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import launched, pow2
-from moex.kernels.gpu.rnn import _tanh
+from moex.kernels.gpu.rnn import _tanh, device
 from moex.model import ClosedLoopRun
 
 
-@triton.jit
+@device
 def _first(line, tt):
     """Entry 0 of a delay line (BN, TP, C) -> (BN, C)."""
     return tl.sum(tl.where((tt == 0)[None, :, None], line, 0.0), axis=1)
 
 
-@triton.jit
+@device
 def _shift(line, new, tt, TAU: tl.constexpr):
     """The delay line moved one step: entries 1..τ-1 to 0..τ-2, `new` (BN, C) into τ-1."""
     move = ((tt[:, None] + 1) == tt[None, :]).to(line.dtype)  # (TP out, TP in)
@@ -43,7 +43,7 @@ def _shift(line, new, tt, TAU: tl.constexpr):
     return tl.where((tt == TAU - 1)[None, :, None], new[:, None, :], moved)
 
 
-@triton.jit
+@device
 def _orthonormalise(veu, vgu, vxl, vgl, growth, SB: tl.constexpr, KT: tl.constexpr,
                     KTP: tl.constexpr, KP: tl.constexpr, MP: tl.constexpr, HP: tl.constexpr,
                     TP: tl.constexpr, DP: tl.constexpr, COUNT: tl.constexpr):
@@ -85,7 +85,7 @@ def _orthonormalise(veu, vgu, vxl, vgl, growth, SB: tl.constexpr, KT: tl.constex
             tl.reshape(x, (SB * KTP, TP, DP)), tl.reshape(q, (SB * KTP, TP, KP)), growth)
 
 
-@triton.jit
+@device
 def _load(ptr, offs, mask):
     return tl.load(ptr + offs, mask=mask, other=0.0)
 

@@ -24,14 +24,14 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import TRIALS, Net, launch, pow2, strides
-from moex.kernels.gpu.rnn import _row, _tanh
+from moex.kernels.gpu.rnn import _row, _tanh, device
 from moex.kernels.noise import input_noise
 
 BT = 64  # time steps per tile of the objective kernels
 BJ = 16  # lanes per tile of the attraction sum
 
 
-@triton.jit
+@device
 def _attraction(SUMS, U0, U0J, first, floor, LPR: tl.constexpr, T: tl.constexpr,
                 H: tl.constexpr, HP: tl.constexpr, BJ: tl.constexpr):
     """Σ over the LPR lanes first.. of Σ_h -(u_0 - μ)²/(2v), μ and v = max(var, floor) from the
@@ -50,7 +50,7 @@ def _attraction(SUMS, U0, U0J, first, floor, LPR: tl.constexpr, T: tl.constexpr,
     return tl.sum(tl.sum(total, axis=1), axis=0)
 
 
-@triton.jit
+@device
 def _log_softmax(x, ok):
     """(BT, KP) log-softmax over the K entries where `ok` ((KP,) bools); also the softmax."""
     m = tl.max(tl.where(ok[None, :], x, -float("inf")), axis=1)

@@ -33,18 +33,29 @@ float32 scalar (ε = 0.2 became 0.2000000030 in float64 runs), so they are read 
 Loop bounds are `tl.constexpr` (the interpreter that runs these kernels on a CPU needs it).
 """
 
+import os
+
 import triton
 import triton.language as tl
 
 
-@triton.jit
+def device(fn):
+    """`triton.jit` for a function the kernels call. In Triton's interpreter (`TRITON_INTERPRET=1`)
+    it is the interpreter's rewrite of `fn`, called directly: Triton 3.x's interpreter patches all
+    of `triton.language` again on every call of a jitted device function (a third of the time of
+    the interpreted tests went there); the launch's own patching covers the call."""
+    jitted = triton.jit(fn)
+    return jitted.rewrite() if os.environ.get("TRITON_INTERPRET") == "1" else jitted
+
+
+@device
 def _tanh(x):
     """tanh(x) = 2σ(2x) - 1: finite for every x, ≤ 3e-16 from tanh in float64, and the same
     formula on a GPU and in the interpreter."""
     return 2.0 * tl.sigmoid(2.0 * x) - 1.0
 
 
-@triton.jit
+@device
 def _reciprocal(x):
     """1/x rounded correctly in both precisions (a float32 `/` is approximate on a GPU)."""
     if x.dtype == tl.float32:
@@ -54,58 +65,58 @@ def _reciprocal(x):
     return out
 
 
-@triton.jit
+@device
 def _matvec(w, v):
     """(R, C) · (BL, C) -> (BL, R)."""
     return tl.sum(w[None, :, :] * v[:, None, :], axis=2)
 
 
-@triton.jit
+@device
 def _matvec_t(w, v):
     """(R, C)ᵀ · (BL, R) -> (BL, C)."""
     return tl.sum(w[None, :, :] * v[:, :, None], axis=1)
 
 
-@triton.jit
+@device
 def _tile(ptr, rows, cols, NR: tl.constexpr, NC: tl.constexpr):
     """The (RP, CP) tile of the (NR, NC) matrix at `ptr`."""
     mask = (rows < NR)[:, None] & (cols < NC)[None, :]
     return tl.load(ptr + rows[:, None] * NC + cols[None, :], mask=mask, other=0.0)
 
 
-@triton.jit
+@device
 def _put_tile(ptr, rows, cols, value, on, NR: tl.constexpr, NC: tl.constexpr):
     """Store an (RP, CP) tile where `on` ((RP,) bools: the run is active)."""
     mask = on[:, None] & (rows < NR)[:, None] & (cols < NC)[None, :]
     tl.store(ptr + rows[:, None] * NC + cols[None, :], value, mask=mask)
 
 
-@triton.jit
+@device
 def _vector(ptr, cols, NC: tl.constexpr, other):
     return tl.load(ptr + cols, mask=cols < NC, other=other)
 
 
-@triton.jit
+@device
 def _row(ptr, index, lane_ok, cols, NC: tl.constexpr):
     """(BL, CP): row index[l] of (·, NC) memory for each lane."""
     mask = lane_ok[:, None] & (cols < NC)[None, :]
     return tl.load(ptr + index[:, None] * NC + cols[None, :], mask=mask, other=0.0)
 
 
-@triton.jit
+@device
 def _put(ptr, index, lane_ok, cols, value, NC: tl.constexpr):
     mask = lane_ok[:, None] & (cols < NC)[None, :]
     tl.store(ptr + index[:, None] * NC + cols[None, :], value, mask=mask)
 
 
-@triton.jit
+@device
 def _network(NPR: tl.constexpr):
     """This program's network n, its run r and its index k within the run (int64)."""
     n = tl.program_id(0).to(tl.int64)
     return n, n // NPR, n % NPR
 
 
-@triton.jit
+@device
 def _chunk(XROW, U0J, n, chunk, LPN: tl.constexpr, BL: tl.constexpr):
     """Lanes of network n in chunk `chunk`, which exist, their input rows and u_0 rows."""
     j = chunk * BL + tl.arange(0, BL)
