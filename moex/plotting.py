@@ -354,7 +354,6 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None, title:
 
 
 HEAT_LABELS = {"positive_percent": r"share of networks with $\lambda_{\max} > 0$ (%)",
-               "chaotic_percent": r"share of networks with $\lambda_{\max} > 10^{-4}$ (%)",
                "num_series": "number of series NT", "length": "length of a series LT"}
 
 

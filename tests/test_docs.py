@@ -155,7 +155,8 @@ def test_the_fig16_arms_table_counts_each_arm_against_its_baseline(tmp_path):
     assert frame.loc["c_code", "mostly nonperiodic, ρ² = 0 → 10⁻³"] == "0 → 1"
     p = _script("capacity_cells").fisher_p(1, 3, 3, 1)
     assert frame.loc["c_code", "p against baseline (10⁻³)"] == f"{p:.2g}"
-    assert (frame.loc["baseline", "λ_max > 10⁻⁴"], frame.loc["c_code", "stay (< 0.02)"]) == (1, 1)
+    assert (frame.loc["baseline", "λ_max > 0 (> 10⁻⁴)"],
+            frame.loc["c_code", "stay (< 0.02)"]) == ("1 (1)", 1)
 
 
 def test_new_cells_join_the_grid_and_a_network_twice_is_refused():
@@ -191,17 +192,27 @@ def test_fishers_exact_test_gives_the_textbook_p_values():
     assert np.isclose(cells.fisher_p(1, 9, 10, 0), cells.fisher_p(10, 0, 1, 9))
 
 
-def test_the_embedding_split_counts_networks_on_each_side_of_the_threshold():
+def test_the_embedding_split_counts_networks_and_tests_at_the_level_of_the_cell():
     cells = _script("capacity_cells")
-    table = pd.DataFrame({"context_size": 10, "noise_var": [0, 0, 0, 0, 1e-3],
-                          "E_closed": [1e-6, 1e-5, 0.1, 0.12, 0.1],
-                          "max_lyapunov": [3e-3, -1e-3, 2e-3, 5e-5, 2e-3],
-                          "switch_prob": [0.4, 0.5, 0.0, 0.01, 0.0]})
+    # four cells of two networks: two embed their data and switch, two do not and stay
+    table = pd.DataFrame({"context_size": 10, "noise_var": [0] * 8 + [1e-3],
+                          "num_series": [2, 2, 2, 2, 5, 5, 5, 5, 5],
+                          "length": [250, 250, 500, 500, 250, 250, 500, 500, 500],
+                          "E_closed": [1e-6] * 4 + [0.1] * 5,
+                          "max_lyapunov": [3e-3, -1e-3, 5e-5, 2e-3, 2e-3, 5e-5, -1e-3, 3e-3, 1],
+                          "switch_prob": [0.4] * 4 + [0.0] * 5})
     row = cells.embedding(table).iloc[0]  # the noisy row does not count
-    assert (row["chaotic: embed"], row["chaotic: do not"]) == ("1 / 2", "1 / 2")
-    assert (row["stay on one curve: embed"], row["stay on one curve: do not"]) == ("0 / 2",
-                                                                                  "2 / 2")
-    assert float(row["stay on one curve: p"]) == round(cells.fisher_p(0, 2, 2, 0), 2)
+    # λ_max > 0 (the paper's criterion), in brackets > 10⁻⁴
+    assert (row["chaotic: embed"], row["chaotic: do not"]) == ("3 (2) / 4", "3 (2) / 4")
+    assert (row["stay on one curve: embed"], row["stay on one curve: do not"]) == ("0 / 4",
+                                                                                  "4 / 4")
+    # the cells' label sets [1, 1], [1, 1], [0, 0], [0, 0] have C(4, 2) = 6 assignments, 2 as
+    # extreme as the observed one: p = 1/3, where Fisher's test of 8 independent networks
+    # gives 2/70
+    p = float(row["stay on one curve: p over cells"])
+    assert p == pytest.approx(1 / 3, abs=0.01)
+    assert cells.fisher_p(0, 4, 4, 0) == pytest.approx(2 / 70)
+    assert float(row["chaotic: p over cells"]) == 1.0  # equal shares: every relabelling as far
 
 
 def test_the_data_trend_is_spearmans_rho_per_nc_with_a_permutation_p():
