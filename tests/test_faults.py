@@ -217,9 +217,9 @@ def test_eval_paper_re_evaluates_a_quick_run_at_the_papers_sizes(trained):
 
 def test_eval_paper_on_the_command_line_sets_the_papers_sizes(trained):
     from moex.cli import validate
-    tool = validate("evaluate", [f"run_dir={trained}", "eval=paper"])
+    tool, _ = validate("evaluate", [f"run_dir={trained}", "eval=paper"])
     assert tool.paper_sizes
-    tool = validate("evaluate", [f"run_dir={trained}", "eval=quick"])
+    tool, _ = validate("evaluate", [f"run_dir={trained}", "eval=quick"])
     assert not tool.paper_sizes and tool.eval.num_samples == 4
 
 
