@@ -3,6 +3,8 @@ paper's settings, then imported into moex run folders (`moex import`) and scored
 
     python docs/mregn_control.py run <bin folder> <out folder> [--networks 20] [--workers 2]
 
+    python docs/mregn_control.py lyapunov <bin folder> <out folder>   # their own λ_max tool
+
     python docs/mregn_control.py compare <out folder>     # after `moex import` of each design
 
 <bin folder> holds the tools built by `bash tools/build_mregn.sh <mregn checkout> <bin folder>`.
@@ -11,6 +13,10 @@ the same command resumes. Designs (paper Secs. 3.1, 3.2.1; the data of moex's se
   reber_nc20, reber_nc30: rnn-learn, 4 x 500 Reber symbols, NC 20/30, tau 10, rho 0.01, adaptive
   table2_p05, table2_p025: mre-learn (2 experts x 10 units, tau 5, gamma 10, 30000 epochs,
       rho 0.01) then gn-learn (15 units, tau 25, 10000 epochs, rho 0.01, adaptive)
+`lyapunov` scores each trained mixture (Table 2's designs) with the authors' own estimator,
+`mregn-lyapunov` (`LYAPUNOV`: moex's evaluation sizes, 50 samples from random initial states x
+100 000 steps after 1000 transient ones; it prints each sample's λ_max with 6 decimals), into
+<net>/lyapunov.txt (skipped once there), and collects docs/mregn_control_lyapunov.csv.
 """
 
 import argparse
@@ -59,6 +65,31 @@ def data_file(design: str, out: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_targets(path, series, f"moex task {overrides}, data seed 0, shape "
                                        f"{series.shape}")
+
+
+LYAPUNOV = "{bin}/mregn-lyapunov -s {seed} -n 100000 -c 50 -t 1000 -l 1 mre.dat gn.dat"
+
+
+def their_lyapunov(design: str, bin_dir: Path, out: Path) -> list[dict]:
+    """Each trained network of a mixture design scored by the authors' `mregn-lyapunov`: one row
+    per network, the mean of its samples' λ_max and how many samples are positive."""
+    import statistics
+
+    rows = []
+    for folder in sorted((out / design).glob("net*")):
+        if not (folder / "done").exists():
+            continue
+        result = folder / "lyapunov.txt"
+        if not result.exists():
+            line = LYAPUNOV.format(bin=bin_dir, seed=int(folder.name[3:]))
+            done = subprocess.run(line.split(), cwd=folder, capture_output=True, text=True)
+            check(done.returncode == 0, f"{folder}: {line} exited {done.returncode}")
+            result.write_text(done.stdout)
+        samples = [float(v) for v in result.read_text().split()]
+        rows.append({"design": design, "network": folder.name, "samples": len(samples),
+                     "max_lyapunov": statistics.fmean(samples),
+                     "positive_samples": sum(v > 0 for v in samples)})
+    return rows
 
 
 def train_one(design: str, seed: int, bin_dir: Path, out: Path) -> str:
@@ -135,6 +166,8 @@ def table():
     from moex.tasks.paper import PAPER_TABLE1, PAPER_TABLE2
 
     networks = pd.read_csv(DOCS / "mregn_control_networks.csv")
+    theirs = (pd.read_csv(DOCS / "mregn_control_lyapunov.csv")
+              if (DOCS / "mregn_control_lyapunov.csv").exists() else pd.DataFrame())
     rows = []
     for design, (csv, (key, value), (name, setting), metrics) in COMPARED.items():
         control = networks[(networks["design"] == design) & ~networks["failed"].astype(bool)]
@@ -155,7 +188,13 @@ def table():
             diff, se, p = _difference(c, m)
             se_c = c.std(ddof=1) / math.sqrt(len(c))
             with_paper = math.sqrt(se_c**2 + c.var(ddof=1) / n_paper)
+            tool = theirs[theirs["design"] == design]["max_lyapunov"] if len(theirs) else []
+            tool = ([] if metric not in ("max_lyapunov", "positive_percent") or not len(tool)
+                    else tool if metric == "max_lyapunov" else (tool > 0) * 100.0)
             rows.append({"design": design, "metric": metric, "paper": paper,
+                         "their_tool": tool.mean() if len(tool) else math.nan,
+                         "their_tool_sd": tool.std(ddof=1) if len(tool) > 1 else math.nan,
+                         "their_tool_n": len(tool),
                          "moex": m.mean(), "moex_sd": m.std(ddof=1), "moex_n": len(m),
                          "control": c.mean(), "control_sd": c.std(ddof=1), "control_n": len(c),
                          "control_minus_moex": diff, "difference_se": se, "permutation_p": p,
@@ -173,21 +212,26 @@ def _se(value: float) -> str:
 def markdown(rows) -> str:
     """The table REPRODUCTION.md and docs/mregn_control.md quote."""
     lines = ["| design | metric | paper | moex (n) | authors' code, scored by moex (n) | "
-             "code − moex (p) | code − paper, SE (with the paper's error) |",
-             "|---|---|---|---|---|---|---|"]
+             "code − moex (p) | code − paper, SE (with the paper's error) | authors' code, "
+             "scored by their tool (n) |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows.itertuples():
+        tool = (f"{r.their_tool:.4g} ± {r.their_tool_sd:.2g} ({r.their_tool_n})"
+                if r.their_tool_n else "—")
         lines.append(
             f"| {r.design} | {r.metric} | {r.paper:.4g} | {r.moex:.4g} ± {r.moex_sd:.2g} "
             f"({r.moex_n}) | {r.control:.4g} ± {r.control_sd:.2g} ({r.control_n}) | "
             f"{r.control_minus_moex:+.3g} ± {r.difference_se:.2g} (p {r.permutation_p:.2g}) | "
-            f"{_se(r.control_vs_paper_se)} ({_se(r.control_vs_paper_se_paper_error)}) |")
+            f"{_se(r.control_vs_paper_se)} ({_se(r.control_vs_paper_se_paper_error)}) | "
+            f"{tool} |")
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("mode", choices=["run", "compare"])
-    parser.add_argument("paths", type=Path, nargs="+", help="run: <bin> <out>; compare: <out>")
+    parser.add_argument("mode", choices=["run", "lyapunov", "compare"])
+    parser.add_argument("paths", type=Path, nargs="+",
+                        help="run, lyapunov: <bin> <out>; compare: <out>")
     parser.add_argument("--designs", nargs="+", default=list(DESIGNS), choices=list(DESIGNS))
     parser.add_argument("--networks", type=int, default=20)
     parser.add_argument("--workers", type=int, default=2)
@@ -199,8 +243,22 @@ def main(argv=None) -> int:
         print(markdown(rows))
         return 0
     if len(args.paths) != 2:
-        parser.error("run needs <bin folder> <out folder>")
+        parser.error(f"{args.mode} needs <bin folder> <out folder>")
     args.bin, args.out = args.paths
+    if args.mode == "lyapunov":
+        import pandas as pd
+
+        if not (args.bin / "mregn-lyapunov").is_file():
+            print(f"mregn_control: {args.bin} lacks mregn-lyapunov; build it with bash "
+                  f"tools/build_mregn.sh <mregn checkout> {args.bin}", file=sys.stderr)
+            return 2
+
+        mixtures = [d for d in args.designs if d.startswith("table2")]
+        frame = pd.DataFrame([row for d in mixtures
+                              for row in their_lyapunov(d, args.bin.resolve(), args.out)])
+        frame.to_csv(DOCS / "mregn_control_lyapunov.csv", index=False)
+        print(frame.to_string(index=False))
+        return 0
     missing = [t for t in ("rnn-learn", "mre-learn", "gn-learn") if not (args.bin / t).is_file()]
     if missing:
         print(f"mregn_control: {args.bin} lacks {', '.join(missing)}; build them with bash "
