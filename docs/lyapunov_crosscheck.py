@@ -10,7 +10,16 @@ on the nonlinear map itself).
         out_dir=<out>/<design>/moex_uniform                # for each design, then
     python docs/lyapunov_crosscheck.py <out folder>        # <out>/<design>/moex, as imported
 
-Writes docs/lyapunov_crosscheck.csv, one row per network, and prints it.
+writes docs/lyapunov_crosscheck.csv, one row per network, and prints it. The other direction,
+moex-trained networks scored by the authors' tool:
+
+    moex evaluate run_dir=<run> eval=paper out_dir=<run>/exact        # and, with the gates at 1/K,
+    moex evaluate run_dir=<run> eval=paper eval.jacobian_gates=uniform out_dir=<run>/uniform
+    python docs/lyapunov_crosscheck.py moex <run> <C network folder> <bin folder> <out folder>
+
+exports each network of the moex run to the C tools' files (`moex.importer.export_run`, over the
+files of a C-trained network of the same sizes), scores it with `mregn-lyapunov` and writes
+docs/lyapunov_crosscheck_moex.csv beside moex's two estimates.
 """
 
 import sys
@@ -21,7 +30,12 @@ import torch
 
 from moex import checkpoint
 from moex.closed_loop import random_state
+from moex.importer import export_run
 from moex.kernels import get_backend
+from moex.mregn_format import read_save
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from mregn_control import their_lyapunov  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent
 DESIGNS = ("table2_p05", "table2_p025")
@@ -67,7 +81,31 @@ def crosscheck(out: Path) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def moex_networks(run_dir: Path, template: Path, bin_dir: Path, out: Path) -> pd.DataFrame:
+    """Each network of a finished moex run as the C tools' files in <out>/moex/net<r+1>/ (over
+    `template`'s mre.dat and gn.dat), its λ_max from `mregn-lyapunov`, and moex's exact and
+    uniform-gate estimates (<run>/exact/metrics.csv, <run>/uniform/metrics.csv)."""
+    record = checkpoint.load(run_dir)
+    templates = {name: read_save(template / name) for name in ("mre.dat", "gn.dat")}
+    ours = pd.read_csv(run_dir / "exact" / "metrics.csv")
+    uniform = pd.read_csv(run_dir / "uniform" / "metrics.csv")
+    for r in range(len(ours)):
+        folder = out / "moex" / f"net{r + 1:03d}"
+        export_run(record, r, templates, folder)
+        (folder / "done").write_text(f"exported from {run_dir}, run {r}\n")
+    tool = pd.DataFrame(their_lyapunov("moex", bin_dir, out))
+    return pd.DataFrame({"run": ours["run"], "moex": ours["max_lyapunov"],
+                         "moex_se": ours["max_lyapunov_se"],
+                         "moex_uniform_gates": uniform["max_lyapunov"],
+                         "mregn_lyapunov": tool["max_lyapunov"],
+                         "switch_prob": ours["switch_prob"]})
+
+
 if __name__ == "__main__":
-    frame = crosscheck(Path(sys.argv[1]))
-    frame.to_csv(DOCS / "lyapunov_crosscheck.csv", index=False)
+    if sys.argv[1] == "moex":
+        frame = moex_networks(*(Path(a).resolve() for a in sys.argv[2:6]))
+        frame.to_csv(DOCS / "lyapunov_crosscheck_moex.csv", index=False)
+    else:
+        frame = crosscheck(Path(sys.argv[1]))
+        frame.to_csv(DOCS / "lyapunov_crosscheck.csv", index=False)
     print(frame.to_string(index=False))
