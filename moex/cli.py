@@ -93,6 +93,11 @@ def _one_line(exc: BaseException, config_name: str) -> str:
     text = str(exc).strip()
     first = text.splitlines()[0] if text else type(exc).__name__
     cause = exc.__cause__
+    if first.startswith("Ambiguous value for argument"):  # a sweep without -m
+        override = first.split("'")[1]
+        verb = "train" if config_name == "config" else config_name
+        return (f"{override}: several values are a sweep, which needs -m (moex {verb} -m "
+                f"{override}); a list is written {override.split('=')[0]}=[a,b]")
     if "Could not override" in first and cause is not None:
         key = first.split(chr(39))[1]
         return f"unknown key {key}{_allowed_keys(config_name, key)}"
@@ -184,10 +189,10 @@ class Composed:
         self.config, self.loader = config, loader
 
 
-def validate(config_name: str, args: list[str], flags: list[str] = ()):
-    """Compose every override variant, build its config and load its data (or run folder);
-    raise `ConfigError` on the first problem. Returns the first variant's config and what was
-    composed for it (`Composed`)."""
+def validate(config_name: str, args: list[str], flags: list[str] = (), multirun: bool = False):
+    """Compose the command line (a sweep: every override variant), build its config and load its
+    data (or run folder); raise `ConfigError` on the first problem. Returns the (first variant's)
+    config and what was composed for it (`Composed`)."""
     register_configs()
     GlobalHydra.instance().clear()
     search = _search_path(args, list(flags))
@@ -195,7 +200,9 @@ def validate(config_name: str, args: list[str], flags: list[str] = ()):
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             try:
                 configs, first = [], None
-                for overrides in _override_variants(args):
+                variants = _override_variants(args) if multirun else [
+                    [a for a in args if not a.startswith("hydra.searchpath=")]]
+                for overrides in variants:
                     composed = compose(config_name, overrides=search + overrides,
                                        return_hydra_config=True)
                     first = first or Composed(copy.deepcopy(composed),
@@ -209,6 +216,8 @@ def validate(config_name: str, args: list[str], flags: list[str] = ()):
                     VERBS_CHECK[config_name](cfg)
                 return configs[0], first
             except (HydraException, OmegaConfBaseException) as exc:
+                if isinstance(exc, OverrideParseException):
+                    _parse(args)  # names the override that does not parse
                 raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
     finally:
         GlobalHydra.instance().clear()
@@ -375,7 +384,7 @@ def main(argv: list[str] | None = None) -> None:
     claimed = composed = run_dir = None
     if not ({"--help", "-h", "--hydra-help"} | SHOWS_CONFIG) & set(hydra_flags):
         try:
-            cfg, composed = validate(config_name, overrides, hydra_flags)
+            cfg, composed = validate(config_name, overrides, hydra_flags, multirun)
             if verb == "train" and cfg.resume and not multirun \
                     and not any(a.startswith("hydra.run.dir=") for a in args):
                 run_dir = str(_latest_run(cfg.task.name))

@@ -184,6 +184,14 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(override, message, tmp_
     assert sorted(p.name for p in Path(tmp_path).iterdir()) == []
 
 
+def test_a_sweep_without_m_is_refused_not_run_on_its_first_value(tmp_path, moex_here):
+    result = moex_here(["train", "num_runs=1,2", f"hydra.run.dir={tmp_path}/run"], tmp_path)
+    assert result.returncode == 2 and result.stderr.strip() == (
+        "moex: error: num_runs=1,2: several values are a sweep, which needs -m (moex train -m "
+        "num_runs=1,2); a list is written num_runs=[a,b]")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_bad_transition_matrix_and_csv(tmp_path, moex_here):
     (tmp_path / "bad.csv").write_text("0.1,0.2\n0.3,nan\n" * 5)
     (tmp_path / "ragged.csv").write_text("0.1,0.2\n0.3\n" * 5)
