@@ -16,6 +16,7 @@ import sys
 import time
 from importlib import metadata
 from pathlib import Path
+from typing import NamedTuple
 
 import hydra
 from hydra import compose, initialize_config_dir
@@ -181,12 +182,12 @@ def interrupted_jobs(folders: list[Path], exc: BaseException) -> None:
           f"command with hydra.sweep.dir={Path(folders[0]).parent} to continue", file=sys.stderr)
 
 
-class Composed:
-    """What `validate` composed: the first variant's config (with Hydra's node) and the loader
+class Composed(NamedTuple):
+    """What `validate` composed: the (first variant's) config with Hydra's node and the loader
     that composed it, for `run_composed`."""
 
-    def __init__(self, config, loader):
-        self.config, self.loader = config, loader
+    config: object
+    loader: object
 
 
 def validate(config_name: str, args: list[str], flags: list[str] = (), multirun: bool = False):
