@@ -1,11 +1,21 @@
 """The compile helper's process (`python -m moex.kernels.cpu.helper <precision>`) between its start
 by the `moex` command (`moex.launch`, before the command's heavy imports) and its adoption by the
 run (`moex.kernels.cpu.warm.start`). Imports nothing of moex, so the command can start it at once
-and neither side imports the other."""
+and neither side imports the other.
+
+A run that finds the helper's kernels in numba's cache leaves a stamp beside the cache
+(`mark_cached`), named after the kernels' sources, numba's and Python's versions and the
+precision; while it is there the command starts no helper (which would import PyTorch and numba,
+about 2.5 s of CPU, only to find the kernels cached). An edit or an upgrade changes the name; a
+wrong stamp costs only the early start: the run checks the cache itself (`warm.start`)."""
 
 import atexit
+import hashlib
+import os
 import subprocess
 import sys
+from importlib import metadata
+from pathlib import Path
 
 helper: tuple[str, subprocess.Popen] | None = None  # (precision, process) until the run adopts it
 
@@ -16,10 +26,32 @@ def spawn(precision: str) -> subprocess.Popen:
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
+def stamp(precision: str) -> Path:
+    """The stamp that says the helper's kernels of `precision` are cached (see above), in numba's
+    cache folder: NUMBA_CACHE_DIR, or the kernels' __pycache__."""
+    kernels = Path(__file__).resolve().parent / "kernels" / "cpu"
+    digest = hashlib.sha256(f"{metadata.version('numba')} {sys.version} {precision}".encode())
+    for source in sorted(kernels.glob("*.py")):
+        digest.update(source.read_bytes())
+    folder = Path(os.environ.get("NUMBA_CACHE_DIR") or kernels / "__pycache__")
+    return folder / f"moex-helper-{digest.hexdigest()[:16]}.cached"
+
+
+def mark_cached(precision: str) -> None:
+    """Leave the stamp (nothing where the folder cannot be written)."""
+    try:
+        stamp(precision).parent.mkdir(parents=True, exist_ok=True)
+        stamp(precision).touch()
+    except OSError:
+        pass
+
+
 def start(precision: str) -> None:
-    """Start a helper for `precision` before the command's imports; stopped at exit unless
-    adopted."""
+    """Start a helper for `precision` before the command's imports, unless the stamp says its
+    kernels are cached; stopped at exit unless adopted."""
     global helper
+    if stamp(precision).exists():
+        return
     helper = precision, spawn(precision)
     atexit.register(stop)
 

@@ -120,3 +120,32 @@ def test_a_helper_the_run_never_adopted_is_stopped_at_exit(monkeypatch):
     monkeypatch.setattr(compile_helper, "helper", ("float64", process))
     compile_helper.stop()  # registered with atexit when the command starts a helper
     assert process.poll() is not None and compile_helper.helper is None
+
+
+def test_the_command_starts_no_helper_once_a_run_found_the_kernels_cached(monkeypatch, tmp_path):
+    """A run that finds the helper's kernels cached leaves a stamp (`warm.start`); with it the
+    command starts no helper (it would import PyTorch and numba only to find them cached)."""
+    monkeypatch.setattr(compile_helper, "stamp", lambda precision: tmp_path / f"{precision}.stamp")
+    monkeypatch.setattr(compile_helper, "helper", None)
+    monkeypatch.setattr(warm, "_helper", None)
+    monkeypatch.setattr(warm, "cached", lambda dtype, kernels: True)
+    assert warm.start("float64", ()) is None
+    assert (tmp_path / "float64.stamp").exists() and not (tmp_path / "float32.stamp").exists()
+    compile_helper.start("float64")
+    assert compile_helper.helper is None  # stamped: no process
+    compile_helper.start("float32")  # another precision: not stamped, a helper starts
+    try:
+        assert compile_helper.helper is not None and compile_helper.helper[0] == "float32"
+    finally:
+        compile_helper.stop()
+
+
+def test_the_stamp_is_named_after_the_kernels_sources_versions_and_precision(monkeypatch,
+                                                                              tmp_path):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    name = compile_helper.stamp("float64")
+    assert name.parent == tmp_path and name != compile_helper.stamp("float32")
+    monkeypatch.setattr(compile_helper.metadata, "version", lambda package: "0.0.0")
+    assert compile_helper.stamp("float64") != name  # another numba: another stamp
+    compile_helper.mark_cached("float64")
+    assert compile_helper.stamp("float64").exists() and not name.exists()

@@ -7,6 +7,7 @@ import sys
 
 import torch
 
+from moex import compile_helper
 from moex.closed_loop import random_state
 from moex.kernels.cpu import LATER, phases, warm
 from moex.kernels.cpu.closed_loop import closed_loop
@@ -39,5 +40,7 @@ def compile_later_phases(dtype: str) -> None:
     nearest_symbols(torch.zeros((1, 2, 2)), torch.zeros((2, 2)), torch.arange(2))
 
 
-if __name__ == "__main__" and not warm.cached(sys.argv[1], LATER):
-    compile_later_phases(sys.argv[1])
+if __name__ == "__main__":
+    if not warm.cached(sys.argv[1], LATER):
+        compile_later_phases(sys.argv[1])
+    compile_helper.mark_cached(sys.argv[1])

@@ -47,6 +47,7 @@ def start(dtype: str, later: tuple) -> subprocess.Popen | None:
     if _helper is not None:
         return _helper
     if cached(dtype, later):
+        compile_helper.mark_cached(dtype)  # the next command starts no helper
         return None
     _helper = compile_helper.spawn(dtype)
     return _helper
