@@ -6,7 +6,7 @@ and neither side imports the other.
 A run that finds the helper's kernels in numba's cache leaves a stamp beside the cache
 (`mark_cached`), named after the kernels' sources, numba's and Python's versions and the
 precision; while it is there the command starts no helper (which would import PyTorch and numba,
-about 2.5 s of CPU, only to find the kernels cached). An edit or an upgrade changes the name; a
+about 2.2 s of CPU, only to find the kernels cached). An edit or an upgrade changes the name; a
 wrong stamp costs only the early start: the run checks the cache itself (`warm.start`)."""
 
 import atexit
