@@ -167,7 +167,8 @@ def table():
 
     networks = pd.read_csv(DOCS / "mregn_control_networks.csv")
     theirs = (pd.read_csv(DOCS / "mregn_control_lyapunov.csv")
-              if (DOCS / "mregn_control_lyapunov.csv").exists() else pd.DataFrame())
+              if (DOCS / "mregn_control_lyapunov.csv").exists()
+              else pd.DataFrame(columns=["design", "max_lyapunov"]))
     rows = []
     for design, (csv, (key, value), (name, setting), metrics) in COMPARED.items():
         control = networks[(networks["design"] == design) & ~networks["failed"].astype(bool)]
@@ -179,6 +180,7 @@ def table():
                                            if name == "Table 1"
                                            else (PAPER_TABLE2, "switch_prob_task", 30))
         paper_row = paper_frame.set_index(paper_key).loc[setting]
+        their = theirs.loc[theirs["design"] == design, "max_lyapunov"].astype(float)
         for metric in (*metrics, "positive_percent"):
             if metric == "positive_percent":
                 c, m = (control["max_lyapunov"] > 0) * 100.0, (ours["max_lyapunov"] > 0) * 100.0
@@ -188,9 +190,8 @@ def table():
             diff, se, p = _difference(c, m)
             se_c = c.std(ddof=1) / math.sqrt(len(c))
             with_paper = math.sqrt(se_c**2 + c.var(ddof=1) / n_paper)
-            tool = theirs[theirs["design"] == design]["max_lyapunov"] if len(theirs) else []
-            tool = ([] if metric not in ("max_lyapunov", "positive_percent") or not len(tool)
-                    else tool if metric == "max_lyapunov" else (tool > 0) * 100.0)
+            tool = {"max_lyapunov": their, "positive_percent": (their > 0) * 100.0}.get(
+                metric, their.iloc[:0])
             rows.append({"design": design, "metric": metric, "paper": paper,
                          "their_tool": tool.mean() if len(tool) else math.nan,
                          "their_tool_sd": tool.std(ddof=1) if len(tool) > 1 else math.nan,
@@ -245,13 +246,15 @@ def main(argv=None) -> int:
     if len(args.paths) != 2:
         parser.error(f"{args.mode} needs <bin folder> <out folder>")
     args.bin, args.out = args.paths
+    tools = ("mregn-lyapunov",) if args.mode == "lyapunov" else ("rnn-learn", "mre-learn",
+                                                                   "gn-learn")
+    missing = [t for t in tools if not (args.bin / t).is_file()]
+    if missing:
+        print(f"mregn_control: {args.bin} lacks {', '.join(missing)}; build them with bash "
+              f"tools/build_mregn.sh <mregn checkout> {args.bin}", file=sys.stderr)
+        return 2
     if args.mode == "lyapunov":
         import pandas as pd
-
-        if not (args.bin / "mregn-lyapunov").is_file():
-            print(f"mregn_control: {args.bin} lacks mregn-lyapunov; build it with bash "
-                  f"tools/build_mregn.sh <mregn checkout> {args.bin}", file=sys.stderr)
-            return 2
 
         mixtures = [d for d in args.designs if d.startswith("table2")]
         frame = pd.DataFrame([row for d in mixtures
@@ -259,11 +262,6 @@ def main(argv=None) -> int:
         frame.to_csv(DOCS / "mregn_control_lyapunov.csv", index=False)
         print(frame.to_string(index=False))
         return 0
-    missing = [t for t in ("rnn-learn", "mre-learn", "gn-learn") if not (args.bin / t).is_file()]
-    if missing:
-        print(f"mregn_control: {args.bin} lacks {', '.join(missing)}; build them with bash "
-              f"tools/build_mregn.sh <mregn checkout> {args.bin}", file=sys.stderr)
-        return 2
     for design in args.designs:
         data_file(design, args.out)
     # seeds interleaved across designs, so that a cut-short run leaves every design similar n
