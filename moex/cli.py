@@ -133,7 +133,7 @@ def _parse(args: list[str]) -> list:
 def _override_variants(args: list[str]) -> list[list[str]]:
     """Override lists to validate: the first value of every sweep, then each other value alone
     (hydra.* keys included: Hydra's own config is checked as well)."""
-    parsed = _parse([a for a in args if not a.startswith("hydra.searchpath=")])
+    parsed = _parse(args)
     choices = [[o.input_line] if not o.is_sweep_override()
                else [f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()]
                for o in parsed]
@@ -201,8 +201,8 @@ def validate(config_name: str, args: list[str], flags: list[str] = (), multirun:
         with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
             try:
                 configs, first = [], None
-                variants = _override_variants(args) if multirun else [
-                    [a for a in args if not a.startswith("hydra.searchpath=")]]
+                own = [a for a in args if not a.startswith("hydra.searchpath=")]  # in `search`
+                variants = _override_variants(own) if multirun else [own]
                 for overrides in variants:
                     composed = compose(config_name, overrides=search + overrides,
                                        return_hydra_config=True)

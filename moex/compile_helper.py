@@ -39,9 +39,10 @@ def stamp(precision: str) -> Path:
 
 def mark_cached(precision: str) -> None:
     """Leave the stamp (nothing where the folder cannot be written)."""
+    path = stamp(precision)
     try:
-        stamp(precision).parent.mkdir(parents=True, exist_ok=True)
-        stamp(precision).touch()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch()
     except OSError:
         pass
 

@@ -10,16 +10,13 @@ With `TRITON_INTERPRET=1` (set before this package is imported) Triton runs ever
 CPU, slowly: that is how the tests check them without a GPU.
 """
 
-import os
-
 import torch
 
 from moex.kernels.gpu.closed_loop import closed_loop
 from moex.kernels.gpu.lanes import kernel_report
 from moex.kernels.gpu.phases import ExpertProblem, GatingProblem
+from moex.kernels.gpu.rnn import INTERPRET
 from moex.kernels.gpu.symbols import nearest_symbols
-
-INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 
 __all__ = ["ExpertProblem", "GatingProblem", "available", "closed_loop", "kernel_report",
            "nearest_symbols", "warm_up"]

@@ -16,7 +16,7 @@ import torch
 import triton
 
 from moex.errors import check
-from moex.kernels.gpu.rnn import rnn_backward, rnn_forward
+from moex.kernels.gpu.rnn import INTERPRET, rnn_backward, rnn_forward
 
 
 def _knob(name: str, default: str) -> int:
@@ -29,7 +29,7 @@ def _knob(name: str, default: str) -> int:
 LANE_BUDGET = _knob("MOEX_GPU_LANE_BUDGET", "4096")
 NUM_WARPS = _knob("MOEX_GPU_WARPS", "4")
 # k candidates cost a GPU little more than one; in Triton's interpreter (a CPU) k times as much
-TRIALS = _knob("MOEX_GPU_TRIALS", "1" if os.environ.get("TRITON_INTERPRET") == "1" else "4")
+TRIALS = _knob("MOEX_GPU_TRIALS", "1" if INTERPRET else "4")
 COMPILED: dict[str, object] = {}  # kernel name -> the last compiled kernel launched (CUDA only)
 PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN kernels read
 

@@ -38,6 +38,8 @@ import os
 import triton
 import triton.language as tl
 
+INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"  # read when Triton is (set it before)
+
 
 def device(fn):
     """`triton.jit` for a function the kernels call. In Triton's interpreter (`TRITON_INTERPRET=1`)
@@ -45,7 +47,7 @@ def device(fn):
     of `triton.language` again on every call of a jitted device function (a third of the time of
     the interpreted tests went there); the launch's own patching covers the call."""
     jitted = triton.jit(fn)
-    return jitted.rewrite() if os.environ.get("TRITON_INTERPRET") == "1" else jitted
+    return jitted.rewrite() if INTERPRET else jitted
 
 
 @device
