@@ -6,8 +6,9 @@ alone, one thread, with its arithmetic per element.
 The step (`moex.kernels.cpu.phases.ExpertProblem`) is called stage by stage, as it runs when
 there are fewer chunks of runs than threads: the forward pass of every block of lanes (Eqs. 1-3
 teacher-forced), the mixture likelihood and its gradient per (run, series) (Eqs. 9-13), BPTT per
-block, and the sums per run; plus the staging of parameters into lanes and back and the
-training loop around the kernel (the whole `value_and_grad` minus its stages). Stages are timed
+block, and the sums per run; plus the staging of parameters into lanes and back (the whole
+`value_and_grad` minus its stages) and the training loop around the call (`train_experts`
+outside its calls: momentum update, checks, bookkeeping). Stages are timed
 round-robin, `--repeats` rounds, and the minimum is kept, so that other load on the machine
 (which only ever adds time) disturbs the figures as little as possible. Two-Lissajous sizes:
 10 series x 1000 steps, K = 2 experts of M = 10 units, D = 2.
@@ -19,6 +20,7 @@ import time
 import numba
 import numpy as np
 import torch
+from bench_epochs import trainers, warm_up
 
 from moex.config import Config
 from moex.kernels.cpu import phases, threads
@@ -36,7 +38,8 @@ def flops_per_lane_step(M: int, D: int) -> dict[str, int]:
             "backward": 2 * (D * M + M * M + M * M + M * D + M)}  # δ_o, δ_c, ∂W_rec, ∂W_in, ∂b
 
 
-def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor) -> dict[str, float]:
+def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: int = 100
+               ) -> dict[str, float]:
     """The minimum over `repeats` round-robin rounds of each stage's seconds, for R networks."""
     S, L, D = series.shape
     T, K = L - 1, cfg.model.num_experts
@@ -73,6 +76,36 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor) -> dict[
             best[name] = min(best[name], time.perf_counter() - start)
     parts = sum(v for k, v in best.items() if k != "whole value_and_grad")
     best["staging and the rest"] = best["whole value_and_grad"] - parts
+    best["training loop"] = loop_seconds(R, series.dtype, steps)
+    return best
+
+
+def loop_seconds(R: int, dtype: torch.dtype, steps: int) -> float:
+    """Seconds per fixed-rate epoch of `train_experts` outside its `value_and_grad` calls (the
+    momentum update, checks and bookkeeping), from `steps` epochs (so that progress lines are as
+    rare as in a training), the least of 3. Each epoch's own call is subtracted, not the least
+    of many calls: an epoch's time includes all of the machine's jitter."""
+    epoch = trainers("lissajous2", R, "cpu", 1, 15, str(dtype).removeprefix("torch."))[0]
+    epoch = epoch["phase 1, fixed rate"]
+    warm_up(epoch, steps, 1)
+    inside = [0.0]
+    call = phases.ExpertProblem.value_and_grad
+
+    def timed(self, *args):
+        start = time.perf_counter()
+        out = call(self, *args)
+        inside[0] += time.perf_counter() - start
+        return out
+
+    phases.ExpertProblem.value_and_grad = timed
+    try:
+        best = float("inf")
+        for _ in range(3):
+            inside[0], start = 0.0, time.perf_counter()
+            epoch(steps)
+            best = min(best, (time.perf_counter() - start - inside[0]) / steps)
+    finally:
+        phases.ExpertProblem.value_and_grad = call
     return best
 
 
@@ -80,6 +113,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, nargs="+", default=[1, 30])
     parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--steps", type=int, default=100,
+                        help="epochs of the timed training (the training loop's row)")
     args = parser.parse_args(argv)
     numba.set_num_threads(1)
     torch.set_num_threads(1)
@@ -92,7 +127,7 @@ def main(argv=None) -> None:
           "Gflop/s |\n|---|---|---|---|---|---|")
     for R in args.runs:
         lane_steps = R * K * S * (L - 1)
-        for name, seconds in best_times(R, args.repeats, cfg, series).items():
+        for name, seconds in best_times(R, args.repeats, cfg, series, args.steps).items():
             key = {"forward (Eqs. 1-3)": "forward", "backward (BPTT)": "backward"}.get(name)
             flops = work[key] if key else None
             ns = 1e9 * seconds / lane_steps

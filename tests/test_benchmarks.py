@@ -65,10 +65,11 @@ def test_the_phase1_breakdown_times_every_stage(tmp_path):
 
     root = Path(__file__).resolve().parent.parent
     done = subprocess.run([sys.executable, str(root / "benchmarks" / "bench_phase1_parts.py"),
-                           "--runs", "1", "--repeats", "1"], capture_output=True, text=True,
-                          timeout=600, cwd=tmp_path)
+                           "--runs", "1", "--repeats", "1", "--steps", "2"], capture_output=True,
+                          text=True, timeout=600, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
-    for stage in ("forward", "mixture", "backward", "sums per run", "whole value_and_grad"):
+    for stage in ("forward", "mixture", "backward", "sums per run", "whole value_and_grad",
+                  "training loop"):
         assert re.search(rf"\| 1 \| {stage}[^|]* \| -?\d+\.\d+ \|", done.stdout), stage
 
 

@@ -64,6 +64,7 @@ def _problems(R, S, T, K, D, M, delay, learn_tau, attraction, dtype, seed=0, fas
     (3, 2, 11, 3, 2, 5, 2, True, True),  # learned τ, attraction, τ = 2
     (1, 1, 9, 5, 3, 3, 1, True, False),  # one series: lanes of different experts
     (2, 4, 13, 7, 0, 6, 1, False, True),  # symbolic (Reber-like): phase 2 only
+    (1, 2, 2, 2, 2, 3, 1, True, False),  # one time step: BPTT's pairs of steps, a lone one
 ])
 def test_objectives_and_every_gradient_group_match(R, S, T, K, D, M, delay, learn_tau,
                                                    attraction, dtype, backend):
@@ -488,6 +489,21 @@ def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(mo
     assert sum(active - stale for active, stale in phase1_calls) >= 12  # most runs reused
     saved = sum(active - stale for active, stale in phase2_calls)
     assert saved == 0 if noise else saved >= 12
+
+
+@pytest.mark.parametrize("shape, dtype", [((3, 10, 8), np.float64), ((1,), np.float32),
+                                          ((2, 0, 8), np.float64), ((5, 3, 2, 8), np.float64)])
+def test_lane_arrays_start_on_a_cache_line(shape, dtype):
+    """`simd.zeros` (the cpu kernels' lane arrays): zeros of the shape and dtype asked for, C
+    contiguous, starting on a 64-byte line (numpy starts small arrays on 16), so that every block
+    row of LB float64 is one cache line."""
+    from moex.kernels.cpu.simd import ALIGN, zeros
+
+    for _ in range(20):  # numpy's allocator lands on other offsets from call to call
+        x = zeros(shape, dtype)
+        assert x.shape == shape and x.dtype == dtype and x.flags.c_contiguous
+        assert x.ctypes.data % ALIGN == 0 or x.size == 0  # (an empty one is never read)
+        assert not x.any()
 
 
 def test_forward_pass_record_of_runs_whose_lanes_share_blocks():

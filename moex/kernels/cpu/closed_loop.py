@@ -7,7 +7,7 @@ from numba import njit
 
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import _NET, _first_use, _in_lanes
-from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log, stack, tanh
+from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log, stack, tanh, zeros
 from moex.model import ClosedLoopRun
 
 
@@ -352,17 +352,17 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
     experts_p, gating_p = params_of(experts, True), params_of(gating, False)
     eu = lanes_of(state.experts_u, (-1,))
     NB = eu.shape[0]
-    E = tuple(np.zeros((NB,) + a.shape[1:] + (LB,), dtype) for a in experts_p)
-    G = tuple(np.zeros((NB,) + a.shape[1:] + (LB,), dtype) for a in gating_p)
+    E = tuple(zeros((NB,) + a.shape[1:] + (LB,), dtype) for a in experts_p)
+    G = tuple(zeros((NB,) + a.shape[1:] + (LB,), dtype) for a in gating_p)
     gu, xl, gl = (lanes_of(x, (-1,)) for x in (state.gating_u, state.inputs, state.gates))
     k = 0 if tangents is None else tangents.shape[-1]
-    V = (np.zeros((NB, 0, 0, LB), dtype) if tangents is None else
+    V = (zeros((NB, 0, 0, LB), dtype) if tangents is None else
          lanes_of(tangents.transpose(-1, -2), (k, -1)))
-    noise_l = (np.zeros((NB, 0, 0, LB), dtype) if noise is None else
+    noise_l = (zeros((NB, 0, 0, LB), dtype) if noise is None else
                lanes_of(noise, (steps, D)))
-    out_y, out_g = np.zeros((NB, steps, D, LB), dtype), np.zeros((NB, steps, K, LB), dtype)
-    out_u = np.zeros((NB, steps if potentials else 0, H, LB), dtype)
-    growth = np.zeros((NB, k, LB), dtype)
+    out_y, out_g = zeros((NB, steps, D, LB), dtype), zeros((NB, steps, K, LB), dtype)
+    out_u = zeros((NB, steps if potentials else 0, H, LB), dtype)
+    growth = zeros((NB, k, LB), dtype)
     with _first_use(_closed_blocks, "closed-loop kernel"):
         threads.over(_closed_blocks, NB, N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V,
                      noise_l, count, uniform_gates, out_y, out_g, out_u, growth)

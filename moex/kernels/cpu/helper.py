@@ -36,7 +36,10 @@ def compile_later_phases(dtype: str) -> None:
     problem = phases.GatingProblem(ghat, torch.zeros((1, 4, 2), dtype=torch_dtype), model,
                                    GatingPhaseConfig(), [0])
     grads = {k: torch.zeros_like(v) for k, v in gating.items()}
-    problem.value_and_grad(gating, grads, torch.ones(1, dtype=torch.bool))
+    active = torch.ones(1, dtype=torch.bool)
+    problem.value_and_grad(gating, grads, active)
+    problem.value(gating, active)  # an adaptive trial: the record of the lanes' forward pass
+    problem.value_and_grad(gating, grads, active)  # and its reuse (`lanes._Forwarded`)
     nearest_symbols(torch.zeros((1, 2, 2)), torch.zeros((2, 2)), torch.arange(2))
 
 

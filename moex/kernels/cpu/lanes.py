@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from moex.kernels.cpu.simd import JIT, LB, padded
+from moex.kernels.cpu.simd import JIT, LB, padded, zeros
 
 
 @njit(inline="always", **JIT)
@@ -135,38 +135,27 @@ class _Forwarded:
         first, last = np.arange(R) * lanes_per_run, (np.arange(R) + 1) * lanes_per_run - 1
         self.first_block, self.last_block = first // LB, last // LB
         self.block_runs, self.names = block_runs, names
-        self.params: dict[str, np.ndarray] = {}
+        self.params: tuple = ()  # the bits (`_bits`) of the parameters the lanes were run with
         self.current = np.zeros(R, bool)
 
-    def _same(self, params: dict) -> np.ndarray:
-        """(R,): the runs whose lanes hold the forward pass of exactly these parameters."""
-        same = self.current.copy()
-        for name in self.names:
-            now, then = _bits(params[name]), _bits(self.params[name])
-            same &= (now == then).all(1)
-        return same
+    def _bits(self, params: dict) -> tuple:
+        return tuple(_bits(np.ascontiguousarray(params[name])) for name in self.names)
 
     def stale(self, params: dict, active: np.ndarray) -> np.ndarray:
         """(R,) the active runs whose lanes need a forward pass for `params`."""
         if not (self.enabled and self.current.any()):
             return active
-        return active & ~self._same(params)
+        out = np.empty_like(active)
+        _stale(self._bits(params), self.params, self.current, active, out)
+        return out
 
     def record(self, params: dict, stale: np.ndarray) -> None:
         """After a call that recomputed the blocks holding a `stale` run, with `params`."""
-        runs = self.block_runs
-        hits = np.concatenate([[0], np.cumsum(stale)])
-        recomputed = hits[runs[:, 1] + 1] > hits[runs[:, 0]]  # (NB,)
-        done = np.concatenate([[0], np.cumsum(recomputed)])
-        count = done[self.last_block + 1] - done[self.first_block]  # (R,) blocks recomputed
-        whole = count == self.last_block - self.first_block + 1
+        now = self._bits(params)
         if not self.params:
-            self.params = {n: np.array(params[n]) for n in self.names}
-        else:
-            self.current &= (count == 0) | self._same(params)
-            for name in self.names:
-                self.params[name][whole] = params[name][whole]
-        self.current |= whole
+            self.params = tuple(np.array(x) for x in now)
+        _record(now, self.params, stale, self.block_runs, self.first_block, self.last_block,
+                self.current)
 
     def forget(self) -> None:
         """The inputs changed (fresh input noise): no lane holds a current forward pass."""
@@ -176,6 +165,42 @@ class _Forwarded:
 def _bits(x: np.ndarray) -> np.ndarray:
     """(R, -1) unsigned integers of the same bits: an exact comparison (-0.0 is not 0.0)."""
     return x.reshape(len(x), -1).view(f"u{x.dtype.itemsize}")
+
+
+@njit(inline="always", **JIT)
+def _equal(now, then, r):  # pragma: no cover
+    """Whether run r's row of every array in `now` equals that in `then`."""
+    for k in range(len(now)):
+        a, b = now[k], then[k]
+        for q in range(a.shape[1]):
+            if a[r, q] != b[r, q]:
+                return False
+    return True
+
+
+@njit(**JIT)
+def _stale(now, then, current, active, out):  # pragma: no cover
+    """out (R,): the active runs not current with exactly the parameter bits `now`."""
+    for r in range(current.shape[0]):
+        out[r] = active[r] and not (current[r] and _equal(now, then, r))
+
+
+@njit(**JIT)
+def _record(now, then, stale, block_runs, first_block, last_block, current):  # pragma: no cover
+    """After a call that recomputed every block holding a `stale` run, with parameters of the bits
+    `now`: a run all of whose blocks were recomputed is current (its row of `then` := `now`), one
+    none of whose blocks was keeps its state, and one in between stays current only if its
+    parameters did not change."""
+    for r in range(current.shape[0]):
+        count = 0
+        for b in range(first_block[r], last_block[r] + 1):
+            count += stale[block_runs[b, 0]:block_runs[b, 1] + 1].any()
+        if count == last_block[r] - first_block[r] + 1:
+            for k in range(len(now)):
+                then[k][r] = now[k][r]
+            current[r] = True
+        elif count > 0:
+            current[r] = current[r] and _equal(now, then, r)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -219,8 +244,10 @@ def _in_lanes(per_lane: np.ndarray) -> np.ndarray:
     NL = per_lane.shape[-1]
     padded_lanes = np.zeros(per_lane.shape[:-1] + (padded(NL),), per_lane.dtype)
     padded_lanes[..., :NL] = per_lane
-    blocks = padded_lanes.reshape(per_lane.shape[:-1] + (padded(NL) // LB, LB))
-    return np.ascontiguousarray(np.moveaxis(blocks, -2, 0))
+    blocks = np.moveaxis(padded_lanes.reshape(per_lane.shape[:-1] + (padded(NL) // LB, LB)), -2, 0)
+    out = zeros(blocks.shape, per_lane.dtype)
+    out[...] = blocks
+    return out
 
 
 class _Lanes:
@@ -231,15 +258,16 @@ class _Lanes:
                  dtype):
         NB = padded(num_lanes) // LB
 
-        def zeros(*shape):
-            return np.zeros((NB,) + shape + (LB,), dtype)
+        def blocks(*shape):
+            return zeros((NB,) + shape + (LB,), dtype)
 
-        self.net = (zeros(H, NI), zeros(H, H), zeros(NO, H), zeros(H), zeros(NO), zeros(H),
-                    zeros(H))
+        self.net = (blocks(H, NI), blocks(H, H), blocks(NO, H), blocks(H), blocks(NO), blocks(H),
+                    blocks(H))
         sums = (NB, H if attraction else 0, LB)
-        self.work = [zeros(H), zeros(T, H), zeros(T, NO), zeros(*((T, H) if learn_tau else (0, 0))),
-                     np.zeros(sums), np.zeros(sums), zeros(T, NO)]
-        self.lane_grads = tuple(np.zeros_like(x) for x in self.net)
+        self.work = [blocks(H), blocks(T, H), blocks(T, NO),
+                     blocks(*((T, H) if learn_tau else (0, 0))), zeros(sums), zeros(sums),
+                     blocks(T, NO)]
+        self.lane_grads = tuple(zeros(x.shape, dtype) for x in self.net)
         self.block_runs = _runs_of_blocks(NB, lanes_per_run, num_runs)
         self.num_lanes = NB * LB
         self.out = np.zeros((4, num_runs), dtype)

@@ -43,7 +43,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     prior_std = var[r, K]
     y = np.empty((K, D, T))
     target = np.empty((D, T))
-    log_ghat, z = np.empty((K, T)), np.empty((K, T))
+    log_ghat, z, ghat, b = np.empty((K, T)), np.empty((K, T)), np.empty((K, T)), np.empty((K, T))
     top, total = np.empty(T), np.empty(T)
     for k in range(K):
         lane = (r * K + k) * S + s
@@ -54,21 +54,25 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     for d in range(D):
         for t in range(T):
             target[d, t] = targets[own, s, t, d]
+    for t in range(T):
+        for k in range(K):
+            b[k, t] = beta[r, s, t, k]
     # ln ĝ = β - ln Σ exp β (Eq. 9)
     for t in range(T):
-        top[t] = beta[r, s, t, 0]
+        top[t] = b[0, t]
         total[t] = 0.0
     for k in range(1, K):
         for t in range(T):
-            top[t] = max(top[t], beta[r, s, t, k])
+            top[t] = b[k, t] if b[k, t] > top[t] else top[t]
     for k in range(K):
         for t in range(T):
-            total[t] += exp(beta[r, s, t, k] - top[t])
+            total[t] += exp(b[k, t] - top[t])
     for t in range(T):
         top[t] += log(total[t])
     for k in range(K):
         for t in range(T):
-            log_ghat[k, t] = beta[r, s, t, k] - top[t]
+            log_ghat[k, t] = b[k, t] - top[t]
+            ghat[k, t] = exp(log_ghat[k, t])
     # z_k = ln ĝ_k + ln N(y; y^k, σ_k² NI); ln p = ln Σ_k exp z_k
     for k in range(K):
         norm = -0.5 * D * log(2.0 * math.pi * var[r, k])
@@ -85,7 +89,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         total[t] = 0.0
     for k in range(1, K):
         for t in range(T):
-            top[t] = max(top[t], z[k, t])
+            top[t] = z[k, t] if z[k, t] > top[t] else top[t]
     for k in range(K):
         for t in range(T):
             total[t] += exp(z[k, t] - top[t])
@@ -99,7 +103,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             total[t] = -target[d, t]
         for k in range(K):
             for t in range(T):
-                total[t] = fma(exp(log_ghat[k, t]), y[k, d, t], total[t])
+                total[t] = fma(ghat[k, t], y[k, d, t], total[t])
         for t in range(T):
             error = fma(total[t], total[t], error)
     prior = 0.0
@@ -107,7 +111,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     log_norm = 0.5 * log(2.0 * math.pi * prior_std * prior_std)
     for k in range(K):
         for t in range(T - 1):
-            diff = beta[r, s, t + 1, k] - beta[r, s, t, k]
+            diff = b[k, t + 1] - b[k, t]
             prior -= 0.5 * diff * diff * inv + log_norm
     partial[r * S + s, 0] = log_lik
     partial[r * S + s, 1] = prior
@@ -120,9 +124,8 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         for t in range(T):  # exp(z_k - ln p): the posterior responsibility of expert k
             resp[t] = exp(z[k, t] - top[t])
         for t in range(T):  # with G_n / ς² of Eq. 19
-            g_beta[r, s, t, k] = resp[t] - exp(log_ghat[k, t]) + inv * (
-                beta[r, s, min(t + 1, T - 1), k] - 2.0 * beta[r, s, t, k]
-                + beta[r, s, max(t - 1, 0), k])
+            g_beta[r, s, t, k] = resp[t] - ghat[k, t] + inv * (
+                b[k, min(t + 1, T - 1)] - 2.0 * b[k, t] + b[k, max(t - 1, 0)])
         for t in range(T):
             sq[t] = 0.0
         for d in range(D):

@@ -32,7 +32,7 @@ def _forward(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1,
     keep_c, keep_u, keep_sums = C.shape[0] > 0, U.shape[0] > 0, S1.shape[0] > 0
     u, c = stack(X, H), stack(X, H)
     s1, s2 = stack(S1, H), stack(S1, H)  # float64 sums: the variance is taken by difference
-    acc = lanes(X)
+    acc, acc2 = lanes(X), lanes(X)
     for i in range(H):
         for v in range(LB):
             u[i, v] = u0[i, v]
@@ -42,17 +42,22 @@ def _forward(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1,
         for v in range(LB):
             C0[i, v] = c[i, v]
     for t in range(T):
-        for i in range(H):
+        for i in range(0, H, 2):  # two rows at a time: two independent chains of fma
+            k = min(i + 1, H - 1)  # (an odd H computes its last row twice)
             for v in range(LB):
-                acc[v] = 0.0
+                acc[v] = acc2[v] = 0.0
             for d in range(NI):
                 for v in range(LB):
                     acc[v] = fma(w_in[i, d, v], X[t, d, v], acc[v])
+                    acc2[v] = fma(w_in[k, d, v], X[t, d, v], acc2[v])
             for j in range(H):
                 for v in range(LB):
                     acc[v] = fma(w_rec[i, j, v], c[j, v], acc[v])
-            for v in range(LB):
-                u[i, v] = fma(eps[i, v], acc[v] - u[i, v], u[i, v])  # (1 - ε) u + ε acc
+                    acc2[v] = fma(w_rec[k, j, v], c[j, v], acc2[v])
+            for v in range(LB):  # (1 - ε) u + ε acc
+                first = fma(eps[i, v], acc[v] - u[i, v], u[i, v])
+                second = fma(eps[k, v], acc2[v] - u[k, v], u[k, v])
+                u[i, v], u[k, v] = first, second
         for i in range(H):
             for v in range(LB):
                 c[i, v] = tanh(u[i, v] + b_c[i, v])
@@ -85,6 +90,38 @@ def _forward(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1,
                 S2[i, v] = s2[i, v]
 
 
+@njit(inline="always", **JIT)
+def _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps, acc,
+               learn_eps):  # pragma: no cover
+    """One step of BPTT, from t + 1 to t: a (∂L/∂u_t), ea = ε ⊙ a_t, back = W_recᵀ ea, and the
+    sums of ∂b_c and ∂ε."""
+    H, NO = w_rec.shape[0], w_out.shape[0]
+    for i in range(H):  # a_t = (1 - c_t²)(W_outᵀ δo_t + back) + (1 - ε) a_{t+1}
+        for v in range(LB):
+            acc[v] = back[i, v]
+        for o in range(NO):
+            for v in range(LB):
+                acc[v] = fma(w_out[o, i, v], DY[t, o, v], acc[v])
+        for v in range(LB):
+            dq = fma(-C[t, i, v], C[t, i, v], 1.0) * acc[v]
+            sum_b_c[i, v] += dq
+            a[i, v] = fma(1.0 - eps[i, v], a[i, v], dq)
+            ea[i, v] = eps[i, v] * a[i, v]
+    if learn_eps:  # ∂u_t/∂ε = s_t - u_{t-1} = (u_t - u_{t-1}) / ε
+        u_prev = U[t - 1] if t > 0 else u0
+        for i in range(H):
+            for v in range(LB):
+                sum_eps[i, v] += a[i, v] * (U[t, i, v] - u_prev[i, v]) / eps[i, v]
+    for j in range(H):
+        for v in range(LB):
+            acc[v] = 0.0
+        for i in range(H):
+            for v in range(LB):
+                acc[v] = fma(w_rec[i, j, v], ea[i, v], acc[v])
+        for v in range(LB):
+            back[j, v] = acc[v]
+
+
 @njit(**JIT)
 def _backward(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_out, g_b_c, g_b_o, g_eps,
               g_u0):  # pragma: no cover
@@ -94,7 +131,8 @@ def _backward(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_out, 
     T, NI = X.shape[0], X.shape[1]
     H, NO = w_rec.shape[0], w_out.shape[0]
     learn_eps = U.shape[0] > 0
-    a, ea, back = stack(X, H), stack(X, H), stack(X, H)  # ∂L/∂u_t, ε ⊙ a_t, W_recᵀ(ε ⊙ a_{t+1})
+    a, back = stack(X, H), stack(X, H)  # ∂L/∂u_t, W_recᵀ(ε ⊙ a_{t+1})
+    ea, ea2 = stack(X, H), stack(X, H)  # ε ⊙ a of the two steps in hand
     sum_b_c, sum_eps = stack(X, H), stack(X, H)
     sum_w_rec, sum_w_in, sum_w_out = stack(X, H * H), stack(X, H * NI), stack(X, NO * H)
     sum_b_o = stack(X, NO)
@@ -114,46 +152,38 @@ def _backward(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_out, 
     for o in range(NO):
         for v in range(LB):
             sum_b_o[o, v] = 0.0
-    for t in range(T - 1, -1, -1):
-        prev = C[t - 1] if t > 0 else C0
-        for i in range(H):  # a_t = (1 - c_t²)(W_outᵀ δo_t + back) + (1 - ε) a_{t+1}
-            for v in range(LB):
-                acc[v] = back[i, v]
-            for o in range(NO):
-                for v in range(LB):
-                    acc[v] = fma(w_out[o, i, v], DY[t, o, v], acc[v])
-            for v in range(LB):
-                dq = fma(-C[t, i, v], C[t, i, v], 1.0) * acc[v]
-                sum_b_c[i, v] += dq
-                a[i, v] = fma(1.0 - eps[i, v], a[i, v], dq)
-                ea[i, v] = eps[i, v] * a[i, v]
-        for o in range(NO):
-            for v in range(LB):
-                sum_b_o[o, v] += DY[t, o, v]
+    for t in range(T - 1, -1, -2):  # two steps back in time, then both steps' outer products
+        _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps, acc,
+                   learn_eps)
+        # the second step s = t - 1; an odd T ends on a lone t = 0, whose second step adds
+        # exact zeros (ea2 = 0, δo weighted 0: fma(0, x, Σ) = Σ), the same sums as one at a time
+        second = t > 0
+        s = t - 1 if second else t
+        if second:
+            _back_step(s, DY, C, U, u0, w_rec, w_out, eps, a, ea2, back, sum_b_c, sum_eps, acc,
+                       learn_eps)
+        else:
             for i in range(H):
                 for v in range(LB):
-                    sum_w_out[o * H + i, v] = fma(DY[t, o, v], C[t, i, v], sum_w_out[o * H + i, v])
+                    ea2[i, v] = 0.0
+        weight = 1.0 if second else 0.0
+        prev, prev2 = C[t - 1] if t > 0 else C0, C[s - 1] if s > 0 else C0
+        for o in range(NO):  # each sum read and written once per two steps, added in time order
+            for v in range(LB):
+                sum_b_o[o, v] = sum_b_o[o, v] + DY[t, o, v] + weight * DY[s, o, v]
+            for i in range(H):
+                for v in range(LB):
+                    sum_w_out[o * H + i, v] = fma(weight * DY[s, o, v], C[s, i, v], fma(
+                        DY[t, o, v], C[t, i, v], sum_w_out[o * H + i, v]))
         for i in range(H):
             for d in range(NI):
                 for v in range(LB):
-                    sum_w_in[i * NI + d, v] = fma(ea[i, v], X[t, d, v], sum_w_in[i * NI + d, v])
+                    sum_w_in[i * NI + d, v] = fma(ea2[i, v], X[s, d, v], fma(
+                        ea[i, v], X[t, d, v], sum_w_in[i * NI + d, v]))
             for j in range(H):
                 for v in range(LB):
-                    sum_w_rec[i * H + j, v] = fma(ea[i, v], prev[j, v], sum_w_rec[i * H + j, v])
-        if learn_eps:  # ∂u_t/∂ε = s_t - u_{t-1} = (u_t - u_{t-1}) / ε
-            u_prev = U[t - 1] if t > 0 else u0
-            for i in range(H):
-                for v in range(LB):
-                    sum_eps[i, v] += a[i, v] * (U[t, i, v] - u_prev[i, v]) \
-                        / eps[i, v]
-        for j in range(H):
-            for v in range(LB):
-                acc[v] = 0.0
-            for i in range(H):
-                for v in range(LB):
-                    acc[v] = fma(w_rec[i, j, v], ea[i, v], acc[v])
-            for v in range(LB):
-                back[j, v] = acc[v]
+                    sum_w_rec[i * H + j, v] = fma(ea2[i, v], prev2[j, v], fma(
+                        ea[i, v], prev[j, v], sum_w_rec[i * H + j, v]))
     for i in range(H):  # c_{-1} = tanh(u_0 + b_c) feeds step 0
         for v in range(LB):
             dq = (1.0 - C0[i, v] * C0[i, v]) * back[i, v]
