@@ -9,6 +9,7 @@ __getattr__  # moex/__init__.py: the package's lazy names (PEP 562)
 __dir__  # moex/__init__.py: the same, for dir(moex)
 _.__class__  # moex/__init__.py: the package module's own class (keeps moex.evaluate the function)
 _.SLP_VECTORIZE  # moex/kernels/cpu/simd.py: a numba setting numba reads
+_.align  # moex/kernels/cpu/simd.py: the alignment of an llvmlite alloca, which llvmlite prints
 TerminalFormatter  # conf/hydra/job_logging/moex.yaml names the log formatter
 PackedLauncher  # conf: hydra/launcher=packed (Hydra instantiates it by its _target_)
 _.setup  # Hydra's Launcher interface
