@@ -54,3 +54,57 @@ def test_compiled_and_cached_kernels_give_identical_runs(tmp_path):
     for name in ("history.csv", "metrics.csv"):
         pd.testing.assert_frame_equal(pd.read_csv(fresh / name), pd.read_csv(cached / name),
                                       check_exact=True)
+
+
+
+_PROBE = """
+import numpy as np
+from moex.kernels.cpu import rnn, simd
+z = np.zeros((1, 1, simd.LB))
+args = (z, z, z, z, z[0], z[0], z[0] + 1.0, z[0], True, z[0], z, z,  # T = H = inputs = 1
+        np.zeros((0, 1, simd.LB)), np.zeros((0, simd.LB)), np.zeros((0, simd.LB)))
+rnn._forward(*args)
+stats = rnn._forward.stats
+print(rnn.__file__, sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))
+"""
+
+
+def test_a_kernel_cached_before_an_edit_of_a_file_it_inlines_from_is_compiled_afresh(tmp_path):
+    """numba keys a cached function on its own file only; the cpu package keys its kernels on all
+    of its sources (`moex.kernels.cpu.cache`). On a copy of the package: `rnn._forward` compiled
+    into an empty cache is loaded by the next process; after an edit of simd.py alone (which
+    `_forward` inlines, rnn.py unchanged) the next process compiles it afresh instead of loading
+    the stale entry. A function outside the package keeps numba's own key."""
+    import shutil
+    import sys
+    from pathlib import Path
+
+    from numba import njit
+
+    from moex.kernels.cpu import cache, rnn
+
+    shutil.copytree(Path(rnn.__file__).parents[3] / "moex", tmp_path / "moex",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+
+    def probe():
+        done = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True,
+                              env=env, cwd=tmp_path, timeout=600)
+        assert done.returncode == 0, done.stderr
+        where, hits, misses = done.stdout.split()
+        assert Path(where).is_relative_to(tmp_path)  # the copy
+        return int(hits), int(misses)
+
+    assert probe() == (0, 1)  # an empty cache: compiled
+    assert probe() == (1, 0)  # loaded
+    with open(tmp_path / "moex" / "kernels" / "cpu" / "simd.py", "a") as simd:
+        simd.write("# an edit\n")
+    assert probe() == (0, 1)  # compiled afresh, not the stale entry
+    assert type(rnn._forward._cache._impl.locator).__name__.startswith("Package")
+    assert rnn._forward._cache._impl.locator.get_source_stamp() == cache.sources_digest()
+
+    @njit(cache=True)
+    def outside(x):  # pragma: no cover
+        return x + 1
+
+    assert not type(outside._cache._impl.locator).__name__.startswith("Package")

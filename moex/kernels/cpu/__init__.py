@@ -10,8 +10,9 @@ vector whichever networks its lanes belong to. A block runs its whole time loop 
 loop innermost; blocks are shared out among threads (`threads`). The per-lane weight gradients
 are summed over the lanes of each network at the end.
 
-Modules: `simd` (lanes, exp/log/tanh, fma), `threads` (the kernels' thread pool), `rnn` (the
-leaky RNN's forward pass and BPTT over a block of lanes, with the derivation), `lanes`
+Modules: `cache` (numba's cache keyed on every source here), `simd` (lanes, exp/log/tanh, fma),
+`threads` (the kernels' thread pool), `rnn` (the leaky RNN's forward pass and BPTT over a block
+of lanes, with the derivation), `lanes`
 (parameters to lanes and back, work arrays), `phases` (phase 1 and phase 2: the objectives, the
 problem classes), `closed_loop` (the autonomous mixture with Lyapunov tangents), `symbols`
 (nearest-point readout), `warm` and `helper` (a first run's helper process that compiles the
@@ -19,9 +20,13 @@ later kernels while the run trains: the run's side and the process). The GPU bac
 (`moex.kernels.gpu`) mirrors it module for module.
 """
 
-from moex.kernels.cpu.closed_loop import _closed_blocks, closed_loop
-from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, _gating_items
-from moex.kernels.cpu.symbols import nearest_symbols
+from moex.kernels.cpu.cache import install
+
+install()  # numba's cache keyed on all of this package's sources, before any kernel is decorated
+
+from moex.kernels.cpu.closed_loop import _closed_blocks, closed_loop  # noqa: E402
+from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, _gating_items  # noqa: E402
+from moex.kernels.cpu.symbols import nearest_symbols  # noqa: E402
 
 __all__ = ["ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up"]
 LATER = (_closed_blocks, _gating_items)  # the helper's two large kernels (`warm.cached`)
