@@ -10,6 +10,7 @@ about 2.2 s of CPU, only to find the kernels cached). An edit or an upgrade chan
 wrong stamp costs only the early start: the run checks the cache itself (`warm.start`)."""
 
 import atexit
+import functools
 import hashlib
 import os
 import subprocess
@@ -26,14 +27,27 @@ def spawn(precision: str) -> subprocess.Popen:
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
+KERNELS = Path(__file__).resolve().parent / "kernels" / "cpu"
+
+
+@functools.cache
+def kernel_sources() -> bytes:
+    """sha256 over every Python source of the cpu kernels' package (`KERNELS`), name and text, in
+    name order: what their compiled code depends on. The key of their entries in numba's cache
+    (`moex.kernels.cpu.cache`) and part of the stamp's name. Read once a process: a process runs
+    the kernels it imported."""
+    digest = hashlib.sha256()
+    for path in sorted(KERNELS.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.digest()
+
+
 def stamp(precision: str) -> Path:
     """The stamp that says the helper's kernels of `precision` are cached (see above), in numba's
     cache folder: NUMBA_CACHE_DIR, or the kernels' __pycache__."""
-    kernels = Path(__file__).resolve().parent / "kernels" / "cpu"
     digest = hashlib.sha256(f"{metadata.version('numba')} {sys.version} {precision}".encode())
-    for source in sorted(kernels.glob("*.py")):
-        digest.update(source.read_bytes())
-    folder = Path(os.environ.get("NUMBA_CACHE_DIR") or kernels / "__pycache__")
+    digest.update(kernel_sources())
+    folder = Path(os.environ.get("NUMBA_CACHE_DIR") or KERNELS / "__pycache__")
     return folder / f"moex-helper-{digest.hexdigest()[:16]}.cached"
 
 

@@ -81,7 +81,8 @@ def test_a_kernel_cached_before_an_edit_of_a_file_it_inlines_from_is_compiled_af
 
     from numba import njit
 
-    from moex.kernels.cpu import cache, rnn
+    from moex.compile_helper import kernel_sources
+    from moex.kernels.cpu import rnn
 
     shutil.copytree(Path(rnn.__file__).parents[3] / "moex", tmp_path / "moex",
                     ignore=shutil.ignore_patterns("__pycache__"))
@@ -101,7 +102,7 @@ def test_a_kernel_cached_before_an_edit_of_a_file_it_inlines_from_is_compiled_af
         simd.write("# an edit\n")
     assert probe() == (0, 1)  # compiled afresh, not the stale entry
     assert type(rnn._forward._cache._impl.locator).__name__.startswith("Package")
-    assert rnn._forward._cache._impl.locator.get_source_stamp() == cache.sources_digest()
+    assert rnn._forward._cache._impl.locator.get_source_stamp() == kernel_sources()
 
     @njit(cache=True)
     def outside(x):  # pragma: no cover

@@ -7,31 +7,19 @@ files; only the key changes), so any edit here recompiles every kernel once. Ins
 package before any kernel module is imported (numba picks a function's cache locator when the
 function is decorated). Other code's numba caches are left alone."""
 
-import functools
-import hashlib
 from pathlib import Path
 
 from numba.core import caching
 
-HERE = Path(__file__).resolve().parent
-
-
-@functools.cache
-def sources_digest(folder: Path = HERE) -> bytes:
-    """sha256 over every Python source of `folder`, in name order (read once per process: a
-    process runs the kernels it imported)."""
-    digest = hashlib.sha256()
-    for path in sorted(folder.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
-    return digest.digest()
+from moex.compile_helper import KERNELS, kernel_sources
 
 
 def _keyed_on_the_package(base: type) -> type:
     """`base` (one of numba's source-file cache locators) for this package's files only, with the
-    package's digest as the source stamp."""
+    digest of all its sources (`kernel_sources`) as the source stamp."""
 
     class Locator(base):
-        folder = HERE
+        folder = KERNELS
 
         @classmethod
         def from_function(cls, py_func, py_file):
@@ -40,7 +28,7 @@ def _keyed_on_the_package(base: type) -> type:
             return super().from_function(py_func, py_file)
 
         def get_source_stamp(self):
-            return sources_digest()
+            return kernel_sources()
 
     Locator.__name__ = f"Package{base.__name__}"
     return Locator
