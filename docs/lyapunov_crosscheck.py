@@ -20,6 +20,15 @@ moex-trained networks scored by the authors' tool:
 exports each network of the moex run to the C tools' files (`moex.importer.export_run`, over the
 files of a C-trained network of the same sizes), scores it with `mregn-lyapunov` and writes
 docs/lyapunov_crosscheck_moex.csv beside moex's two estimates.
+
+The two estimates of the same trajectories, sample by sample (each network's 50 initial states,
+the same transient, then the exact-Jacobian estimate and the two-trajectory check from the same
+point):
+
+    python docs/lyapunov_crosscheck.py paired <out folder>
+
+writes docs/lyapunov_crosscheck_paired.csv (one row per network and sample) and prints, per
+network, how far the two are apart and in how many samples they agree in sign.
 """
 
 import sys
@@ -29,7 +38,7 @@ import pandas as pd
 import torch
 
 from moex import checkpoint
-from moex.closed_loop import random_state
+from moex.closed_loop import closed_loop_lyapunov, random_state
 from moex.importer import export_run
 from moex.kernels import get_backend
 from moex.mregn_format import read_save
@@ -40,6 +49,7 @@ from mregn_control import their_lyapunov  # noqa: E402
 DOCS = Path(__file__).resolve().parent
 DESIGNS = ("table2_p05", "table2_p025")
 SAMPLES, TRANSIENT, STEPS, CHUNK, EPS = 4, 1000, 100_000, 10, 1e-8
+PAIRED_SAMPLES = 50  # as moex's evaluation draws (eval.num_samples)
 
 
 def two_trajectories(experts, gating, state, steps: int, backend, generator) -> torch.Tensor:
@@ -81,6 +91,43 @@ def crosscheck(out: Path) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def paired(out: Path, samples: int = PAIRED_SAMPLES, steps: int = STEPS) -> pd.DataFrame:
+    """Each imported network's `samples` trajectories measured both ways from the same initial
+    states: Benettin's exact-Jacobian estimate (`closed_loop_lyapunov`, `TRANSIENT` steps to align
+    the tangent) and `two_trajectories` from the state after the same `TRANSIENT` steps."""
+    backend, rows = get_backend("cpu"), []
+    for design in DESIGNS:
+        saved = checkpoint.load(out / design / "moex")
+        generator = torch.Generator().manual_seed(0)
+        start = random_state(saved.experts, saved.gating, samples, saved.series.shape[-1],
+                             int(saved.config["model"]["delay"]), generator)
+        exact = closed_loop_lyapunov(saved.experts, saved.gating,
+                                     start.like(start.flat().clone()), steps, TRANSIENT,
+                                     generator, backend=backend)[..., 0]
+        state = backend.closed_loop(saved.experts, saved.gating, start, TRANSIENT).state
+        direct = two_trajectories(saved.experts, saved.gating, state, steps, backend, generator)
+        files = pd.read_csv(out / design / "moex" / "imported_from.csv")
+        names = {int(r): Path(f).parent.name for r, f in zip(files["network"], files["file"],
+                                                              strict=True)}
+        for r in range(exact.shape[0]):
+            for n in range(samples):
+                rows.append({"design": design, "network": names[r],
+                             "sample": n, "exact": float(exact[r, n]),
+                             "two_trajectories": float(direct[r, n])})
+    return pd.DataFrame(rows)
+
+
+def agreement(frame: pd.DataFrame) -> pd.DataFrame:
+    """Per network: the mean of each estimate, the largest difference of a pair, and in how
+    many pairs the sign agrees."""
+    frame = frame.assign(gap=(frame["exact"] - frame["two_trajectories"]).abs(),
+                         same_sign=(frame["exact"] > 0) == (frame["two_trajectories"] > 0))
+    return frame.groupby(["design", "network"], sort=False).agg(
+        exact=("exact", "mean"), two_trajectories=("two_trajectories", "mean"),
+        largest_gap=("gap", "max"), median_gap=("gap", "median"),
+        same_sign=("same_sign", "sum"), samples=("sample", "count")).reset_index()
+
+
 def moex_networks(run_dir: Path, template: Path, bin_dir: Path, out: Path) -> pd.DataFrame:
     """Each network of a finished moex run as the C tools' files in <out>/moex/net<r+1>/ (over
     `template`'s mre.dat and gn.dat), its λ_max from `mregn-lyapunov`, and moex's exact and
@@ -102,7 +149,11 @@ def moex_networks(run_dir: Path, template: Path, bin_dir: Path, out: Path) -> pd
 
 
 if __name__ == "__main__":
-    if sys.argv[1] == "moex":
+    if sys.argv[1] == "paired":
+        frame = paired(Path(sys.argv[2]))
+        frame.to_csv(DOCS / "lyapunov_crosscheck_paired.csv", index=False)
+        frame = agreement(frame)
+    elif sys.argv[1] == "moex":
         frame = moex_networks(*(Path(a).resolve() for a in sys.argv[2:6]))
         frame.to_csv(DOCS / "lyapunov_crosscheck_moex.csv", index=False)
     else:

@@ -13,10 +13,11 @@ the same command resumes. Designs (paper Secs. 3.1, 3.2.1; the data of moex's se
   reber_nc20, reber_nc30: rnn-learn, 4 x 500 Reber symbols, NC 20/30, tau 10, rho 0.01, adaptive
   table2_p05, table2_p025: mre-learn (2 experts x 10 units, tau 5, gamma 10, 30000 epochs,
       rho 0.01) then gn-learn (15 units, tau 25, 10000 epochs, rho 0.01, adaptive)
-`lyapunov` scores each trained mixture (Table 2's designs) with the authors' own estimator,
-`mregn-lyapunov` (`LYAPUNOV`: moex's evaluation sizes, 50 samples from random initial states x
-100 000 steps after 1000 transient ones; it prints each sample's λ_max with 6 decimals), into
-<net>/lyapunov.txt (skipped once there), and collects docs/mregn_control_lyapunov.csv.
+`lyapunov` scores each trained network with the authors' own estimator at moex's evaluation
+sizes (`LYAPUNOV`): a mixture (Table 2's designs) with `mregn-lyapunov`, 50 samples from random
+initial states x 100 000 steps after 1000 transient ones; a Reber RNN with `rnn-lyapunov`, 200
+samples x 10 000 steps after 1000. Each prints one sample's λ_max per line with 6 decimals, kept
+in <net>/lyapunov.txt (skipped once there); the rows go to docs/mregn_control_lyapunov.csv.
 """
 
 import argparse
@@ -67,12 +68,14 @@ def data_file(design: str, out: Path) -> Path:
                                        f"{series.shape}")
 
 
-LYAPUNOV = "{bin}/mregn-lyapunov -s {seed} -n 100000 -c 50 -t 1000 -l 1 mre.dat gn.dat"
+LYAPUNOV = {  # the tool and moex's evaluation sizes, by the file the network is saved in
+    "gn.dat": "{bin}/mregn-lyapunov -s {seed} -n 100000 -c 50 -t 1000 -l 1 mre.dat gn.dat",
+    "rnn.dat": "{bin}/rnn-lyapunov -s {seed} -n 10000 -c 200 -t 1000 -l 1 rnn.dat"}
 
 
 def their_lyapunov(design: str, bin_dir: Path, out: Path) -> list[dict]:
-    """Each trained network of a mixture design scored by the authors' `mregn-lyapunov`: one row
-    per network, the mean of its samples' λ_max and how many samples are positive."""
+    """Each trained network of a design scored by the authors' own estimator (`LYAPUNOV`): one
+    row per network, the mean of its samples' λ_max and how many samples are positive."""
     import statistics
 
     rows = []
@@ -81,7 +84,8 @@ def their_lyapunov(design: str, bin_dir: Path, out: Path) -> list[dict]:
             continue
         result = folder / "lyapunov.txt"
         if not result.exists():
-            line = LYAPUNOV.format(bin=bin_dir, seed=int(folder.name[3:]))
+            tool = next(LYAPUNOV[name] for name in LYAPUNOV if (folder / name).exists())
+            line = tool.format(bin=bin_dir, seed=int(folder.name[3:]))
             done = subprocess.run(line.split(), cwd=folder, capture_output=True, text=True)
             check(done.returncode == 0, f"{folder}: {line} exited {done.returncode}")
             result.write_text(done.stdout)
@@ -246,8 +250,8 @@ def main(argv=None) -> int:
     if len(args.paths) != 2:
         parser.error(f"{args.mode} needs <bin folder> <out folder>")
     args.bin, args.out = args.paths
-    tools = ("mregn-lyapunov",) if args.mode == "lyapunov" else ("rnn-learn", "mre-learn",
-                                                                   "gn-learn")
+    tools = ("mregn-lyapunov", "rnn-lyapunov") if args.mode == "lyapunov" else (
+        "rnn-learn", "mre-learn", "gn-learn")
     missing = [t for t in tools if not (args.bin / t).is_file()]
     if missing:
         print(f"mregn_control: {args.bin} lacks {', '.join(missing)}; build them with bash "
@@ -256,8 +260,7 @@ def main(argv=None) -> int:
     if args.mode == "lyapunov":
         import pandas as pd
 
-        mixtures = [d for d in args.designs if d.startswith("table2")]
-        frame = pd.DataFrame([row for d in mixtures
+        frame = pd.DataFrame([row for d in args.designs
                               for row in their_lyapunov(d, args.bin.resolve(), args.out)])
         frame.to_csv(DOCS / "mregn_control_lyapunov.csv", index=False)
         print(frame.to_string(index=False))

@@ -51,6 +51,9 @@ class EvalConfig:
     jacobian_gates: str = "real"
     block_length: int = 5  # m of D_KL^(m) (3 for Reber)
     kl_floor: float = 1e-3  # model probability given to data blocks it never produced
+    # held-out series the test KL compares with (0: the task's num_test_series); drawn as the
+    # task draws them, so that the first ones are the run's own held-out series
+    test_series: int = 0
     noise_var: float = 0.0  # ρ², Gaussian noise added to x_n each step (Sec. 4.3)
     max_period: int = 100  # periodicity test of the symbol sequence (Sec. 4.3)
     plot_steps: int = 2000  # closed-loop steps of the first sample kept for figures
@@ -75,6 +78,7 @@ class EvalConfig:
                     "max_period", "plot_steps", "track_samples", "track_steps"):
             check(getattr(self, key) >= 1, f"eval.{key}={getattr(self, key)} must be >= 1")
         check(self.transient >= 0, f"eval.transient={self.transient} must be >= 0")
+        check(self.test_series >= 0, f"eval.test_series={self.test_series} must be >= 0")
         check(self.jacobian_gates in ("real", "uniform"),
               f"eval.jacobian_gates={self.jacobian_gates!r}; choose real or uniform")
         check(self.noise_var >= 0, f"eval.noise_var={self.noise_var} must be >= 0")

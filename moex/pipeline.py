@@ -65,6 +65,20 @@ def _generated(cfg: Config) -> Dataset:
     return _BUILT[key]
 
 
+def held_out(cfg: Config, dataset: Dataset) -> Dataset:
+    """The dataset with `eval.test_series` held-out series in place of the task's own: the task
+    drawn again with that many (it draws its held-out series first, one after another, so the
+    first of them are the run's own; the training series of that draw are not used)."""
+    count = cfg.eval.test_series
+    if not count or count == cfg.task.num_test_series:
+        return dataset
+    check(cfg.task.name != "csv", f"eval.test_series={count}: task {cfg.task.name} is a user's "
+                                  f"files, which have no held-out series to draw more of")
+    more = make_task(dataclasses.replace(cfg.task, num_test_series=count), cfg.seed,
+                     min_length=cfg.model.delay + 2)
+    return dataclasses.replace(dataset, test=more.test)
+
+
 def load_task(cfg: Config) -> Dataset:
     """The task's data, checked against the model config and the memory a training on it needs
     (a `ConfigError` if they disagree, before generating data that could not be trained on)."""
@@ -84,7 +98,7 @@ def load_task(cfg: Config) -> Dataset:
         check(K >= len(names), f"model.num_experts={K} is fewer than the {len(names)} "
                                f"primitives of task {cfg.task.name} ({', '.join(names)}); use "
                                f"model.num_experts={len(names)} or more")
-    return dataset
+    return held_out(cfg, dataset)
 
 
 class StopRequest:
@@ -330,8 +344,8 @@ def load_run(tool: RunFolder) -> TrainedRun:
     backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name, device=cfg.device, precision=cfg.precision,
                     run_dir=str(tool.run_dir))
-    dataset = task_of_run(cfg.task, cfg.seed, saved.series.numpy(), Scale(
-        **saved.scale_arrays()), min_length=cfg.model.delay + 2)
+    dataset = held_out(cfg, task_of_run(cfg.task, cfg.seed, saved.series.numpy(), Scale(
+        **saved.scale_arrays()), min_length=cfg.model.delay + 2))
     return TrainedRun(cfg, saved, dataset, backend)
 
 

@@ -293,6 +293,50 @@ def test_collecting_the_control_keeps_the_designs_imported_in_another_sitting(tm
     assert rows[rows["design"] == "reber_nc20"]["max_lyapunov"].tolist() == [0.1, 0.2]
 
 
+def test_their_lyapunov_tool_is_the_one_for_the_networks_file(tmp_path):
+    """`mregn_control.py lyapunov` scores a mixture (gn.dat) with `mregn-lyapunov` and a Reber RNN
+    (rnn.dat) with `rnn-lyapunov`, at moex's evaluation sizes, with the network's seed; it skips
+    unfinished networks and keeps what a tool printed (run again: not called again)."""
+    control = _script("mregn_control")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for tool, values in (("mregn-lyapunov", "0.5\\n-0.25"), ("rnn-lyapunov", "0.125")):
+        script = bin_dir / tool
+        script.write_text(f'#!/bin/sh\necho "$@" >> "{tmp_path}/calls"\nprintf "{values}\\n"\n')
+        script.chmod(0o755)
+    for design, name, seed, done in (("table2_p05", "gn.dat", 3, True),
+                                     ("reber_nc20", "rnn.dat", 7, True),
+                                     ("reber_nc20", "rnn.dat", 8, False)):
+        folder = tmp_path / "out" / design / f"net{seed:03d}"
+        folder.mkdir(parents=True)
+        (folder / name).write_text("")
+        if done:
+            (folder / "done").write_text("1 s\n")
+    for _ in range(2):
+        mixture = control.their_lyapunov("table2_p05", bin_dir, tmp_path / "out")
+        rnn = control.their_lyapunov("reber_nc20", bin_dir, tmp_path / "out")
+    assert mixture == [{"design": "table2_p05", "network": "net003", "samples": 2,
+                        "max_lyapunov": 0.125, "positive_samples": 1}]
+    assert rnn == [{"design": "reber_nc20", "network": "net007", "samples": 1,
+                    "max_lyapunov": 0.125, "positive_samples": 1}]
+    assert (tmp_path / "calls").read_text().splitlines() == [
+        "-s 3 -n 100000 -c 50 -t 1000 -l 1 mre.dat gn.dat",
+        "-s 7 -n 10000 -c 200 -t 1000 -l 1 rnn.dat"]
+
+
+def test_paired_estimates_agree_with_themselves():
+    """docs/lyapunov_crosscheck.py's per-network summary of paired samples: a gap of 0 and every
+    sign the same when both estimates are equal; one sample of opposite sign counted."""
+    check = _script("lyapunov_crosscheck")
+    frame = pd.DataFrame({"design": "d", "network": ["a"] * 3 + ["b"] * 2,
+                          "sample": [0, 1, 2, 0, 1], "exact": [0.1, -0.2, 0.3, 0.01, -0.01]})
+    same = check.agreement(frame.assign(two_trajectories=frame["exact"]))
+    assert (same["largest_gap"] == 0).all() and same["same_sign"].tolist() == [3, 2]
+    off = check.agreement(frame.assign(two_trajectories=[0.1, -0.2, 0.3, 0.01, 0.02]))
+    assert off["same_sign"].tolist() == [3, 1]
+    assert off["largest_gap"].tolist() == [0.0, pytest.approx(0.03)]
+
+
 def test_the_pooled_mean_weighs_data_sets_by_their_own_spread_and_the_between_data_spread():
     """Random-effects pooling of data sets (docs/verdicts.py): one data set gives the plain mean
     and sd/√n; data sets drawn around one mean with no between-data spread give about sd/√N over

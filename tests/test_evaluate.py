@@ -243,3 +243,35 @@ def test_figures_of_a_noisy_evaluation_say_so(tiny_cfg, tmp_path, monkeypatch):
     page = (tmp_path / "trained" / "report.md").read_text()
     assert "2 trained initial states (sample n from series n mod S) × 200" in page
     assert "random initial states" not in page
+
+
+def test_eval_test_series_draws_more_held_out_data_that_begins_with_the_runs_own(tiny_cfg,
+                                                                                  tmp_path):
+    """eval.test_series=N scores the test KL on N held-out series drawn as the task draws them:
+    the training series are the run's, the first held-out series are the run's own, and N equal
+    to the task's own count changes nothing. A user's files have none to draw: refused."""
+    for task in (tiny_cfg.task, TaskConfig(name="reber", num_series=2, length=50,
+                                           num_test_series=2)):
+        cfg = dataclasses.replace(tiny_cfg, task=task)
+        if task.name == "reber":
+            cfg.model = dataclasses.replace(cfg.model, num_experts=7)
+        own = load_task(cfg)
+        more = load_task(dataclasses.replace(cfg, eval=dataclasses.replace(cfg.eval,
+                                                                           test_series=5)))
+        same = load_task(dataclasses.replace(cfg, eval=dataclasses.replace(
+            cfg.eval, test_series=task.num_test_series)))
+        assert same is own
+        np.testing.assert_array_equal(more.series, own.series)
+        np.testing.assert_array_equal(more.labels, own.labels)
+        assert len(more.test.labels) == 5
+        n = len(own.test.labels)
+        np.testing.assert_array_equal(more.test.labels[:n], own.test.labels)
+        np.testing.assert_array_equal(more.test.series[:n], own.test.series)
+    np.save(tmp_path / "a.npy", np.zeros((30, 2)))
+    files = dataclasses.replace(tiny_cfg, task=TaskConfig(name="csv", path=str(tmp_path),
+                                                          length=0),
+                                eval=dataclasses.replace(tiny_cfg.eval, test_series=3))
+    with pytest.raises(ValueError, match="eval.test_series=3: task csv is a user's files"):
+        load_task(files)
+    with pytest.raises(ValueError, match="eval.test_series=-1 must be >= 0"):
+        EvalConfig(test_series=-1)
