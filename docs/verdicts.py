@@ -107,8 +107,6 @@ def _table1_runs(nc: int) -> pd.DataFrame:
     return reber[(reber["context_size"] == nc) & ~reber["failed"]]
 
 
-# (table, setting, metric) -> (the verdict when it is not the 2-SE rule's, a cause in one
-# phrase, the evidence); rows not named: the rule's verdict, cause open
 def _reber_test_open_nc30() -> str:
     runs = pd.read_csv(DOCS / "table1_c_protocol.csv")
     protocol = runs[runs.context_size == 30].pivot(index="run", columns="protocol",
@@ -124,6 +122,8 @@ def _reber_test_open_nc30() -> str:
             f"networks that fit (E^g < 0.02): {fit.mean():.3f} ± {fit.std():.3f}")
 
 
+# (table, setting, metric) -> (the verdict when it is not the 2-SE rule's, a cause in one
+# phrase, the evidence); rows not named: the rule's verdict, cause open
 CAUSES = {
     ("Table 1", 10, "E_g"): ("reproduced", "in the mean only, through one saturated network",
                              _saturated_nc10),

@@ -275,3 +275,18 @@ def test_eval_test_series_draws_more_held_out_data_that_begins_with_the_runs_own
         load_task(files)
     with pytest.raises(ValueError, match="eval.test_series=-1 must be >= 0"):
         EvalConfig(test_series=-1)
+    # `moex evaluate` of a finished run: only the test KL moves
+    from moex.config import EvalOverrides, EvaluateConfig
+    from moex.pipeline import run_evaluate
+
+    tiny_cfg.eval = dataclasses.replace(QUICK, block_length=2)
+    run_train(tiny_cfg, tmp_path / "run")
+    trained = pd.read_csv(tmp_path / "run" / "metrics.csv")
+    for count in (1, 4):
+        again = run_evaluate(EvaluateConfig(run_dir=str(tmp_path / "run"),
+                                            eval=EvalOverrides(test_series=count)),
+                             tmp_path / f"test_series_{count}")
+        for column in ("E_g", "block_kl_train", "max_lyapunov", "switch_prob"):
+            np.testing.assert_array_equal(again[column], trained[column])
+        moved = again["block_kl_test"] != trained["block_kl_test"]
+        assert not moved.any() if count == tiny_cfg.task.num_test_series else moved.all()
