@@ -68,14 +68,15 @@ def _generated(cfg: Config) -> Dataset:
 def held_out(cfg: Config, dataset: Dataset) -> Dataset:
     """The dataset with `eval.test_series` held-out series in place of the task's own: the task
     drawn again with that many (it draws its held-out series first, one after another, so the
-    first of them are the run's own; the training series of that draw are not used)."""
+    first of them are the run's own; the training series of that draw are not used), built once
+    a process as the task itself is (`_generated`)."""
     count = cfg.eval.test_series
     if not count or count == cfg.task.num_test_series:
         return dataset
     check(cfg.task.name != "csv", f"eval.test_series={count}: task {cfg.task.name} is a user's "
                                   f"files, which have no held-out series to draw more of")
-    more = make_task(dataclasses.replace(cfg.task, num_test_series=count), cfg.seed,
-                     min_length=cfg.model.delay + 2)
+    more = _generated(dataclasses.replace(cfg, task=dataclasses.replace(
+        cfg.task, num_test_series=count)))
     return dataclasses.replace(dataset, test=more.test)
 
 

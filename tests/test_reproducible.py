@@ -56,7 +56,6 @@ def test_compiled_and_cached_kernels_give_identical_runs(tmp_path):
                                       check_exact=True)
 
 
-
 _PROBE = """
 import numpy as np
 from moex.kernels.cpu import rnn, simd
