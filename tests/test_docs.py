@@ -386,3 +386,25 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
         assert torch.allclose(direct, jacobian, rtol=0.02, atol=1e-3), (direct, jacobian)
         found.append(float(jacobian))
     assert found[0] < -0.01 and found[1] > 0.05  # one contracting, one chaotic
+
+
+def test_the_training_length_arm_pairs_networks_by_seed_and_names_what_each_does(tmp_path,
+                                                                                  monkeypatch):
+    """docs/lissajous9_length.py: a network is "chaotic switching" (λ_max > 0, a change of curve
+    at least every 100 periods), "one orbit" (fewer changes, or none seen) or "periodic"; the
+    paired differences of an arm against itself are 0; arms of other seeds are refused."""
+    length = _script("lissajous9_length")
+    rows = pd.DataFrame({"max_lyapunov": [0.007, 0.007, -0.005, 0.002],
+                         "switch_rate": [0.2, np.nan, 0.04, 0.001]})
+    assert [length.behaviour(r) for r in rows.itertuples()] == [
+        "chaotic switching", "one orbit", "periodic", "one orbit"]
+    short = pd.read_csv(ROOT / "docs" / "lissajous9_summary.csv")
+    short = short[short.job == "n5"]
+    monkeypatch.setattr(length, "LONG", tmp_path / "long.csv")
+    short.to_csv(length.LONG, index=False)
+    same = length.differences(*length.arms())
+    assert same["paired long − paper-scale"].iloc[:-1].str.startswith("+0 ± 0").all()
+    assert same["paired long − paper-scale"].iloc[-1] == "1 → 1 of 5"
+    short.assign(run=short.run + 5).to_csv(length.LONG, index=False)
+    with pytest.raises(ValueError, match="other seeds"):
+        length.arms()
