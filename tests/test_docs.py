@@ -390,21 +390,36 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
 
 def test_the_training_length_arm_pairs_networks_by_seed_and_names_what_each_does(tmp_path,
                                                                                   monkeypatch):
-    """docs/lissajous9_length.py: a network is "chaotic switching" (λ_max > 0, a change of curve
-    at least every 100 periods), "one orbit" (fewer changes, or none seen) or "periodic"; the
-    paired differences of an arm against itself are 0; arms of other seeds are refused."""
+    """docs/lissajous9_length.py: a network is "like the paper's example" (λ_max > 0, held-out
+    block KL < 2), "chaotic elsewhere" or "not chaotic"; the paired differences of arms equal to
+    each other are 0; arms of other seeds are refused."""
     length = _script("lissajous9_length")
-    rows = pd.DataFrame({"max_lyapunov": [0.007, 0.007, -0.005, 0.002],
-                         "switch_rate": [0.2, np.nan, 0.04, 0.001]})
+    rows = pd.DataFrame({"max_lyapunov": [0.007, 0.007, -0.005, 0.0],
+                         "block_kl_test": [1.25, 5.9, 1.0, 1.0]})
     assert [length.behaviour(r) for r in rows.itertuples()] == [
-        "chaotic switching", "one orbit", "periodic", "one orbit"]
+        "like the paper's example", "chaotic elsewhere", "not chaotic", "not chaotic"]
     short = pd.read_csv(ROOT / "docs" / "lissajous9_summary.csv")
     short = short[short.job == "n5"]
     monkeypatch.setattr(length, "LONG", tmp_path / "long.csv")
-    short.to_csv(length.LONG, index=False)
-    same = length.differences(*length.arms())
-    assert same["paired long − paper-scale"].iloc[:-1].str.startswith("+0 ± 0").all()
-    assert same["paired long − paper-scale"].iloc[-1] == "1 → 1 of 5"
-    short.assign(run=short.run + 5).to_csv(length.LONG, index=False)
+    for steps in (10000, 20000):
+        (tmp_path / str(steps)).mkdir()
+        short.to_csv(tmp_path / str(steps) / "metrics.csv", index=False)
+    length.collect(tmp_path / "10000", tmp_path / "20000").to_csv(length.LONG, index=False)
+    same = length.differences(length.arms())
+    for column in same.columns[1:]:
+        assert same[column].iloc[:-2].str.startswith("+0 ± 0 (0 of 5 up)").all()
+        assert same[column].iloc[-2:].tolist() == ["1 → 1 of 5", "4 → 4 of 5"]
+    assert length.table(length.arms())["what it does"].iloc[1] == " → ".join(
+        ["not chaotic"] * 3)
+    frame = pd.read_csv(length.LONG)
+    frame.assign(run=frame.run + 5).to_csv(length.LONG, index=False)
     with pytest.raises(ValueError, match="other seeds"):
         length.arms()
+
+
+def test_the_training_length_tables_are_the_ones_the_csvs_give():
+    length = _script("lissajous9_length")
+    frames = length.arms()
+    page = _page("lissajous9")
+    assert length.to_markdown(length.table(frames)) in page
+    assert length.to_markdown(length.differences(frames)) in page
