@@ -31,14 +31,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from moex.report import to_markdown
+from moex.report import to_markdown, wilson_interval
 
 DOCS = Path(__file__).resolve().parent
+sys.path.insert(0, str(DOCS))
+from capacity_cells import fisher_p  # noqa: E402
+
 LONG = DOCS / "lissajous9_long_summary.csv"
 COLUMNS = ["run", "E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
            "positive_sample_fraction", "switch_prob", "switch_rate"]
 KL_LIKE_PAPER = 2.0
 ARMS = ("30000 + 10000", "60000 + 10000", "60000 + 20000")
+GATING_STEPS = (10000, 20000)  # of the two long arms
+PHASE_2 = f"{ARMS[2]} − {ARMS[1]} (phase 2 only)"
+WHOLE = f"{ARMS[2]} − {ARMS[0]}"
 PAIRED = {"E^g": "E_g", "E^closed": "E_closed", "block KL test": "block_kl_test",
           "λ_max": "max_lyapunov", "switches per lap": "switch_prob"}
 
@@ -54,7 +60,7 @@ def arms() -> list[pd.DataFrame]:
     short = pd.read_csv(DOCS / "lissajous9_summary.csv")
     frames = [short[short.job == "n5"]]
     long = pd.read_csv(LONG)
-    frames += [long[long.gating_steps == steps] for steps in (10000, 20000)]
+    frames += [long[long.gating_steps == steps] for steps in GATING_STEPS]
     frames = [f[COLUMNS].sort_values("run", ignore_index=True) for f in frames]
     for frame in frames[1:]:
         if list(frame.run) != list(frames[0].run):
@@ -82,10 +88,14 @@ def table(frames: list[pd.DataFrame]) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def _paired(before: pd.DataFrame, after: pd.DataFrame, name: str, column: str) -> str:
+def _paired(before: pd.DataFrame, after: pd.DataFrame, column: str) -> str:
     diff = (after[column] - before[column]).dropna()
     se = diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else float("nan")
     return f"{diff.mean():+.3g} ± {se:.2g} ({int((diff > 0).sum())} of {len(diff)} up)"
+
+
+def _like_paper(frame: pd.DataFrame) -> int:
+    return int((frame.apply(behaviour, axis=1) == "like the paper's example").sum())
 
 
 def differences(frames: list[pd.DataFrame]) -> pd.DataFrame:
@@ -93,31 +103,36 @@ def differences(frames: list[pd.DataFrame]) -> pd.DataFrame:
     the same phase 1, and the whole training twice as long against the paper-scale run; then
     each arm's count of networks like the paper's example and of λ_max > 0."""
     short, mid, long = frames
-    rows = [{"metric": name,
-             "60000 + 20000 − 60000 + 10000 (phase 2 only)": _paired(mid, long, name, column),
-             "60000 + 20000 − 30000 + 10000": _paired(short, long, name, column)}
-            for name, column in PAIRED.items()]
-    for what, count in (("like the paper's example", lambda f: (
-            f.apply(behaviour, axis=1) == "like the paper's example").sum()),
-                        ("λ_max > 0", lambda f: (f.max_lyapunov > 0).sum())):
-        n = len(short)
-        rows.append({"metric": f"networks {what}",
-                     "60000 + 20000 − 60000 + 10000 (phase 2 only)":
-                         f"{count(mid)} → {count(long)} of {n}",
-                     "60000 + 20000 − 30000 + 10000": f"{count(short)} → {count(long)} of {n}"})
+    rows = [{"metric": name, PHASE_2: _paired(mid, long, column),
+             WHOLE: _paired(short, long, column)} for name, column in PAIRED.items()]
+    n = len(short)
+    for what, count in (("like the paper's example", _like_paper),
+                        ("λ_max > 0", lambda f: int((f.max_lyapunov > 0).sum()))):
+        rows.append({"metric": f"networks {what}", PHASE_2: f"{count(mid)} → {count(long)} of {n}",
+                     WHOLE: f"{count(short)} → {count(long)} of {n}"})
     return pd.DataFrame(rows)
+
+
+def resolution(frames: list[pd.DataFrame]) -> str:
+    """What 5 networks per arm can tell: the longest arm's share like the paper's example with
+    its Wilson interval, and Fisher's exact p of 1 against 4 of n, a large change."""
+    n, k = len(frames[-1]), _like_paper(frames[-1])
+    low, high = wilson_interval(k, n)
+    return (f"{ARMS[2]}: {k} of {n} like the paper's example, 95 % Wilson interval "
+            f"[{low:.0f}, {high:.0f}] %; 1 against {n - 1} of {n} would give Fisher's exact p "
+            f"{fisher_p(1, n - 1, n - 1, 1):.2f}")
 
 
 def collect(mid: Path, long: Path) -> pd.DataFrame:
     """Both runs' metrics.csv, with the gating steps each trained."""
-    return pd.concat([pd.read_csv(mid / "metrics.csv").assign(gating_steps=10000),
-                      pd.read_csv(long / "metrics.csv").assign(gating_steps=20000)],
+    return pd.concat([pd.read_csv(folder / "metrics.csv").assign(gating_steps=steps)
+                      for folder, steps in zip((mid, long), GATING_STEPS, strict=True)],
                      ignore_index=True)
 
 
 if __name__ == "__main__":
     if len(sys.argv) > 1:
-        folders = [Path(a) for a in sys.argv[1:3]]
+        folders = [Path(a) for a in sys.argv[1:]]
         missing = [str(f / "metrics.csv") for f in folders if not (f / "metrics.csv").is_file()]
         if len(folders) != 2 or missing:
             print("lissajous9_length.py: give the 60000 + 10000 and the 60000 + 20000 run "
@@ -129,3 +144,5 @@ if __name__ == "__main__":
     print(to_markdown(table(frames)))
     print()
     print(to_markdown(differences(frames)))
+    print()
+    print(resolution(frames))

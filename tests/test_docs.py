@@ -423,3 +423,4 @@ def test_the_training_length_tables_are_the_ones_the_csvs_give():
     page = _page("lissajous9")
     assert length.to_markdown(length.table(frames)) in page
     assert length.to_markdown(length.differences(frames)) in page
+    assert length.resolution(frames) in page
