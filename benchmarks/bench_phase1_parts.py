@@ -53,7 +53,7 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: i
     net = {**params, **fixed}
     active = torch.ones(R, dtype=torch.bool)
     problem.value_and_grad(net, grads, active)  # compile or load, allocate
-    p, g, lanes = problem.staging.load(net), problem.staging.grads, problem.lanes
+    p, g, lanes = problem.staging.load(net), problem.staging.outputs(grads), problem.lanes
     floor = float(cfg.model.sigma_min) ** 2
     args = (phases._per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
             tuple(lanes.work), lanes.lane_grads, phases._per_network(g, True), g["u0"],

@@ -526,3 +526,43 @@ def test_forward_pass_record_of_runs_whose_lanes_share_blocks():
     np.testing.assert_array_equal(record.stale(params, everyone), [False, True, False])
     record.forget()
     np.testing.assert_array_equal(record.stale(params, everyone), everyone)
+
+
+@pytest.mark.parametrize("R", [1, 2])
+def test_staging_hands_contiguous_views_to_the_kernels_as_they_are(monkeypatch, R):
+    """`lanes._Staging` with the training loop's (R, P) buffers: at R = 1 every group's view is
+    C-contiguous, and the kernels read and write the buffers themselves (no copy); at R = 2 the
+    views are strided and go through copies, gradients copied back. Either way a step of both
+    phases gives the same bits as a step with every group copied (the copying staging)."""
+    from moex.kernels.cpu import lanes
+    from moex.train import _Flat
+
+    problems = _problems(R, 3, 9, 2, 2, 4, 1, False, False, torch.float64)[1]
+    for problem, params in problems:
+        fixed = {"tau": params.pop("tau")}  # τ not learned: passed, no gradient
+        layout = _Flat(params, torch.device("cpu"))
+        theta, grad = layout.zeros(), layout.zeros()
+        views, grads = layout.views(theta), layout.views(grad)
+        for k, v in params.items():
+            views[k].copy_(v)
+        net = {**views, **fixed}
+        staged, written = problem.staging.load(net), problem.staging.outputs(grads)
+        for k in views:
+            shared = np.shares_memory(staged[k], theta.numpy())
+            assert shared == (R == 1) and np.shares_memory(written[k], grad.numpy()) == (R == 1)
+            np.testing.assert_array_equal(staged[k], params[k].numpy())
+        assert written["tau"] is problem.staging.grads["tau"]  # not learned: scratch
+        active = torch.ones(R, dtype=torch.bool)
+        results = []
+        for direct in (True, False):
+            if not direct:  # the copying staging: every group through the class's arrays
+                monkeypatch.setattr(lanes, "_direct", lambda value, own, copy_in: (
+                    np.copyto(own, lanes._host(value)) if copy_in else None) or own)
+            grad.fill_(float("nan"))  # every gradient must be written
+            stats = problem.value_and_grad(net, grads, active)
+            results.append((grad.clone(), stats))
+            problem.forwarded.forget()
+        (g1, s1), (g2, s2) = results
+        assert torch.isfinite(g1).all() and torch.equal(g1, g2)
+        assert all(torch.equal(s1[k], s2[k]) for k in s1)
+        monkeypatch.undo()

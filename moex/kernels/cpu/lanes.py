@@ -277,22 +277,43 @@ class _Lanes:
 
 
 class _Staging:
-    """C-contiguous copies of a phase's parameters and gradients. The training loop hands views
-    of its (R, P) buffers, whose layout numba types differently for R = 1 and R > 1; copying
-    into these (a few percent of a step) lets every kernel compile once per dtype."""
+    """The arrays the kernels read parameters from and write gradients to. numba types a strided
+    view differently from a C-contiguous array, and the training loop's views of its (R, P)
+    buffers are strided for R > 1: those are copied into C-contiguous arrays of this class (a few
+    percent of a step), so that every kernel compiles once per dtype. A view that is already
+    C-contiguous (every group at R = 1) is handed to the kernels as it is: no copy in or out."""
 
     def __init__(self, shapes: dict, dtype):
         self.params = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
         self.grads = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
 
     def load(self, params: dict) -> dict:
-        for name, value in params.items():
-            np.copyto(self.params[name], _host(value))
-        return self.params
+        """The arrays holding `params` for the kernels to read."""
+        return {name: _direct(value, self.params[name], True) for name, value in params.items()}
 
-    def store(self, grads: dict | None) -> None:
+    def outputs(self, grads: dict | None) -> dict:
+        """The arrays the kernels write the gradients into: the `grads` views themselves where
+        they can, else this class's (`store` copies those out); scratch for groups not given."""
+        return {name: _direct(grads[name], own, False) if grads and name in grads else own
+                for name, own in self.grads.items()}
+
+    def store(self, grads: dict | None, written: dict) -> None:
+        """Copy the gradients the kernels wrote into `written` out to `grads` where they differ."""
         for name, value in (grads or {}).items():
-            np.copyto(_host(value), self.grads[name])
+            if written[name] is self.grads[name]:
+                np.copyto(_host(value), self.grads[name])
+
+
+def _direct(value, own: np.ndarray, copy_in: bool) -> np.ndarray:
+    """The numpy view of `value` where the kernels can take it as it is (C-contiguous, of the
+    staged shape and dtype, writeable), else `own`, with the value copied in if `copy_in`."""
+    x = _host(value)
+    if (x.flags.c_contiguous and x.flags.writeable and x.flags.aligned and x.shape == own.shape
+            and x.dtype == own.dtype):
+        return x
+    if copy_in:
+        np.copyto(own, x)
+    return own
 
 
 def _host(x) -> np.ndarray:

@@ -312,7 +312,7 @@ class _Problem:
     trials = 1  # adaptive-rate candidates per call: one (an accepted trial's pass is reused)
 
     def _call(self, params, grads, active, want_grad):
-        p, g, lanes = self.staging.load(params), self.staging.grads, self.lanes
+        p, g, lanes = self.staging.load(params), self.staging.outputs(grads), self.lanes
         active = np.ascontiguousarray(_host(active))
         # a gradient step right after an accepted adaptive trial finds its forward pass done
         stale = self.forwarded.stale(p, active) if want_grad else active
@@ -322,7 +322,7 @@ class _Problem:
             self.forwarded.forget()  # the next call is at other parameters (a step was taken)
         else:
             self.forwarded.record(p, stale)
-        self.staging.store(grads)
+        self.staging.store(grads, g)
         return lanes.stats(self.STATS)
 
     def value_and_grad(self, params: dict, grads: dict, active: np.ndarray) -> dict:
