@@ -554,10 +554,14 @@ def test_staging_hands_contiguous_views_to_the_kernels_as_they_are(monkeypatch, 
         assert written["tau"] is problem.staging.grads["tau"]  # not learned: scratch
         active = torch.ones(R, dtype=torch.bool)
         results = []
+        def copying(value, own, copy_in):  # the staging before: every group copied
+            if copy_in:
+                np.copyto(own, lanes._host(value))
+            return own
+
         for direct in (True, False):
-            if not direct:  # the copying staging: every group through the class's arrays
-                monkeypatch.setattr(lanes, "_direct", lambda value, own, copy_in: (
-                    np.copyto(own, lanes._host(value)) if copy_in else None) or own)
+            if not direct:
+                monkeypatch.setattr(lanes, "_direct", copying)
             grad.fill_(float("nan"))  # every gradient must be written
             stats = problem.value_and_grad(net, grads, active)
             results.append((grad.clone(), stats))

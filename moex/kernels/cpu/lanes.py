@@ -305,8 +305,8 @@ class _Staging:
 
 
 def _direct(value, own: np.ndarray, copy_in: bool) -> np.ndarray:
-    """The numpy view of `value` where the kernels can take it as it is (C-contiguous, of the
-    staged shape and dtype, writeable), else `own`, with the value copied in if `copy_in`."""
+    """The numpy view of `value` where the kernels can take it as it is (C-contiguous, writeable,
+    aligned, of the staged shape and dtype), else `own`, with the value copied in if `copy_in`."""
     x = _host(value)
     if (x.flags.c_contiguous and x.flags.writeable and x.flags.aligned and x.shape == own.shape
             and x.dtype == own.dtype):
