@@ -7,12 +7,20 @@ paper's settings, then imported into moex run folders (`moex import`) and scored
 
     python docs/mregn_control.py compare <out folder>     # after `moex import` of each design
 
-<bin folder> holds the tools built by `bash tools/build_mregn.sh <mregn checkout> <bin folder>`.
-Each network trains in <out>/<design>/net<seed>/ and is skipped once its `done` file exists, so
-the same command resumes. Designs (paper Secs. 3.1, 3.2.1; the data of moex's seed-0 runs):
+<bin folder> holds the tools built by `bash tools/build_mregn.sh <mregn checkout> <bin folder>`
+(their Makefile's defines: "the C code's default build"); a design that needs another build
+(`BUILDS`) finds it in <bin folder>/<build>/, and `run` names the command that builds it where it
+is missing. Each network trains in <out>/<design>/net<seed>/ and is skipped once its `done` file
+exists, so the same command resumes. Designs (paper Secs. 3.1, 3.2.1; the data of moex's seed-0
+runs):
   reber_nc20, reber_nc30: rnn-learn, 4 x 500 Reber symbols, NC 20/30, tau 10, rho 0.01, adaptive
+  reber_nc20_no_attraction: reber_nc20 built without the attraction of u0 (one factor changed)
   table2_p05, table2_p025: mre-learn (2 experts x 10 units, tau 5, gamma 10, 30000 epochs,
-      rho 0.01) then gn-learn (15 units, tau 25, 10000 epochs, rho 0.01, adaptive)
+      rho 0.01) then gn-learn (15 units, tau 25, 10000 epochs, rho 0.01, adaptive); tau learned
+      and the variance floor 0.001 (sigma floor 0.032), as the C code does by default
+  table2_p05_paper, table2_p025_paper: the same at the paper's stated settings (Sec. 3.2.1):
+      time constants fixed at epsilon 0.2 and epsilon^g 0.04 (their config key `fixed_tau`) and
+      sigma floor 0.05 (MIN_VARIANCE 0.0025, compiled in)
 `lyapunov` scores each trained network with the authors' own estimator at moex's evaluation
 sizes (`LYAPUNOV`): a mixture (Table 2's designs) with `mregn-lyapunov`, 50 samples from random
 initial states x 100 000 steps after 1000 transient ones; a Reber RNN with `rnn-lyapunov`, 200
@@ -35,29 +43,40 @@ from moex.errors import check
 from moex.mregn_format import write_targets
 from moex.tasks import TaskConfig, make_task
 
-DESIGNS = {  # name: (task overrides, commands with {bin}, {seed}, {data})
-    "reber_nc20": ({"name": "reber", "num_series": 4, "length": 500}, [
-        "{bin}/rnn-learn -s {seed} -n 20 -t 10 -k 1 -d 1 -e 10000 -x 0.01 -m 0.9 -a -l 1000 "
-        "-o rnn.dat {data}"]),
-    "reber_nc30": ({"name": "reber", "num_series": 4, "length": 500}, [
-        "{bin}/rnn-learn -s {seed} -n 30 -t 10 -k 1 -d 1 -e 10000 -x 0.01 -m 0.9 -a -l 1000 "
-        "-o rnn.dat {data}"]),
-    "table2_p05": ({"name": "lissajous2", "switch_prob": 0.5}, [
-        "{bin}/mre-learn -s {seed} -z 2 -n 10 -t 5 -d 1 -k 1 -g 10 -e 30000 -x 0.01 -m 0.9 "
-        "-l 1000 -o mre.dat {data}",
-        "{bin}/gn-learn -s {seed} -n 15 -t 25 -e 10000 -x 0.01 -m 0.9 -a -l 1000 -o gn.dat "
-        "mre.dat"]),
-    "table2_p025": ({"name": "lissajous2", "switch_prob": 0.25}, [
-        "{bin}/mre-learn -s {seed} -z 2 -n 10 -t 5 -d 1 -k 1 -g 10 -e 30000 -x 0.01 -m 0.9 "
-        "-l 1000 -o mre.dat {data}",
-        "{bin}/gn-learn -s {seed} -n 15 -t 25 -e 10000 -x 0.01 -m 0.9 -a -l 1000 -o gn.dat "
-        "mre.dat"]),
+_REBER = ("{bin}/rnn-learn -s {seed} -n NC -t 10 -k 1 -d 1 -e 10000 -x 0.01 -m 0.9 -a -l 1000 "
+          "-o rnn.dat {data}")
+_MIXTURE = ["{bin}/mre-learn -s {seed} -z 2 -n 10 -t 5 -d 1 -k 1 -g 10 -e 30000 -x 0.01 -m 0.9 "
+            "-l 1000 {conf}-o mre.dat {data}",
+            "{bin}/gn-learn -s {seed} -n 15 -t 25 -e 10000 -x 0.01 -m 0.9 -a -l 1000 {conf}"
+            "-o gn.dat mre.dat"]
+_REBER_TASK = {"name": "reber", "num_series": 4, "length": 500}
+DESIGNS = {  # name: (task overrides, build, time constants fixed, commands with {bin}, {seed},
+    #                 {data}, {conf})
+    "reber_nc20": (_REBER_TASK, "default", False, [_REBER.replace("NC", "20")]),
+    "reber_nc30": (_REBER_TASK, "default", False, [_REBER.replace("NC", "30")]),
+    "reber_nc20_no_attraction": (_REBER_TASK, "no_attraction", False,
+                                 [_REBER.replace("NC", "20")]),
+    "table2_p05": ({"name": "lissajous2", "switch_prob": 0.5}, "default", False, _MIXTURE),
+    "table2_p025": ({"name": "lissajous2", "switch_prob": 0.25}, "default", False, _MIXTURE),
+    "table2_p05_paper": ({"name": "lissajous2", "switch_prob": 0.5}, "sigma05", True, _MIXTURE),
+    "table2_p025_paper": ({"name": "lissajous2", "switch_prob": 0.25}, "sigma05", True,
+                          _MIXTURE),
 }
+# build: the extra CFLAGS for tools/build_mregn.sh (gcc reads -D and -U in order, so -U undoes
+# one of the Makefile's defines); each build but the default lives in <bin folder>/<build>/
+BUILDS = {"default": [], "sigma05": ["-DMIN_VARIANCE=0.0025"],
+          "no_attraction": ["-UENABLE_ATTRACTION_OF_INIT_C"]}
+
+
+def build_dir(bin_dir: Path, design: str) -> Path:
+    """Where a design's tools are: the default build in <bin folder>, any other in a subfolder."""
+    build = DESIGNS[design][1]
+    return bin_dir if build == "default" else bin_dir / build
 
 
 def data_file(design: str, out: Path) -> Path:
     """The design's training data (moex's seed-0 data set) as a C target file."""
-    overrides, _ = DESIGNS[design]
+    overrides = DESIGNS[design][0]
     task_file = CONF_DIR / "task" / f"{overrides['name']}.yaml"  # the task's own sizes first
     own = yaml.safe_load(task_file.read_text())["task"]
     dataset = make_task(TaskConfig(**{**own, **overrides}), seed=0)
@@ -85,7 +104,7 @@ def their_lyapunov(design: str, bin_dir: Path, out: Path) -> list[dict]:
         result = folder / "lyapunov.txt"
         if not result.exists():
             tool = next(LYAPUNOV[name] for name in LYAPUNOV if (folder / name).exists())
-            line = tool.format(bin=bin_dir, seed=int(folder.name[3:]))
+            line = tool.format(bin=build_dir(bin_dir, design), seed=int(folder.name[3:]))
             done = subprocess.run(line.split(), cwd=folder, capture_output=True, text=True)
             check(done.returncode == 0, f"{folder}: {line} exited {done.returncode}")
             result.write_text(done.stdout)
@@ -102,8 +121,14 @@ def train_one(design: str, seed: int, bin_dir: Path, out: Path) -> str:
         return f"{folder}: done before"
     folder.mkdir(parents=True, exist_ok=True)
     started = time.time()
-    for command in DESIGNS[design][1]:
-        line = command.format(bin=bin_dir, seed=seed, data=(out / design / "data.txt").resolve())
+    _, _, fixed_tau, commands = DESIGNS[design]
+    conf = ""
+    if fixed_tau:  # their learners read `fixed_tau` only from a config file (-c)
+        (folder / "fixed_tau.conf").write_text("fixed_tau\n")
+        conf = "-c fixed_tau.conf "
+    for command in commands:
+        line = command.format(bin=build_dir(bin_dir, design), seed=seed, conf=conf,
+                              data=(out / design / "data.txt").resolve())
         with open(folder / "tool.log", "a") as log:
             log.write(f"$ {line}\n")
             log.flush()
@@ -252,11 +277,15 @@ def main(argv=None) -> int:
     args.bin, args.out = args.paths
     tools = ("mregn-lyapunov", "rnn-lyapunov") if args.mode == "lyapunov" else (
         "rnn-learn", "mre-learn", "gn-learn")
-    missing = [t for t in tools if not (args.bin / t).is_file()]
-    if missing:
-        print(f"mregn_control: {args.bin} lacks {', '.join(missing)}; build them with bash "
-              f"tools/build_mregn.sh <mregn checkout> {args.bin}", file=sys.stderr)
-        return 2
+    for design in args.designs:
+        where = build_dir(args.bin, design)
+        missing = [t for t in tools if not (where / t).is_file()]
+        if missing:
+            flags = " ".join(BUILDS[DESIGNS[design][1]])
+            print(f"mregn_control: {where} lacks {', '.join(missing)} (design {design}); build "
+                  f"them with bash tools/build_mregn.sh <mregn checkout> {where} {flags}".rstrip(),
+                  file=sys.stderr)
+            return 2
     if args.mode == "lyapunov":
         import pandas as pd
 

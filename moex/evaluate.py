@@ -23,6 +23,7 @@ from moex.errors import check, check_positive, never
 from moex.kernels import Backend, get_backend
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse
+from moex.metrics.lyapunov import UNDETERMINED, chaos_label, standard_error
 from moex.metrics.symbols import (
     block_kl,
     block_kl_mregn,
@@ -70,6 +71,12 @@ class EvalConfig:
     track_samples: int = 4  # random initial states per network when tracking
     track_steps: int = 5000  # Lyapunov steps per sample when tracking
     track_from: int = 0  # the first gating step tracked (e.g. only the end of training)
+    # the chaos label (moex.metrics.lyapunov.chaos_label): λ_max must clear chaos_z standard
+    # errors (and 1/lyapunov_steps) to be called chaotic or not chaotic, else undetermined
+    chaos_z: float = 2.0
+    # an undetermined network gets num_samples more random initial states at a time until its
+    # label is decided or it has this many samples in all (0: no further samples)
+    decide_samples: int = 0
 
     def __post_init__(self):
         check(self.every >= 0, f"eval.every={self.every} must be >= 0")
@@ -89,6 +96,10 @@ class EvalConfig:
         check(self.initial_states in ("random", "trained"),
               f"eval.initial_states={self.initial_states!r}; choose random or trained")
         check_positive("eval.kl_floor", self.kl_floor)
+        check_positive("eval.chaos_z", self.chaos_z)
+        check(self.decide_samples == 0 or self.decide_samples >= self.num_samples,
+              f"eval.decide_samples={self.decide_samples} must be 0 (off) or >= "
+              f"eval.num_samples={self.num_samples}")
 
     def block_kl(self, data, model) -> float:
         """D_KL^(m) of this evaluation's form and block length, data first."""
@@ -235,6 +246,10 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
             experts, gating, state, cfg.lyapunov_steps, cfg.transient, generator,
             cfg.num_exponents, cfg.noise_var**0.5, uniform, on_chunk, cfg.plot_steps, backend,
             should_stop).numpy()
+        exponents = _decided(exponents, cfg, lambda: closed_loop_lyapunov(
+            experts, gating, random_state(experts, gating, cfg.num_samples, D, delay, generator),
+            cfg.lyapunov_steps, cfg.transient, generator, cfg.num_exponents, 0.0, uniform,
+            None, cfg.plot_steps, backend, should_stop).numpy())
     sampled, gate_winners = np.concatenate(recorded, -1), np.concatenate(winners, -1)
     test = _test_symbols(dataset, backend)
     truth = _true_symbols(dataset)
@@ -261,8 +276,9 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
             row["block_kl_test"] = cfg.block_kl(test, sampled[r])
         row.update({
             "max_lyapunov": float(lam[:, 0].mean()),
-            "max_lyapunov_se": (float(lam[:, 0].std(ddof=1) / len(lam) ** 0.5)
-                                if len(lam) > 1 else float("nan")),
+            "max_lyapunov_se": standard_error(lam[:, 0]),
+            "chaos": chaos_label(lam[:, 0].mean(), standard_error(lam[:, 0]),
+                                 cfg.lyapunov_steps, cfg.chaos_z),
             "lyapunov_positive": bool(lam[:, 0].mean() > 0),
             "positive_sample_fraction": float((lam[:, 0] > 0).mean()),
             **{f"lyapunov_{i + 1}": float(lam[:, i].mean()) for i in range(1, lam.shape[1])},
@@ -275,7 +291,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
             row["data_switch_prob"] = switching.switch_probability(
                 [switching.segment_symbols(s, dataset.period) for s in truth])
         row.update(noise_var=cfg.noise_var, num_samples=cfg.num_samples,
-                   lyapunov_steps=cfg.lyapunov_steps)
+                   lyapunov_samples=len(lam), lyapunov_steps=cfg.lyapunov_steps)
         rows.append(row)
     samples = {name: torch.cat([k[i] for k in kept], 1)[:, -cfg.plot_steps:].numpy()
                for i, name in enumerate(("outputs", "gates", "gating_u"))}
@@ -284,6 +300,27 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
                    closed_outputs=closed["outputs"][:, 0].numpy(),
                    symbols=sampled[:, 0, -cfg.plot_steps:])
     return Evaluation(rows, samples)
+
+
+def _decided(exponents: np.ndarray, cfg: EvalConfig, more) -> list[np.ndarray]:
+    """Each run's exponents (samples, k), with further samples for the runs whose chaos label
+    is undetermined: `more()` draws num_samples more per run, (R, num_samples, k), until every
+    label is decided or a run holds eval.decide_samples samples (those more samples only judge
+    λ_max; the symbol statistics keep the first num_samples)."""
+    runs = list(exponents)
+
+    def undetermined(lam):
+        return chaos_label(lam[:, 0].mean(), standard_error(lam[:, 0]), cfg.lyapunov_steps,
+                           cfg.chaos_z) == UNDETERMINED
+
+    while True:
+        open_runs = [r for r, lam in enumerate(runs)
+                     if undetermined(lam) and len(lam) + cfg.num_samples <= cfg.decide_samples]
+        if not open_runs:
+            return runs
+        extra = more()
+        for r in open_runs:
+            runs[r] = np.concatenate([runs[r], extra[r]])
 
 
 def _histogram(lengths: np.ndarray, top: int) -> np.ndarray:

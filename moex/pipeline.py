@@ -3,7 +3,6 @@
 import dataclasses
 import logging
 import signal
-import textwrap
 import threading
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import budget, checkpoint, importer, io, plotting, provenance, run_page
+from moex import budget, checkpoint, importer, io, plotting, progress, provenance, run_page
 from moex.closed_loop import generate, random_state, trained_state
 from moex.config import (
     Config,
@@ -26,6 +25,7 @@ from moex.config import (
 from moex.errors import check, never
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
+from moex.metrics.lyapunov import CHAOS_LABELS
 from moex.metrics.table import LOGGED, METRICS
 from moex.run import Job, run_seeds, train_jobs
 from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
@@ -222,14 +222,26 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     ok = metrics[~metrics["failed"]]
     _plot_samples(samples, dataset, cfg, out_dir, metrics, cfg.eval.noise_var)
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
-    log.info("λ_max positive in %d of %d runs (mean %.4g)", int((ok["max_lyapunov"] > 0).sum()),
-             len(ok), ok["max_lyapunov"].mean())
-    for _, row in ok.iterrows():  # lines of at most 110 characters (the terminal shows 120)
-        text = ", ".join(f"{name} {row[column]:.4g}" for column, name in LOGGED_METRICS
-                         if column in row)
-        for line in textwrap.wrap(f"run {row['run']}: {text}", 110, subsequent_indent="    "):
+    log.info("%s", chaos_sentence(ok, cfg.eval))
+    for _, row in ok.iterrows():  # whole "name value" pairs per line, within the terminal
+        parts = [f"{name} {row[column]:.4g}" for column, name in LOGGED_METRICS
+                 if column in row and column != "max_lyapunov"]
+        parts.append(f"λ_max {row['max_lyapunov']:.3g} ± {row['max_lyapunov_se']:.2g} "
+                     f"({row['chaos']})" if row["lyapunov_samples"] > 1 else
+                     f"λ_max {row['max_lyapunov']:.3g} (1 sample: no error; undetermined)")
+        for line in progress.packed(f"run {row['run']}:", parts):
             log.info("%s", line)
     return metrics
+
+
+def chaos_sentence(ok: pd.DataFrame, ev) -> str:
+    """One line: how many runs are chaotic, undetermined and not chaotic by the label with its
+    error, and how many meet the paper's criterion (λ_max > 0) alone."""
+    labels = ok["chaos"].value_counts()
+    counts = ", ".join(f"{labels.get(name, 0)} {name}" for name in CHAOS_LABELS)
+    return (f"of {len(ok)} run{'s' * (len(ok) != 1)}: {counts} (λ_max beyond "
+            f"{ev.chaos_z:g} s.e. of 0); λ_max > 0 (the paper's criterion) in "
+            f"{int((ok['max_lyapunov'] > 0).sum())}")
 
 
 LOGGED_METRICS = [(name, METRICS[name].text) for name in LOGGED]

@@ -399,6 +399,24 @@ def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "
     return ax.figure
 
 
+def plot_heatmaps(panels: list[tuple[str, pd.DataFrame]], x: str, y: str, value: str,
+                  limits: tuple[float, float]):
+    """Several NT × LT heat maps of one column side by side (up to 4 a row), one colour range
+    and one colour bar for all; `panels`: (title, table) each."""
+    columns = min(len(panels), 4)
+    rows = -(-len(panels) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(3.9 * columns + 0.9, 3.4 * rows),
+                             constrained_layout=True, squeeze=False)
+    for i, ax in enumerate(axes.flat):
+        if i >= len(panels):
+            ax.set_visible(False)
+            continue
+        title, table = panels[i]
+        plot_heatmap(table, x, y, value, title=title, ax=ax, limits=limits,
+                     colorbar=i == len(panels) - 1)
+    return fig
+
+
 def plot_residence_panels(hists: dict[float, tuple[np.ndarray, np.ndarray | None]]):
     """Residence-time distributions, one panel per switching probability P (paper Fig. 9):
     (completed, cut-off) histograms per P."""

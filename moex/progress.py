@@ -42,3 +42,23 @@ class TerminalFormatter(logging.Formatter):
             stamp, _, message = line.partition(" ")
             line = f"{stamp} {record.levelname.lower()}: {message}"
         return line
+
+
+STAMP = len("00:00:00 ")  # the terminal formatter's time before each message
+
+
+def packed(head: str, parts: list[str], sep: str = ", ", width: int | None = None) -> list[str]:
+    """`head` and `parts` joined by `sep` into lines of at most `width` characters (default: the
+    terminal's width less the log's time stamp, at most 100), never splitting a part: a number
+    and its name stay on one line; continuation lines are indented by four spaces."""
+    if width is None:
+        width = min(shutil.get_terminal_size().columns, 100) - STAMP
+    lines, line = [], head
+    for i, part in enumerate(parts):
+        piece = part + (sep.rstrip() if i < len(parts) - 1 else "")
+        if line.strip() and len(line) + len(piece) + 1 > width:
+            lines.append(line.rstrip())
+            line = "    "
+        line += ("" if line.endswith(" ") or not line else " ") + piece
+    lines.append(line.rstrip())
+    return lines

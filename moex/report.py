@@ -12,6 +12,7 @@ import yaml
 
 from moex import io, plotting, provenance
 from moex.errors import ConfigError, check
+from moex.metrics.lyapunov import CHAOS_LABELS, chaos_labels
 from moex.metrics.table import REPORTED
 from moex.tasks.paper import PAPER_TABLES
 
@@ -23,14 +24,19 @@ SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
             "model.gating.context_size": "context_size", "eval.noise_var": "noise_var_setting",
             "eval.jacobian_gates": "jacobian_gates", "eval.num_samples": "eval_samples",
             "eval.lyapunov_steps": "eval_steps"}
+# replicates, not settings: jobs that differ only in these pool into one row (they still tell
+# networks apart, `_network_key`)
+REPLICATES = ("seed", "task.data_seed")
 CHOICES = {"p05_arm": "arm"}  # config groups whose chosen option is a setting
-# keys that cannot change a job's numbers: where it writes, how often it logs, what it plots
-BOOKKEEPING = ("out_dir", "resume", "cache_dir", "run_dir", "eval.enabled", "eval.plot_steps",
+# keys that are no setting of a network: where a job writes, how often it logs, what it plots,
+# and how many networks it trains (run r is seeded by (seed, r) alone: run 0 of one run and of
+# five is one network)
+BOOKKEEPING = ("out_dir", "resume", "cache_dir", "run_dir", "num_runs", "eval.enabled",
+               "eval.plot_steps",
                "train.checkpoint_every", "train.experts.log_every", "train.gating.log_every",
                "plot.")
-# heat-map panels (Figs. 14, 16): setting -> (title, file-name part)
-PANELS = {"context_size": ("NC = {:g}", "_NC{:g}"),
-          "noise_var_setting": ("ρ² = {:g}", "_noise{:g}")}
+# heat-map panels (Figs. 14, 16): setting -> the panel's title
+PANELS = {"context_size": "NC = {:g}", "noise_var_setting": "ρ² = {:g}"}
 NEAR = 0.05  # a network "switches at the data's rate" within ±NEAR (the P = 0.5 study's goal)
 
 
@@ -86,8 +92,8 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
             evaluated = _flatten({"eval": _read(eval_config, yaml.safe_load, dict)})
             add(f"{name}/evaluate/{folder.name}", folder, {**config, **evaluated},
                 choices, {"status": "done"} if (folder / io.METRICS).exists() else {})
-    _tell_repeats_apart(found)
-    varying = varying_settings([settings for _, _, settings, _ in found])
+    varying = [k for k in varying_settings([settings for _, _, settings, _ in found])
+               if k not in REPLICATES]
     runs, jobs = [], []
     for name, folder, settings, status in found:
         columns = {column: settings.get(key) for key, column in _columns(varying).items()}
@@ -103,27 +109,30 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
             metrics = _read(metrics_path, lambda text: pd.read_csv(StringIO(text)), pd.DataFrame)
             check("run" in metrics, f"{metrics_path} has no run column, so it is not a moex "
                                     f"metrics.csv; fix or remove it")
-            runs.append(metrics.assign(job=name, **columns))
+            runs.append(metrics.assign(job=name, network_of=_network_key(settings), **columns))
     return (pd.concat(runs, ignore_index=True) if runs else pd.DataFrame(), pd.DataFrame(jobs),
             [_columns(varying)[k] for k in varying])
 
 
-def _tell_repeats_apart(found: list) -> None:
-    """A re-evaluation with the settings of the evaluation it repeats (or of another re-evaluation
-    of the same job) holds the same networks: pooled, they would count twice. Where that happens,
-    every job gets the setting `evaluation` (`training`, or the re-evaluation's `evaluate/<date>`)
-    so that each stays a row of its own."""
-    def trained_in(folder: Path) -> Path:
-        return folder.parent.parent if folder.parent.name == "evaluate" else folder
+def _network_key(settings: dict) -> str:
+    """What names a job's networks apart from their run index: its settings (the seed among
+    them; `BOOKKEEPING` keys, the number of runs included, are not settings)."""
+    return repr(sorted(settings.items()))
 
-    seen: dict = {}
-    for _, folder, settings, _ in found:
-        key = (trained_in(folder), repr(sorted(settings.items())))
-        seen[key] = seen.get(key, 0) + 1
-    if max(seen.values(), default=1) > 1:
-        for _, folder, settings, _ in found:
-            settings["evaluation"] = ("training" if trained_in(folder) == folder
-                                      else f"evaluate/{folder.name}")
+
+def once_each(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The runs with each network once, and the repeats left out: a network trained again with
+    the same settings and seed, a copied folder, or a re-evaluation at the same settings is the
+    same network (column `network_of` and `run` equal); the first job in order keeps it. Pooled
+    twice it would count as two networks."""
+    if "network_of" not in runs:
+        return runs, runs.iloc[:0]
+    repeat = runs.duplicated(["network_of", "run"])
+    first = runs[~repeat].set_index(["network_of", "run"])["job"]
+    left = runs.loc[repeat, ["job", "run"]].assign(same_as=[
+        first[(key, r)] for key, r in zip(runs.loc[repeat, "network_of"], runs.loc[repeat, "run"],
+                                          strict=True)])
+    return runs[~repeat].drop(columns="network_of"), left.reset_index(drop=True)
 
 
 def _read(path: Path, parse, kind: type):
@@ -189,6 +198,15 @@ def aggregate(runs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     ci = [wilson_interval(k, n) for k, n in zip(positives, count, strict=True)]
     table["positive_ci_low"] = [low for low, _ in ci]
     table["positive_ci_high"] = [high for _, high in ci]
+    labels = chaos_labels(ok)  # the label with its error, beside the paper's criterion
+    for name in CHAOS_LABELS:
+        hits = (labels == name).groupby([ok[k] for k in keys], dropna=False).sum()
+        table[f"{name.replace(' ', '_')}_count"] = hits.reindex(table.index, fill_value=0)
+    chaotic = table["chaotic_count"]
+    table["chaotic_percent"] = 100 * chaotic / count
+    ci = [wilson_interval(k, n) for k, n in zip(chaotic, count, strict=True)]
+    table["chaotic_ci_low"] = [low for low, _ in ci]
+    table["chaotic_ci_high"] = [high for _, high in ci]
     if {"switch_prob", "data_switch_prob"} <= set(ok):
         near = (ok["switch_prob"] - ok["data_switch_prob"]).abs() <= NEAR
         table["near_data_percent"] = near.groupby([ok[k] for k in keys], dropna=False).mean() * 100
@@ -260,6 +278,10 @@ def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, 
         _write_table(sweep_dir, "jobs", jobs.drop(columns=["path"]))
     if runs.empty:
         return out
+    runs, repeats = once_each(runs)
+    out["repeats"] = repeats
+    if len(repeats):
+        _write_table(sweep_dir, "repeats", repeats)
     io.write_csv(sweep_dir / "summary.csv", runs)
     summary = aggregate(runs, keys or ["task"])
     if "arm" in summary:  # arms in the sweep's order, not alphabetical
@@ -283,7 +305,8 @@ SHOWN = (("E_g", "E^g"), ("block_kl_test", "KL test"), ("switch_prob", "switchin
 
 def short_summary(summary: pd.DataFrame, keys: list[str], width: int = 100) -> str:
     """A few lines for the terminal (≤ `width` columns): per setting, n, the key metrics as
-    mean ± sd and the share with λ_max > 0; the whole tables are in tables/."""
+    mean ± sd (the value alone for one network), the chaos labels' counts and the share with
+    λ_max > 0 (the paper's criterion); the whole tables are in tables/."""
     import textwrap
 
     lines = []
@@ -291,10 +314,13 @@ def short_summary(summary: pd.DataFrame, keys: list[str], width: int = 100) -> s
         row = row._asdict()
         setting = ", ".join(f"{k} {row[k]}" for k in keys if k in row) or "all runs"
         parts = [f"n {row['num_runs']}"] + [
-            f"{text} {row[f'{m}_mean']:.3g} ± {row[f'{m}_std']:.2g}" for m, text in SHOWN
-            if f"{m}_mean" in row and pd.notna(row[f"{m}_mean"])]
-        if "positive_percent" in row:
-            parts.append(f"{row['positive_percent']:.0f} % chaotic")
+            f"{text} {row[f'{m}_mean']:.3g}" + (f" ± {row[f'{m}_std']:.2g}"
+                                                if row["num_runs"] > 1 else "")
+            for m, text in SHOWN if f"{m}_mean" in row and pd.notna(row[f"{m}_mean"])]
+        if "chaotic_count" in row:
+            parts.append(f"chaotic {row['chaotic_count']}, undetermined "
+                         f"{row['undetermined_count']}, not {row['not_chaotic_count']}; "
+                         f"λ_max > 0 in {row['positive_percent']:.0f} %")
         lines += textwrap.wrap(f"{setting}: {'; '.join(parts)}", width,
                                subsequent_indent="    ")
     return "\n".join(lines)
@@ -310,28 +336,42 @@ def _limits(values: pd.Series, column: str) -> tuple[float, float]:
     return (float(finite.min()), float(finite.max())) if len(finite) else (0.0, 1.0)
 
 
+def _panel_title(keys: list[str], values) -> str:
+    """A heat-map panel's title: each setting that tells it apart, in lines of ≤ 30 characters."""
+    import textwrap
+
+    values = values if isinstance(values, tuple) else (values,)
+    text = ", ".join(PANELS[k].format(v) if k in PANELS else f"{k} = {v}"
+                     for k, v in zip(keys, values, strict=True))
+    return "\n".join(textwrap.wrap(text, 30))
+
+
 def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> None:
     figures = sweep_dir / "figures"
-    if {"num_series", "length"} <= set(summary) and summary["num_series"].nunique() > 1 \
-            and summary["length"].nunique() > 1:
-        # one panel per value of every other setting that varies: NC, and the noise level
-        # when re-evaluations add one (Fig. 16)
+    if {"num_series", "length"} <= set(summary):
+        # one panel per value of every other setting that varies (NC, and the noise level when
+        # re-evaluations add one: Fig. 16), all panels of a column in one figure; a panel only
+        # where NT and LT each take two values or more and the column has a value
         others = [k for k in PANELS if k in summary] + [
             k for k in keys if k not in ("num_series", "length", *PANELS)]
         for column in ("E_closed_mean", "positive_percent", "nonperiodic_fraction_mean"):
-            for values, group in summary.groupby(others):
-                named = list(zip(others, values, strict=True))
-                title = ", ".join(PANELS[k][0].format(v) if k in PANELS else f"{k} = {v}"
-                                  for k, v in named)
-                suffix = "".join(PANELS[k][1].format(v) if k in PANELS else f"_{k}{v}"
-                                 for k, v in named)
-                fig = plotting.plot_heatmap(group, "num_series", "length", column, title=title,
-                                            limits=_limits(summary[column], column))
-                plotting.save_figure(fig, figures / f"heatmap_{column}{suffix}.png", fmt)
+            if column not in summary:
+                continue
+            panels = [(_panel_title(others, values), group)
+                      for values, group in (summary.groupby(others) if others
+                                            else [((), summary)])
+                      if group["num_series"].nunique() > 1 and group["length"].nunique() > 1
+                      and group[column].notna().any()]
+            if panels:
+                fig = plotting.plot_heatmaps(panels, "num_series", "length", column,
+                                             _limits(summary[column], column))
+                plotting.save_figure(fig, figures / f"heatmap_{column}.png", fmt)
     if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
         # coloured by the study arm, else by the first setting that varies (e.g. P), never one
         # colour over settings whose data differ
-        group = "arm" if runs["arm"].notna().any() or not keys else keys[0]
+        group = "arm" if runs["arm"].notna().any() or not keys else "setting"
+        if group == "setting":  # every varying setting: the data's switching is per setting
+            runs = runs.assign(setting=runs[keys].astype(str).agg(", ".join, axis=1))
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", group,
                                        reference=runs.get("data_switch_prob"), band=NEAR)
         noise = runs.get("noise_var", pd.Series(dtype=float)).dropna().unique()
@@ -397,6 +437,11 @@ def main(argv: list[str] | None = None) -> None:
               f"provenance.json): their numbers are comparable, not bit-identical")
     for _, job in jobs[jobs["status"] != "done"].iterrows():
         print(f"job {job['job']}: {job['status']} {job['error']}".rstrip())
+    repeats = out.get("repeats", pd.DataFrame())
+    if len(repeats):
+        print(f"moex: {len(repeats)} run(s) are networks another job already holds (same "
+              f"settings, seed and run index: trained again, copied or evaluated again); each "
+              f"is counted once (tables/repeats.csv)")
     if "summary" in out:
         print(short_summary(out["summary"], out.get("keys", [])))
     written = sorted(str(p.relative_to(out_dir)) for p in Path(out_dir).glob("tables/*.md"))

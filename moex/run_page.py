@@ -6,6 +6,7 @@ from pathlib import Path
 import pandas as pd
 
 from moex import io, provenance
+from moex.metrics.lyapunov import chaos_labels
 from moex.metrics.table import METRICS, REPORTED
 from moex.report import to_markdown
 
@@ -14,6 +15,18 @@ STARTS = {"random": "random initial states",  # eval.initial_states, in the page
           "trained": "trained initial states (sample n from series n mod S)"}
 FIGURE_ORDER = ("learning_curves", "trajectory", "runs", "gates", "residence_times",
                 "phase_portrait", "experts")
+
+
+def lyapunov_cells(metrics: pd.DataFrame) -> list[str]:
+    """λ_max ± its standard error and its chaos label, per run ("1 sample" where there is no
+    error to give; "failed" for a failed run)."""
+    labels = chaos_labels(metrics)
+    samples = (metrics["lyapunov_samples"] if "lyapunov_samples" in metrics
+               else metrics.get("num_samples", pd.Series(2, index=metrics.index)))
+    se = metrics.get("max_lyapunov_se", pd.Series(float("nan"), index=metrics.index))
+    return ["failed" if not pd.notna(v) else f"{v:.3g} (1 sample; {label})" if n == 1
+            else f"{v:.3g} ± {s:.2g} ({label})"
+            for v, s, n, label in zip(metrics["max_lyapunov"], se, samples, labels, strict=True)]
 
 
 def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
@@ -33,10 +46,8 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
         for column in shown:  # four significant figures; λ_max with its standard error
             if column in METRICS and table[column].dtype.kind == "f":
                 table[column] = table[column].map(lambda v: f"{v:.4g}")
-        if "max_lyapunov_se" in metrics:
-            table["max_lyapunov"] = [f"{v:.3g} ± {se:.2g}" for v, se in
-                                     zip(metrics["max_lyapunov"], metrics["max_lyapunov_se"],
-                                         strict=True)]
+        if "max_lyapunov" in metrics:
+            table["max_lyapunov"] = lyapunov_cells(metrics)
         table = table.rename(columns={c: METRICS[c].text for c in shown if c in METRICS})
         lines += ["## Metrics (one row per network)", "",
                   f"Evaluated on {ev.num_samples} {STARTS[ev.initial_states]} × "
@@ -45,8 +56,11 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
                   f"variance {ev.noise_var:g}, symbol blocks of length {ev.block_length}.", "",
                   to_markdown(table), "",
                   "; ".join(f"{METRICS[c].text}: {METRICS[c].meaning}" for c in shown
-                            if c in METRICS) + "; λ_max ± its standard error (sd of the "
-                  "samples' own exponents / √samples).", ""]
+                            if c in METRICS) + f"; λ_max ± its standard error (sd of the "
+                  f"samples' own exponents / √samples) and its label: chaotic or not chaotic "
+                  f"where it lies more than {ev.chaos_z:g} standard errors (and at least "
+                  f"1/{ev.lyapunov_steps} per step) from 0, else undetermined; the paper "
+                  f"calls λ_max > 0 chaotic whatever its error.", ""]
     figures = sorted((out_dir / io.FIGURES).glob("*.*"), key=lambda p: (
         FIGURE_ORDER.index(p.stem) if p.stem in FIGURE_ORDER else len(FIGURE_ORDER), p.name))
     if figures:

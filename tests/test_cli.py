@@ -58,6 +58,11 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path, moex
     from moex.metrics.table import is_known
 
     assert [c for c in metrics if not is_known(c)] == []  # every metric is in the one table
+    # the chaos label with its error in the table, the log and the page (never "± nan")
+    assert set(metrics["chaos"]) <= {"chaotic", "undetermined", "not chaotic"}
+    log = (run_dir / "train.log").read_text()
+    assert "(the paper's criterion) in" in log and "nan" not in log
+    assert all(f"({label})" in page for label in metrics["chaos"])
     # 200 steps hold at most 8 laps, too few to test periods up to 100: no sample is judged
     assert (metrics["periodicity_samples"] == 0).all()
     assert metrics["nonperiodic_fraction"].isna().all()

@@ -12,7 +12,8 @@ import torch
 from moex import objectives
 from moex.closed_loop import closed_loop_lyapunov, generate, random_state, trained_state
 from moex.config import Config
-from moex.evaluate import EvalConfig, _train_block_kl, evaluate
+from moex.evaluate import EvalConfig, _decided, _train_block_kl, evaluate
+from moex.metrics.lyapunov import chaos_label, standard_error
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward
 from moex.pipeline import load_task, run_train
@@ -69,7 +70,17 @@ def test_the_metric_table_of_a_lissajous_task():
     truth = [segment_symbols(data.symbol_of[labels], data.period) for labels in data.labels]
     assert (rows["data_switch_prob"] == switch_probability(truth)).all()
     assert (rows["E_closed"] >= 0).all() and rows["block_kl_test"].notna().all()
-    assert (rows[["num_samples", "lyapunov_steps"]] == [3, 400]).all().all()
+    assert (rows[["num_samples", "lyapunov_samples", "lyapunov_steps"]] == [3, 3, 400]).all().all()
+    assert (rows["chaos"] == [chaos_label(m, se, 400) for m, se in
+                              zip(rows["max_lyapunov"], rows["max_lyapunov_se"], strict=True)]).all()
+    # undetermined runs get more samples until decided or eval.decide_samples is spent; the
+    # first num_samples are the same draws as without (the symbol statistics keep only those)
+    decided = pd.DataFrame(evaluate(experts, beta, gating, data, 1, dataclasses.replace(
+        QUICK, decide_samples=9), torch.Generator().manual_seed(0)).rows)
+    for first, then in zip(rows.itertuples(), decided.itertuples(), strict=True):
+        assert then.lyapunov_samples == (3 if first.chaos != "undetermined" else
+                                         then.lyapunov_samples) in (3, 6, 9)
+        assert then.switch_prob == first.switch_prob or math.isnan(first.switch_prob)
 
 
 def test_metrics_a_task_cannot_have_are_left_out():
@@ -100,6 +111,23 @@ def test_metrics_a_task_cannot_have_are_left_out():
     assert all(not isinstance(v, float) or not math.isnan(v)
                for k, v in rows[0].items() if k not in ("switch_prob", "switch_prob_gates",
                                                          "mean_residence"))
+
+
+def test_undetermined_runs_are_sampled_again_until_decided_or_the_budget_is_spent():
+    """`_decided` draws num_samples more per run while a run's label is undetermined: a run that
+    is decided keeps its samples, one that becomes decided stops, one that never does stops at
+    eval.decide_samples."""
+    cfg = dataclasses.replace(QUICK, num_samples=2, lyapunov_steps=1000, decide_samples=6)
+    first = np.array([[[0.5], [0.52]],     # chaotic from the start
+                      [[0.5], [-0.4]],     # undetermined, then decided by more samples
+                      [[1e-4], [-1e-4]]])  # a limit cycle: undetermined whatever comes
+    rounds = iter([np.array([[[9.0], [9.0]], [[0.5], [0.52]], [[2e-4], [-2e-4]]]),
+                   np.array([[[9.0], [9.0]], [[0.51], [0.5]], [[1e-4], [-1e-4]]])])
+    runs = _decided(first, cfg, lambda: next(rounds))
+    assert [len(lam) for lam in runs] == [2, 6, 6]
+    assert [chaos_label(lam.mean(), standard_error(lam[:, 0]), 1000) for lam in runs] == [
+        "chaotic", "chaotic", "undetermined"]
+    assert len(_decided(first, dataclasses.replace(cfg, decide_samples=0), None)[2]) == 2
 
 
 def test_tracking_during_training(tmp_path):

@@ -4,11 +4,23 @@ the same laws at fixed points in tests/test_kernels.py."""
 
 import math
 
+import numpy as np
+import pandas as pd
 import pytest
 import torch
 
 from moex.errors import Interrupted
-from moex.metrics.lyapunov import benettin, initial_tangents, lyapunov_exponents
+from moex.metrics.lyapunov import (
+    CHAOTIC,
+    NOT_CHAOTIC,
+    UNDETERMINED,
+    benettin,
+    chaos_label,
+    chaos_labels,
+    initial_tangents,
+    lyapunov_exponents,
+    standard_error,
+)
 
 
 def test_logistic_map_r4_gives_ln2(samples=64, steps=2500):
@@ -68,3 +80,53 @@ def test_benettin_counts_the_steps_after_the_transient_in_chunks():
     torch.testing.assert_close(lam, torch.full((1,), math.log(2)))
     with pytest.raises(Interrupted):
         benettin(advance, tangents, 7, 2, 3, should_stop=lambda: True)
+
+
+def _samples(step, x0, steps, transient=200):
+    """Each initial state's own λ_max (numpy) and the label of their mean with its error."""
+    lam = lyapunov_exponents(step, x0, steps, transient=transient)[..., 0].numpy()
+    return lam, chaos_label(lam.mean(), standard_error(lam), steps)
+
+
+def test_the_chaos_label_calls_the_logistic_map_chaotic():
+    x0 = torch.rand(16, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    lam, label = _samples(lambda x: 4 * x * (1 - x), x0 * 0.8 + 0.1, 2000)
+    assert label == CHAOTIC and abs(lam.mean() - math.log(2)) < 0.02
+
+
+@pytest.mark.parametrize("wobble", [0.0, 0.2])
+def test_a_limit_cycle_is_never_chaotic(wobble):
+    """An attracting circle (r -> r + 0.5 (1 - r)) travelled by a rotation, exact (λ_max = 0 up
+    to rounding) or with an uneven speed (θ -> θ + 1 + 0.2 sin θ): its λ_max estimates straddle
+    0 by far less than their resolution, so the label is never `chaotic`, at any length."""
+    def circle(z):
+        r, theta = z.norm(dim=-1, keepdim=True), torch.atan2(z[..., 1:], z[..., :1])
+        r, theta = r + 0.5 * (1 - r), theta + 1.0 + wobble * torch.sin(theta)
+        return torch.cat([r * torch.cos(theta), r * torch.sin(theta)], -1)
+
+    g = torch.Generator().manual_seed(3)
+    for steps in (500, 2000):
+        z0 = torch.randn(12, 2, generator=g, dtype=torch.float64)
+        lam, label = _samples(circle, z0, steps)
+        assert abs(lam.mean()) < 1.0 / steps and label != CHAOTIC
+
+
+def test_the_label_follows_the_error_not_the_sign():
+    """The issue's limit cycle: +7e-6 within about one standard error is undetermined, not
+    chaotic; a contracting map is not chaotic; one sample has no error and decides nothing."""
+    assert chaos_label(7e-6, 6.5e-6, 100000) == UNDETERMINED
+    assert chaos_label(4.1e-5, 1e-6, 100000) == CHAOTIC  # 41 s.e. and 4 resolutions above 0
+    assert chaos_label(4.1e-6, 1e-7, 100000) == UNDETERMINED  # below 1/steps: not resolved
+    assert chaos_label(-7.1e-5, 3e-5, 100000) == NOT_CHAOTIC
+    assert chaos_label(0.5, float("nan"), 100000) == UNDETERMINED
+    assert chaos_label(float("nan"), 0.1, 100000) == ""
+    lam, label = _samples(lambda x: 0.5 * x + 0.1, torch.rand(4, 1, dtype=torch.float64), 300)
+    assert label == NOT_CHAOTIC and np.allclose(lam, math.log(0.5))
+
+
+def test_older_tables_are_labelled_from_their_error_columns():
+    frame = pd.DataFrame({"max_lyapunov": [0.01, 1e-6, -0.01, np.nan],
+                          "max_lyapunov_se": [1e-4, 1e-6, 1e-4, np.nan],
+                          "lyapunov_steps": [100000, 100000, 100000, np.nan]})
+    assert chaos_labels(frame).tolist() == [CHAOTIC, UNDETERMINED, NOT_CHAOTIC, ""]
+    assert chaos_labels(frame.drop(columns="max_lyapunov_se")).tolist()[:3] == [UNDETERMINED] * 3

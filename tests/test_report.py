@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 import torch
 
-from moex.report import aggregate, report, to_markdown, wilson_interval
+from moex.report import aggregate, report, short_summary, to_markdown, wilson_interval
 from tests.test_cli import TINY
 
 MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
@@ -99,7 +99,7 @@ def test_report_of_an_empty_folder_is_an_error(tmp_path):
 
 def _fake_job(job_dir, config: str, metrics: dict, choices: str = "") -> None:
     """A finished job folder as a sweep leaves it: .hydra/config.yaml (and hydra.yaml with the
-    config-group `choices`), status.json and metrics.csv (two runs, none failed)."""
+    config-group `choices`), status.json and metrics.csv (one run per value, none failed)."""
     hydra_dir = job_dir / ".hydra"
     hydra_dir.mkdir(parents=True)
     hydra_dir.joinpath("config.yaml").write_text(config)
@@ -107,7 +107,8 @@ def _fake_job(job_dir, config: str, metrics: dict, choices: str = "") -> None:
         hydra_dir.joinpath("hydra.yaml").write_text(
             f"hydra:\n  runtime:\n    choices:\n{choices}")
     (job_dir / "status.json").write_text(json.dumps({"status": "done"}))
-    pd.DataFrame({"run": [0, 1], **metrics, "failed": [False, False]}).to_csv(
+    runs = len(next(iter(metrics.values())))
+    pd.DataFrame({"run": range(runs), **metrics, "failed": [False] * runs}).to_csv(
         job_dir / "metrics.csv", index=False)
 
 
@@ -160,29 +161,63 @@ def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
     assert summary.loc[(0.0, 2, 250), "nonperiodic_fraction_mean"] == 0.0
     assert summary.loc[(0.001, 5, 500), "nonperiodic_fraction_mean"] == 0.75
     assert (summary["num_runs"] == 2).all() and len(summary) == 8
-    for noise in ("0", "0.001"):
-        assert (tmp_path / "figures" / f"heatmap_nonperiodic_fraction_mean_NC10_noise{noise}.png"
-                ).stat().st_size > 0
+    # one figure per column, its panels (NC 10 at ρ² 0 and 0.001) side by side
+    assert sorted(p.name for p in (tmp_path / "figures").glob("heatmap_*")) == [
+        "heatmap_E_closed_mean.png", "heatmap_nonperiodic_fraction_mean.png",
+        "heatmap_positive_percent.png"]
 
 
-def test_a_re_evaluation_at_the_same_settings_is_never_pooled_with_what_it_repeats(tmp_path):
-    """Two run folders A and B of one setting, and A re-evaluated at the same evaluation
-    settings: A and B pool (4 different networks); the re-evaluation is a row of its own (2), so
-    no network counts twice in a group."""
-    config = ("task:\n  name: lissajous2\n  switch_prob: 0.5\nmodel:\n  gating:\n"
-              "    context_size: 15\neval:\n  noise_var: 0.0\n  num_samples: 50\n")
-    for job, lam in (("A", [0.1, 0.2]), ("B", [0.3, 0.4])):
-        _fake_job(tmp_path / job, config, {"max_lyapunov": lam, "E_g": [0.01, 0.02]})
+def test_no_heat_map_without_two_values_on_each_axis_and_none_of_a_column_without_values(
+        tmp_path):
+    """The issue's report of single runs: every NT × LT "map" would be one cell, so none is
+    drawn; a column no job has (a Reber task's E^closed) gets no empty panel; file names stay
+    short whatever the settings."""
+    for job, (nt, lt, nc) in enumerate([(2, 250, 10), (2, 500, 20), (5, 250, 30)]):
+        _fake_job(tmp_path / str(job), f"task:\n  name: reber\n  num_series: {nt}\n  length: "
+                  f"{lt}\nmodel:\n  gating:\n    context_size: {nc}\n",
+                  {"max_lyapunov": [0.1, -0.1], "nonperiodic_fraction": [0.5, 1.0]})
+    report(tmp_path)
+    assert not list((tmp_path / "figures").glob("heatmap_*"))
+    for job, (nt, lt) in enumerate([(2, 250), (2, 500), (5, 250), (5, 500)]):
+        _fake_job(tmp_path / f"grid{job}", f"task:\n  name: reber\n  num_series: {nt}\n  "
+                  f"length: {lt}\nmodel:\n  gating:\n    context_size: 10\n",
+                  {"max_lyapunov": [0.1, -0.1], "nonperiodic_fraction": [0.5, 1.0]})
+    report(tmp_path)
+    names = sorted(p.name for p in (tmp_path / "figures").iterdir())
+    assert "heatmap_E_closed_mean.png" not in names and "heatmap_positive_percent.png" in names
+    assert max(map(len, names)) <= 80
+
+
+def test_the_same_network_counts_once_however_often_it_is_reported(tmp_path):
+    """Run folders A and B of one setting but other seeds pool (4 networks); a copy of A, and A
+    re-evaluated at the same evaluation settings, hold A's networks again: each counts once,
+    with a note naming the job it repeats (the issue's "seed 0 trained three times, n = 6")."""
+    import shutil
+
+    config = ("seed: {}\nnum_runs: 2\ntask:\n  name: lissajous2\n  switch_prob: 0.5\nmodel:\n"
+              "  gating:\n    context_size: 15\neval:\n  noise_var: 0.0\n  num_samples: 50\n")
+    for job, seed, lam in (("A", 0, [0.1, 0.2]), ("B", 1, [0.3, 0.4])):
+        _fake_job(tmp_path / job, config.format(seed), {"max_lyapunov": lam, "E_g": [0.01, 0.02]})
     again = tmp_path / "A" / "evaluate" / "2026-12-02_10-00-00"
     again.mkdir(parents=True)
     pd.DataFrame({"run": [0, 1], "max_lyapunov": [0.1, 0.2], "E_g": [0.01, 0.02],
                   "failed": [False, False]}).to_csv(again / "metrics.csv", index=False)
     (again / "eval_config.yaml").write_text("noise_var: 0.0\nnum_samples: 50\n")
-    out = report([tmp_path / "A", tmp_path / "B"], tmp_path / "out")
-    summary = out["summary"].set_index("evaluation")
-    assert summary.loc["training", "num_runs"] == 4
-    assert summary.loc["training", "max_lyapunov_mean"] == pytest.approx(0.25)
-    assert summary.loc["evaluate/2026-12-02_10-00-00", "num_runs"] == 2
+    shutil.copytree(tmp_path / "A", tmp_path / "A copy")
+    # one network of A trained again alone (num_runs 1): run 0 is the same network
+    _fake_job(tmp_path / "A0", config.format(0).replace("num_runs: 2", "num_runs: 1"),
+              {"max_lyapunov": [0.15], "E_g": [0.01]})
+    folders = [tmp_path / name for name in ("A", "B", "A copy", "A0")]
+    out = report(folders, tmp_path / "out")
+    assert out["summary"]["num_runs"].sum() == 4
+    assert out["summary"]["max_lyapunov_mean"].tolist() == [pytest.approx(0.25)]
+    repeats = out["repeats"]
+    assert len(repeats) == 2 + 2 + 2 + 1 and set(repeats["same_as"]) == {"A"}
+    assert (tmp_path / "out" / "tables" / "repeats.csv").exists()
+    result = subprocess.run([*MOEX, "report", *map(str, folders), "--out",
+                             str(tmp_path / "out2")], capture_output=True, text=True)
+    assert result.returncode == 0 and "7 run(s) are networks another job already holds" in \
+        result.stdout
 
 
 def test_report_of_table1_tabulates_per_context_size_and_plots_each_network(tmp_path):
@@ -225,9 +260,12 @@ def test_report_never_pools_a_setting_it_has_no_name_for(tmp_path):
 def test_report_groups_jobs_that_lack_a_key_apart_from_those_that_set_it(tmp_path):
     reber = "task:\n  name: reber\nmodel:\n  gating:\n    context_size: 20\n"
     _fake_job(tmp_path / "0", reber, {"max_lyapunov": [0.1, 0.2]})
-    _fake_job(tmp_path / "1", reber + "seed: 3\n", {"max_lyapunov": [0.3, 0.4]})
+    _fake_job(tmp_path / "1", reber + "precision: float32\n", {"max_lyapunov": [0.3, 0.4]})
+    # seeds are replicates, not settings: another seed pools with the job that lacks the key
+    _fake_job(tmp_path / "2", reber + "seed: 3\n", {"max_lyapunov": [0.5, 0.6]})
     summary = report(tmp_path)["summary"]
-    assert len(summary) == 2 and summary["seed"].isna().sum() == 1
+    assert len(summary) == 2 and summary["precision"].isna().sum() == 1
+    assert sorted(summary["num_runs"]) == [2, 4] and "seed" not in summary
 
 
 def test_a_sweep_over_a_config_group_names_the_choice_apart_from_the_setting(tmp_path):
@@ -302,3 +340,25 @@ def test_the_scatter_says_when_its_switching_was_measured_under_noise(tmp_path, 
         report(folder)
         said = "noise ρ² = 0.001" in titles["switch_prob_vs_lyapunov"]
         assert said == (noise > 0), noise
+
+
+def test_one_network_reads_without_nan_and_labels_count_beside_the_papers_criterion():
+    """A setting with one network shows its values without "± nan"; the chaos labels with their
+    error are counted beside the paper's λ_max > 0; a run page's cell says "1 sample" where a
+    network has no error to give."""
+    from moex.run_page import lyapunov_cells
+
+    runs = pd.DataFrame({"task": "lissajous2", "run": [0, 0, 1, 2], "job": [0, 1, 1, 1],
+                         "max_lyapunov": [7e-6, 0.01, -0.02, 1e-3],
+                         "max_lyapunov_se": [6.5e-6, 1e-4, 1e-3, float("nan")],
+                         "lyapunov_steps": 100000, "E_g": [0.08, 0.1, 0.1, 0.1]})
+    table = aggregate(runs, ["job"]).set_index("job")
+    assert table.loc[0, "undetermined_count"] == 1 and table.loc[0, "chaotic_count"] == 0
+    assert table.loc[0, "positive_percent"] == 100  # the paper's criterion calls it chaotic
+    assert table.loc[1, ["chaotic_count", "undetermined_count", "not_chaotic_count"]].tolist() \
+        == [1, 1, 1]
+    text = short_summary(table.reset_index(), ["job"])
+    assert "nan" not in text and "chaotic 0, undetermined 1, not 0" in text
+    cells = lyapunov_cells(runs.assign(lyapunov_samples=[50, 50, 50, 1]))
+    assert cells == ["7e-06 ± 6.5e-06 (undetermined)", "0.01 ± 0.0001 (chaotic)",
+                     "-0.02 ± 0.001 (not chaotic)", "0.001 (1 sample; undetermined)"]

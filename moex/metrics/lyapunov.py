@@ -4,6 +4,7 @@ mixture (`moex.closed_loop.closed_loop_lyapunov`) and `lyapunov_exponents` of an
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 from moex.errors import never, stop_if_asked
@@ -84,3 +85,47 @@ def lyapunov_exponents(step: Callable[[torch.Tensor], torch.Tensor], state: torc
 
     return benettin(advance, initial_tangents(state, num_exponents, generator), num_steps,
                     transient, reorth_every)
+
+
+CHAOTIC, NOT_CHAOTIC, UNDETERMINED = "chaotic", "not chaotic", "undetermined"
+CHAOS_LABELS = (CHAOTIC, UNDETERMINED, NOT_CHAOTIC)
+
+
+def chaos_margin(se: float, steps: int, z: float = 2.0) -> float:
+    """How far from 0 an estimate of λ_max must lie for its sign to count: z standard errors
+    (sd of the samples' own exponents / √samples), and at least 1/steps, the resolution of a
+    `steps`-step estimate (one e-fold over the whole trajectory: a tangent whose norm merely
+    oscillates on a limit cycle moves the estimate by about that much). Infinite where the error
+    is unknown (one sample)."""
+    return max(z * se, 1.0 / steps) if np.isfinite(se) else np.inf
+
+
+def chaos_label(mean: float, se: float, steps: int, z: float = 2.0) -> str:
+    """*chaotic* where λ_max is above 0 by more than `chaos_margin`, *not chaotic* where below
+    by as much, *undetermined* in between (the paper's own criterion, λ_max > 0, ignores the
+    error: it is the column `lyapunov_positive`); "" for a network without an estimate."""
+    if not np.isfinite(mean):
+        return ""
+    margin = chaos_margin(se, steps, z)
+    return CHAOTIC if mean > margin else NOT_CHAOTIC if mean < -margin else UNDETERMINED
+
+
+def standard_error(samples: np.ndarray) -> float:
+    """sd of the samples' own exponents / √samples (NaN for one sample)."""
+    return float(samples.std(ddof=1) / len(samples) ** 0.5) if len(samples) > 1 else np.nan
+
+
+def chaos_labels(frame) -> "pd.Series":  # noqa: F821 (pandas is imported by the caller)
+    """The label of every row of a metrics table: its `chaos` column where the evaluation wrote
+    one, else computed from max_lyapunov, max_lyapunov_se and lyapunov_steps (older tables;
+    without a standard error every row is undetermined)."""
+    import pandas as pd
+
+    if "chaos" in frame:
+        return frame["chaos"].fillna("").astype(str)
+    se = frame["max_lyapunov_se"] if "max_lyapunov_se" in frame else pd.Series(np.nan, frame.index)
+    steps = frame["lyapunov_steps"] if "lyapunov_steps" in frame else pd.Series(100000,
+                                                                                frame.index)
+    return pd.Series([chaos_label(m, s, int(t) if np.isfinite(t) else 1) for m, s, t in
+                      zip(frame["max_lyapunov"], se, steps.astype(float), strict=True)],
+                     index=frame.index, dtype=object)

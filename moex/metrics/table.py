@@ -35,7 +35,8 @@ METRICS = {m.name: m for m in [
     Metric("max_lyapunov_noisy", r"$\lambda_{\max}$ with noise", "λ_max with noise",
            "the same with input noise of eval.noise_var", "symlog"),
     Metric("lyapunov_positive", r"share with $\lambda_{\max} > 0$", "λ_max > 0",
-           "whether λ_max > 0"),
+           "the paper's criterion of chaos, λ_max > 0, without its error (the column `chaos` "
+           "has the label with it)"),
     Metric("max_lyapunov_se", r"standard error of $\lambda_{\max}$", "λ_max s.e.",
            "sd of the samples' own exponents / √samples: |λ_max| below about twice it is not "
            "told apart from 0", "log"),
@@ -71,10 +72,12 @@ def label(name: str) -> str:
     return METRICS[name].label if name in METRICS else name
 
 
-# metrics.csv columns that are settings or bookkeeping, not measurements; lyapunov_k (k >= 2,
-# with eval.num_exponents > 1) are the further exponents
+# metrics.csv columns that are settings, bookkeeping or labels, not measurements: `chaos` is
+# chaotic / not chaotic / undetermined (moex.metrics.lyapunov.chaos_label), lyapunov_samples the
+# initial states λ_max was averaged over; lyapunov_k (k >= 2, with eval.num_exponents > 1) are the
+# further exponents
 NOT_METRICS = ("run", "failed", "block_length", "noise_var", "num_samples", "lyapunov_steps",
-               "noise_enters")
+               "noise_enters", "chaos", "lyapunov_samples")
 
 
 def is_known(column: str) -> bool:
