@@ -71,8 +71,9 @@ def test_the_metric_table_of_a_lissajous_task():
     assert (rows["data_switch_prob"] == switch_probability(truth)).all()
     assert (rows["E_closed"] >= 0).all() and rows["block_kl_test"].notna().all()
     assert (rows[["num_samples", "lyapunov_samples", "lyapunov_steps"]] == [3, 3, 400]).all().all()
-    assert (rows["chaos"] == [chaos_label(m, se, 400) for m, se in
-                              zip(rows["max_lyapunov"], rows["max_lyapunov_se"], strict=True)]).all()
+    labels = [chaos_label(m, se, 400) for m, se in
+              zip(rows["max_lyapunov"], rows["max_lyapunov_se"], strict=True)]
+    assert (rows["chaos"] == labels).all()
     # undetermined runs get more samples until decided or eval.decide_samples is spent; the
     # first num_samples are the same draws as without (the symbol statistics keep only those)
     decided = pd.DataFrame(evaluate(experts, beta, gating, data, 1, dataclasses.replace(
