@@ -174,12 +174,13 @@ def typed_job_config(sweep_config) -> object:
     return _typed(task_cfg, sweep_config.hydra.runtime.choices)
 
 
-def interrupted_jobs(folders: list[Path], exc: BaseException) -> None:
+def interrupted_jobs(job_dirs: list[Path], exc: BaseException) -> None:
     """A packed batch stopped by a signal: each job folder says so, and how to continue."""
-    for folder in folders:
+    for folder in job_dirs:
         folders.write_status(Path(folder), verb="train", status="interrupted", error=str(exc))
-    print(f"moex: interrupted ({exc}); every job's trained state is saved: re-run the same "
-          f"command with hydra.sweep.dir={Path(folders[0]).parent} to continue", file=sys.stderr)
+    print(f"moex: interrupted ({exc}); every job's trained state is saved: re-run the same -m "
+          f"command with hydra.sweep.dir={Path(job_dirs[0]).parent} to continue",
+          file=sys.stderr)
 
 
 class Composed(NamedTuple):

@@ -1,6 +1,7 @@
 """Bad input and faults: each ends in one `moex: error:` line (exit 2) or a clean stop (exit
 128 + signal), with no traceback, nothing half-written, and a finished run folder untouched."""
 
+import json
 import os
 import signal
 import subprocess
@@ -253,3 +254,27 @@ def test_a_bad_gpu_knob_is_refused_in_one_line_and_writes_nothing(tmp_path, knob
                             cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     _one_error_line(result, f"{knob} must be a whole number >= 1")
     assert not (tmp_path / "run").exists()
+
+
+def test_sigint_during_a_packed_sweep_exits_130_and_every_job_says_interrupted(tmp_path):
+    """Ctrl-C while a packed batch trains: exit 130 without a traceback, every job's
+    status.json says interrupted, and the message names the -m command's sweep folder."""
+    sweep = tmp_path / "sweep"
+    args = ["train", "-m", "task=lissajous2", *TINY, "task.switch_prob=0.5,0.25",
+            "hydra/launcher=packed", f"hydra.sweep.dir={sweep}"]
+    process = subprocess.Popen(MOEX + args + ["train.experts.steps=2000000"], cwd=tmp_path,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    seen = []
+    for line in process.stdout:  # the batch's kernel is ready: phase 1 trains
+        seen.append(line)
+        if "kernel ready" in line or "kernel loaded" in line:
+            break
+    time.sleep(3)
+    process.send_signal(signal.SIGINT)
+    output = "".join(seen) + process.communicate(timeout=120)[0]
+    assert process.returncode == 130, output
+    assert "Traceback" not in output and "AttributeError" not in output
+    assert f"re-run the same -m command with hydra.sweep.dir={sweep}" in output
+    for job in ("0", "1"):
+        assert json.loads((sweep / job / "status.json").read_text())["status"] == "interrupted"
