@@ -61,16 +61,59 @@ def test_the_report_is_short_its_verdicts_terse_and_every_page_linked():
 
 def test_the_tally_counts_each_kind_of_verdict_once():
     verdicts = _script("verdicts")
-    frame = pd.DataFrame({"verdict": ["reproduced", "reproduced in the mean only through x",
-                                      "differs, cause found: y", "differs, cause partly found: z",
-                                      "differs, candidate cause (not significant): v",
-                                      "differs, cause open", "differs, cause open; with w"],
-                          "quantity": ["E^g"] * 6 + ["% λ_max > 0"]})
+    frame = pd.DataFrame({"verdict": ["reproduced", "reproduced (1 network carries it)",
+                                      "differs, cause found: y", "differs, candidate cause: v",
+                                      "differs, cause open", "inconclusive",
+                                      "inconclusive (2 networks carry it)"]})
     assert verdicts.tally(frame) == (
-        "Of the table's 7 rows, 2 are reproduced; 5 differ, 1 with the cause found, 1 with the "
-        "cause partly found, 1 with a candidate cause and 2 with the cause open. Were every mean "
-        "the paper's, the 2-SE rule would still call about 0.3 of the 6 mean rows \"differs\" by "
-        "chance (and each 95 % interval misses in 5 % of cases).")
+        "Of the table's 7 rows, by one rule (docs/verdicts.py): 2 reproduced; 3 differ, 1 with "
+        "the cause found, 1 with a candidate cause and 1 with the cause open; 2 inconclusive; 2 "
+        "of them rest on one or two networks.")
+
+
+def test_the_verdict_rule_on_cases_with_known_answers():
+    """`decide`: an interval inside the margin around 0 is reproduced, one that excludes 0
+    differs, a wide one is inconclusive; `needed` finds the n at which the interval's half-width
+    equals the room left; Newcombe's interval of two equal shares is centred on 0 and those of
+    100 % against 100 % stay inside [-100, 100]; a verdict resting on one outlier is flagged."""
+    v = _script("verdicts")
+    assert v.decide(-0.1, 0.1, 0.2) == "reproduced"
+    assert v.decide(0.01, 0.05, 0.2) == "differs" and v.decide(-0.5, -0.01, 1) == "differs"
+    assert v.decide(-0.3, 0.1, 0.2) == "inconclusive"
+    # d = 0, sd = spread = 1, margin 0.5, the paper's n huge: (0.5/1.96)² = 1/n -> n = 15.4
+    assert v.needed(0.0, 1.0, 1.0, 10**9, 0.5) == "about 16 networks would decide it"
+    assert "no number" in v.needed(0.0, 1.0, 1.0, 10, 0.5)  # the paper's error alone is wider
+    diff, low, high = v.share_interval(15, 30, 50, 30)
+    assert diff == 0 and low == pytest.approx(-high)
+    diff, low, high = v.share_interval(50, 50, 100, 50)
+    assert diff == 0 and -100 <= low < 0 < high <= 100
+    rng = np.random.default_rng(0)
+    values = rng.normal(0, 1, 50)
+    assert v.robust_sd(values) == pytest.approx(1, abs=0.3)
+    mean = _row_word(v, values, 0.0)
+    assert mean == "reproduced"
+    outlier = np.append(values[:-1], 60.0)  # one network far out: the interval widens
+    assert _row_word(v, outlier, 0.0) == "inconclusive"
+    assert v._carried(outlier, "inconclusive", lambda x: _row_word(v, x, 0.0)) == \
+        " (1 network carries it)"
+
+
+def _row_word(v, values, paper, paper_n=10**6):
+    return v.decide(*v._mean_interval(np.asarray(values), paper, paper_n)[1:4])
+
+
+def test_every_verdict_is_the_rules_word_for_its_own_interval():
+    """Each row of the table: the verdict's first word is `decide` of the interval and margin the
+    row prints (so no row's word is set by hand)."""
+    import re
+
+    v = _script("verdicts")
+    for row in v.verdicts().itertuples():
+        cell = row[list(v.verdicts().columns).index("moex − paper [95 %] (margin)") + 1]
+        low, high, margin = map(float, re.findall(r"\[(\S+), (\S+)\].*± ([\d.e+-]+)\)",
+                                                  cell)[0])
+        word = v.decide(low, high, margin)
+        assert row.verdict.startswith(word), (row.result, row.quantity, cell, row.verdict)
 
 
 def test_the_one_hot_tables_are_the_ones_the_csvs_give():
