@@ -71,6 +71,19 @@ def test_the_tally_counts_each_kind_of_verdict_once():
         "of them rest on one or two networks.")
 
 
+def test_sentences_that_went_stale_are_computed_now():
+    """Question 4's answer is the one docs/lyapunov_crosscheck.csv gives (it said 20 networks,
+    r 0.26 and "in all 20" after the control grew to 40); the sentences the audit found stale
+    are gone from every page."""
+    v = _script("verdicts")
+    assert v.tool_question() in (ROOT / "docs" / "verdicts.md").read_text()
+    pages = [ROOT / "REPRODUCTION.md", ROOT / "docs" / "verdicts.md"]
+    for stale in ("(r 0.26)", "in all 20", "the end of training was not checked",
+                  "into agreement", "initial network up\nto 55 %", "(below, \"How much"):
+        for page in pages:
+            assert stale not in page.read_text(), (stale, page.name)
+
+
 def test_the_verdict_rule_on_cases_with_known_answers():
     """`decide`: an interval inside the margin around 0 is reproduced, one that excludes 0
     differs, a wide one is inconclusive; `needed` finds the n at which the interval's half-width
