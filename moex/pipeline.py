@@ -29,7 +29,7 @@ from moex.metrics.lyapunov import CHAOS_LABELS
 from moex.metrics.table import LOGGED, METRICS
 from moex.run import Job, run_seeds, train_jobs
 from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
-from moex.train import phase2_targets
+from moex.train import ExpertPhaseConfig, phase2_targets
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +171,7 @@ def run_train(cfg: Config, out_dir: Path,
     backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name)
     dataset = load_task(cfg)
+    _warn_ignored(cfg, dataset)
     if saved is None or saved.phase != "done":
         [saved] = train_jobs([Job(cfg, dataset, out_dir, saved)], stop, backend)
     finish_run(cfg, dataset, saved, out_dir, backend, stop)
@@ -191,7 +192,6 @@ def finish_run(cfg: Config, dataset: Dataset, saved: checkpoint.Checkpoint, out_
         plotting.save_figure(plotting.plot_learning_curves(
             history, f"learning curves: task {cfg.task.name}, runs 0-{cfg.num_runs - 1}"),
             out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
-        _log_summary(history)
         history_written = True
     if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
         evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
@@ -409,13 +409,17 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
     return samples
 
 
-def _log_summary(history: pd.DataFrame) -> None:
-    last = history.sort_values("step").groupby(["phase", "run"]).tail(1)
-    for phase, group in last.groupby("phase"):
-        column = "E" if phase == "experts" else "E_g"
-        values = group[column]
-        log.info("%s: final %s mean %.3g (min %.3g, max %.3g) over %d runs", phase, column,
-                 values.mean(), values.min(), values.max(), len(values))
+def _warn_ignored(cfg: Config, dataset: Dataset) -> None:
+    """A task without a signal (Reber: symbols only) has no experts and no phase 1: every
+    train.experts key set away from its default is named as ignored, not silently dropped."""
+    if dataset.series.shape[-1] > 0:
+        return
+    default = dataclasses.asdict(ExpertPhaseConfig())
+    changed = [f"train.experts.{k}={v}" for k, v in dataclasses.asdict(cfg.train.experts).items()
+               if v != default[k]]
+    if changed:
+        log.warning("%s ignored: task %s has no signal for experts, so phase 1 does not run",
+                    ", ".join(changed), cfg.task.name)
 
 
 def check_import(cfg: ImportConfig) -> None:

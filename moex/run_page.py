@@ -29,16 +29,40 @@ def lyapunov_cells(metrics: pd.DataFrame) -> list[str]:
             for v, s, n, label in zip(metrics["max_lyapunov"], se, samples, labels, strict=True)]
 
 
+def trained_steps(out_dir: Path, cfg) -> str:
+    """What training the networks had, as it happened: the C tools' epochs of an import (from
+    imported_from.csv), phase 2 alone where the history has no phase 1 (a task without a signal
+    for experts: Reber), else both phases' steps."""
+    sources = Path(out_dir) / "imported_from.csv"
+    if sources.exists():
+        files = pd.read_csv(sources)
+        files["name"] = files["file"].map(lambda f: Path(f).name)
+        spans = files.groupby("name")["epochs"].agg(["min", "max"])
+        epochs = ", ".join(f"{name} {lo}" + (f"-{hi}" if hi != lo else "")
+                           for name, (lo, hi) in spans.iterrows())
+        return f"trained by the authors' C tools (epochs: {epochs}), imported"
+    if not _has_experts(out_dir):
+        return f"{cfg.train.gating.steps} gating-phase steps (no experts: phase 1 does not run)"
+    return f"{cfg.train.experts.steps} + {cfg.train.gating.steps} training steps"
+
+
+def _has_experts(out_dir: Path) -> bool:
+    """Whether the folder's history has phase-1 rows (True where there is no history)."""
+    history = Path(out_dir) / io.HISTORY
+    return not history.exists() or "experts" in set(pd.read_csv(history, usecols=["phase"])
+                                                   ["phase"])
+
+
 def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
     """Write `out_dir`/report.md from the config, the metric table (None when not evaluated)
     and the figures in `out_dir`/figures."""
     out_dir = Path(out_dir)
-    train, model, task = cfg.train, cfg.model, cfg.task
+    model, task = cfg.model, cfg.task
     lines = [f"# {title}", "",
              f"Task `{task.name}`, {cfg.num_runs} network(s) from seed {cfg.seed}; "
              f"{model.num_experts} experts of M = {model.experts.context_size}, gating RNN of "
-             f"NC = {model.gating.context_size}; {train.experts.steps} + {train.gating.steps} "
-             f"training steps; {cfg.precision}, backend {cfg.backend} on {cfg.device}.", ""]
+             f"NC = {model.gating.context_size}; {trained_steps(out_dir, cfg)}; "
+             f"{cfg.precision}, backend {cfg.backend} on {cfg.device}.", ""]
     if metrics is not None:
         ev = cfg.eval
         shown = ["run"] + [c for c in REPORTED if c in metrics] + ["failed"]

@@ -231,7 +231,6 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         return {k: torch.as_tensor(v, device=device) for k, v in values.items()}
 
     started = time.perf_counter()
-
     for step in progress.steps(start, steps, desc=phase):
         if hooks.should_stop() and hooks.save is not None:
             save(step)
@@ -305,10 +304,12 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
             step % hooks.monitor_every == 0 or step == steps - 1)
         if tracked:
             stats = {**stats, **statistics(hooks.monitor(_host(net)))}
-        if tracked or step % log_every == 0 or step == steps - 1:
+        if tracked or step % log_every == 0:  # (the last row: the trained parameters, below)
             rows += _rows(phase, step, stats, lr_scale, retries, failed)
-        if (step + 1) % max(steps // 10, 1) == 0:  # progress in the log (tqdm only on a tty)
-            speed = (step + 1 - start) / (time.perf_counter() - started)  # steps per second
+        if step == start:  # the rate leaves out the first step, which compiles the kernels
+            started = time.perf_counter()
+        elif (step + 1) % max(steps // 10, 1) == 0 and step < steps - 1:  # progress in the log
+            speed = (step - start) / (time.perf_counter() - started)  # steps per second
             log.info("%s: step %d/%d, %s mean %.4g over %d runs; %.1f steps/s, %s left",
                      phase, step + 1, steps, error or criterion,
                      stats[error or criterion][~failed].mean().item(), int((~failed).sum()),
@@ -319,6 +320,12 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     for values in final.values():
         values[failed] = float("nan")  # not computed for frozen runs
     rows += _rows(phase, steps, final, lr_scale, torch.zeros_like(lr_scale), failed)
+    if steps > start:  # the last line states the trained parameters' value, as history.csv
+        values = final[error or criterion][~failed]
+        if len(values):
+            log.info("%s: step %d/%d (final), %s mean %.4g (min %.3g, max %.3g) over %d runs",
+                     phase, steps, steps, error or criterion, values.mean().item(),
+                     values.min().item(), values.max().item(), len(values))
     return _host(views), rows
 
 

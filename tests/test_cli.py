@@ -40,14 +40,19 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path, moex
     assert list(work.iterdir()) == []  # nothing written to the working directory
     progress = [line for line in (run_dir / "train.log").read_text().splitlines()
                 if "experts: step" in line]
-    assert len(progress) == 6 and all(re.search(r"[\d.]+ steps/s, \d+:\d\d:\d\d left", line)
-                                       for line in progress), progress  # rate and time left
+    # steps 2-5 with rate and time left (the first step, which compiles, is not timed); the
+    # last line is the trained parameters' value, the one history.csv ends with
+    assert len(progress) == 5 and all(re.search(r"[\d.]+ steps/s, \d+:\d\d:\d\d left", line)
+                                       for line in progress[:4]), progress
+    assert "experts: step 6/6 (final), E mean" in progress[4]
     checkpoint = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert checkpoint["gating"]["w_out"].shape == (2, 2, 5)
     history = pd.read_csv(run_dir / "history.csv")
     assert {"run", "phase", "step", "E", "E_g", "log_likelihood", "lr_scale"} <= set(history)
     assert set(history["phase"]) == {"experts", "gating"}
     assert set(history["run"]) == {0, 1}
+    # a row every log_every steps and one for the trained parameters: no extra row at step 5
+    assert sorted(set(history.loc[history["phase"] == "experts", "step"])) == [0, 2, 4, 6]
     metrics = pd.read_csv(run_dir / "metrics.csv")
     assert metrics["run"].tolist() == [0, 1]
     for column in ("E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
@@ -61,7 +66,7 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path, moex
     # the chaos label with its error in the table, the log and the page (never "± nan")
     assert set(metrics["chaos"]) <= {"chaotic", "undetermined", "not chaotic"}
     log = (run_dir / "train.log").read_text()
-    assert "(the paper's criterion) in" in log and "nan" not in log
+    assert "(the paper's criterion) in" in log and "± nan" not in log
     assert all(f"({label})" in page for label in metrics["chaos"])
     # 200 steps hold at most 8 laps, too few to test periods up to 100: no sample is judged
     assert (metrics["periodicity_samples"] == 0).all()
@@ -144,11 +149,16 @@ def test_reber_trains_the_gating_network_only(tmp_path):
     run_dir = tmp_path / "run"
     result = _moex(["train", "task=reber", "task.length=30", "task.num_series=2",
                     "train.gating.steps=3", "model.gating.context_size=4", "eval.num_samples=2",
-                    "eval.lyapunov_steps=50", "eval.transient=5",
+                    "eval.lyapunov_steps=50", "eval.transient=5", "train.experts.steps=200",
                     f"hydra.run.dir={run_dir}"], cwd=tmp_path)
     assert result.returncode == 0, result.stderr
+    assert "train.experts.steps=200 ignored: task reber has no signal for experts" in \
+        result.stdout + result.stderr
     history = pd.read_csv(run_dir / "history.csv")
     assert set(history["phase"]) == {"gating"}
+    page = (run_dir / "report.md").read_text()  # the page says what was trained
+    assert "3 gating-phase steps (no experts: phase 1 does not run)" in page
+    assert "200 + 3" not in page
     metrics = pd.read_csv(run_dir / "metrics.csv")
     assert metrics["block_length"].tolist() == [3] and metrics["block_kl_test"].notna().all()
     assert not {"E", "E_closed"} & set(metrics)  # no experts, no signal: left out, not NaN

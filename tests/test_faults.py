@@ -233,7 +233,8 @@ def test_sigint_during_trains_evaluation_keeps_the_trained_checkpoint(tmp_path):
                                text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     deadline = time.time() + 300
     log = run_dir / "train.log"
-    while time.time() < deadline and not (log.exists() and "final E_g" in log.read_text()):
+    while time.time() < deadline and not (log.exists()
+                                          and "gating: step 4/4 (final)" in log.read_text()):
         time.sleep(0.2)
     time.sleep(5)  # inside the evaluation's closed loop
     process.send_signal(signal.SIGINT)

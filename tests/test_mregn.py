@@ -150,6 +150,11 @@ def test_moex_import_writes_a_run_folder_of_every_network(tmp_path):
     assert torch.equal(saved.beta, record.beta)
     sources = pd.read_csv(tmp_path / "run" / "imported_from.csv")
     assert sources["network"].tolist() == [0, 0, 1, 1]  # mre.dat and gn.dat of each network
+    epochs = sources.set_index(sources["file"].map(lambda f: Path(f).name))["epochs"]
+    page = (tmp_path / "run" / "report.md").read_text()  # the C tools' epochs, not moex's steps
+    assert (f"trained by the authors' C tools (epochs: gn.dat {epochs['gn.dat'].iloc[0]}, "
+            f"mre.dat {epochs['mre.dat'].iloc[0]}), imported") in page
+    assert "training steps" not in page
 
 
 def test_networks_of_different_sizes_are_one_clear_error(tmp_path):
