@@ -149,6 +149,12 @@ COMPARED = {
                    ("switch_prob", "max_lyapunov")),
     "table2_p025": ("table2_summary.csv", ("switch_prob_task", 0.25), ("Table 2", 0.25),
                     ("switch_prob", "max_lyapunov")),
+    "reber_nc20_no_attraction": ("table1_summary.csv", ("context_size", 20), ("Table 1", 20),
+                                 ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov")),
+    "table2_p05_paper": ("table2_summary.csv", ("switch_prob_task", 0.5), ("Table 2", 0.5),
+                         ("switch_prob", "max_lyapunov")),
+    "table2_p025_paper": ("table2_summary.csv", ("switch_prob_task", 0.25), ("Table 2", 0.25),
+                          ("switch_prob", "max_lyapunov")),
 }
 DOCS = Path(__file__).resolve().parent
 

@@ -222,7 +222,9 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     ok = metrics[~metrics["failed"]]
     _plot_samples(samples, dataset, cfg, out_dir, metrics, cfg.eval.noise_var)
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
-    log.info("%s", chaos_sentence(ok, cfg.eval))
+    for line in progress.packed(f"of {len(ok)} run{'s' * (len(ok) != 1)}:",
+                                chaos_parts(ok, cfg.eval), sep=";"):
+        log.info("%s", line)
     for _, row in ok.iterrows():  # whole "name value" pairs per line, within the terminal
         parts = [f"{name} {row[column]:.4g}" for column, name in LOGGED_METRICS
                  if column in row and column != "max_lyapunov"]
@@ -234,14 +236,13 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     return metrics
 
 
-def chaos_sentence(ok: pd.DataFrame, ev) -> str:
-    """One line: how many runs are chaotic, undetermined and not chaotic by the label with its
-    error, and how many meet the paper's criterion (λ_max > 0) alone."""
+def chaos_parts(ok: pd.DataFrame, ev) -> list[str]:
+    """How many runs are chaotic, undetermined and not chaotic by the label with its error, and
+    how many meet the paper's criterion (λ_max > 0) alone."""
     labels = ok["chaos"].value_counts()
     counts = ", ".join(f"{labels.get(name, 0)} {name}" for name in CHAOS_LABELS)
-    return (f"of {len(ok)} run{'s' * (len(ok) != 1)}: {counts} (λ_max beyond "
-            f"{ev.chaos_z:g} s.e. of 0); λ_max > 0 (the paper's criterion) in "
-            f"{int((ok['max_lyapunov'] > 0).sum())}")
+    return [f"{counts} (λ_max beyond {ev.chaos_z:g} s.e. of 0)",
+            f"λ_max > 0 (the paper's criterion) in {int((ok['max_lyapunov'] > 0).sum())}"]
 
 
 LOGGED_METRICS = [(name, METRICS[name].text) for name in LOGGED]

@@ -49,3 +49,19 @@ def test_a_log_line_redraws_the_bar_at_the_current_step(monkeypatch):
     drawn = screen.getvalue()
     after = drawn[drawn.index("a log line"):]
     assert "7/10" in after and " 0/10" not in after
+
+
+@pytest.mark.parametrize("columns", [80, 100, 200])
+def test_summary_lines_fit_the_terminal_and_never_split_a_number(columns, monkeypatch):
+    """`packed` fits the terminal's width less the time stamp (at most 100 columns in all) and
+    moves a whole "name value" pair to the next line rather than splitting it ("0.0358 / 5")."""
+    import os
+
+    from moex.progress import STAMP, packed
+
+    monkeypatch.setattr("shutil.get_terminal_size", lambda *a: os.terminal_size((columns, 24)))
+    parts = [f"metric{i} {0.0358 * i:.4g} ± {i / 7:.2g}" for i in range(12)]
+    lines = packed("run 0:", parts)
+    assert all(STAMP + len(line) <= min(columns, 100) for line in lines)
+    assert " ".join(line.strip() for line in lines) == "run 0: " + ", ".join(parts)
+    assert all(line.startswith("    ") for line in lines[1:])

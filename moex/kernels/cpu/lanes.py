@@ -211,23 +211,37 @@ _ready: set = set()
 
 
 @contextlib.contextmanager
-def _first_use(kernel, what: str):
-    """Log lines around the first call of a kernel in this process: numba compiles it then
-    (tens of seconds), loads it from its cache on disk (about a second), or waits for the helper
-    that compiles it beside the run (`warm`)."""
+def _first_use(kernel, what: str, after: float = 2.0):
+    """Log lines around the first call of a kernel in this process where it takes a while: numba
+    compiles it then (tens of seconds) or waits for the helper that compiles it beside the run
+    (`warm`); a kernel loaded from the cache on disk (about a second) says nothing, so a cached
+    run's log has no line about kernels. The first line comes `after` seconds, while it waits."""
     if kernel in _ready:
         yield
         return
+    import threading
+
     from moex.kernels.cpu import warm
 
-    logger.info("preparing the compiled %s (compiled on first use, then cached on disk) ...",
-                what)
+    told = threading.Event()
+
+    def tell():
+        told.set()
+        logger.info("compiling the %s (on first use, then cached on disk) ...", what)
+
+    timer = threading.Timer(after, tell)
+    timer.daemon = True
+    timer.start()
     start = time.perf_counter()
-    if warm.wait_for(kernel):
-        logger.info("the helper process compiled the %s in the meantime", what)
-    yield
+    try:
+        if warm.wait_for(kernel) and told.is_set():
+            logger.info("the helper process compiled the %s in the meantime", what)
+        yield
+    finally:
+        timer.cancel()
     _ready.add(kernel)
-    logger.info("compiled %s ready in %.1f s", what, time.perf_counter() - start)
+    if told.is_set():
+        logger.info("compiled %s ready in %.1f s", what, time.perf_counter() - start)
 
 
 _NET = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau")
