@@ -103,7 +103,7 @@ for name in REGISTRY:
       bash -c "cd $scratch && $py -c 'from moex.cli import main; main()' train -m \
       experiment=paper_table2 backend=gpu device=$device $table2 \
       hydra.sweep.dir=$scratch/table2 > $scratch/table2.log 2>&1; code=\$?
-      grep -E 'λ_max positive|sweep folder|rror' $scratch/table2.log
+      grep -E \"paper's criterion|chaotic|sweep folder|rror\" $scratch/table2.log
       cp $scratch/table2/jobs.csv $out/table2_jobs.csv
       head -1 \$(ls $scratch/table2/*/metrics.csv | head -1) > $out/table2_metrics.csv
       for m in $scratch/table2/*/metrics.csv; do tail -n +2 \$m; done >> $out/table2_metrics.csv
