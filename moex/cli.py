@@ -48,7 +48,7 @@ verbs:
   evaluate   recompute metrics.csv, samples.npz and figures of a run folder (run_dir=...)
   generate   closed-loop samples from random initial states (run_dir=... steps=... noise_var=...)
   import     networks trained by the authors' C tools (mregn) as a moex run folder (source=...)
-  report     tables and phase plots of a multirun folder (moex report outputs/multirun/<date>)
+  report     tables and figures of any run and sweep folders (moex report DIR [DIR ...])
 
 examples:
   moex train task=lissajous2
@@ -73,11 +73,15 @@ def _allowed_keys(config_name: str, key: str) -> str:
             close = difflib.get_close_matches(key, paths, n=3, cutoff=0.6)
             return f"; did you mean {' or '.join(close)}?" if close else ""
         keys = [str(k) for k in node.keys()]
+        # a key given without its group (noise_var for eval.noise_var): its dotted forms first
+        nested = [path for path in _dotted(OmegaConf.to_container(root, resolve=False))
+                  if path.endswith(f".{leaf}")] if not parent else []
     except Exception:  # nothing to compose against: nothing to list
         return ""
     ranked = difflib.get_close_matches(leaf, keys, n=len(keys), cutoff=0)
     names = [f"{parent}.{k}" if parent else k for k in ranked + sorted(set(keys) - set(ranked))]
-    return f"; allowed keys: {', '.join(names)}"
+    hint = f"; did you mean {' or '.join(nested)}?" if nested else ""
+    return f"{hint}; allowed keys: {', '.join(names)}"
 
 
 def _dotted(tree: dict, prefix: str = "") -> list[str]:
@@ -297,7 +301,11 @@ def _job(run, verb: str):
             log.warning("%s (%s)", exc, "trained state saved in " + str(out_dir)
                         if verb == "train" else "nothing written")
             status(status="interrupted", error=str(exc))
-            if verb == "train":
+            if verb == "train" and hydra_cfg.mode == RunMode.MULTIRUN:
+                print(f"moex: interrupted ({exc}); re-run the same -m command with "
+                      f"hydra.sweep.dir={hydra_cfg.sweep.dir} to continue (finished jobs are "
+                      f"kept)", file=sys.stderr)
+            elif verb == "train":
                 print(f"moex: interrupted ({exc}); re-run the same command with "
                       f"hydra.run.dir={out_dir} (or resume=true) to continue", file=sys.stderr)
             else:
@@ -329,12 +337,38 @@ VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
 
 
 def _latest_run(task: str) -> Path:
-    """The newest outputs/<task>/<date> folder holding a checkpoint, for `resume=true`."""
-    runs = sorted(Path("outputs", task).glob("*/checkpoint.pt"))
+    """The folder `resume=true` continues: the newest outputs/<task>/<date> folder holding a
+    checkpoint whose training is unfinished (interrupted, or killed before its status.json
+    said done), else the newest finished one (which is then not redone)."""
+    runs = [p.parent for p in sorted(Path("outputs", task).glob("*/checkpoint.pt"))]
     if not runs:
         raise ConfigError(f"resume=true but outputs/{task}/ holds no run with a checkpoint; "
                           f"name the folder with hydra.run.dir=")
-    return runs[-1].parent
+    unfinished = [run for run in runs if folders.read_status(run) != "done"]
+    return (unfinished or runs)[-1]
+
+
+def _tell_interrupted(task: str, overrides: list[str]) -> None:
+    """Before a new single run starts: an unfinished folder of the same command (the same
+    overrides) is named, with how to continue it, rather than silently left behind."""
+    import yaml
+
+    wanted = sorted(o for o in overrides if not o.startswith("hydra."))
+    for run in sorted(Path("outputs", task).glob("*/checkpoint.pt"), reverse=True):
+        folder = run.parent
+        given = folder / ".hydra" / "overrides.yaml"
+        if folders.read_status(folder) == "done" or not given.exists():
+            continue
+        try:
+            same = sorted(o for o in yaml.safe_load(given.read_text()) or []
+                          if not o.startswith("hydra.")) == wanted
+        except (OSError, yaml.YAMLError, TypeError):
+            continue
+        if same:
+            print(f"moex: {folder} holds an unfinished run of this command; this one starts "
+                  f"a new folder (add resume=true, or hydra.run.dir={folder}, to continue "
+                  f"that one)", file=sys.stderr)
+            return
 
 
 _VALUED_FLAGS = {"--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn",
@@ -387,9 +421,12 @@ def main(argv: list[str] | None = None) -> None:
     if not ({"--help", "-h", "--hydra-help"} | SHOWS_CONFIG) & set(hydra_flags):
         try:
             cfg, composed = validate(config_name, overrides, hydra_flags, multirun)
-            if verb == "train" and cfg.resume and not multirun \
+            if verb == "train" and not multirun \
                     and not any(a.startswith("hydra.run.dir=") for a in args):
-                run_dir = str(_latest_run(cfg.task.name))
+                if cfg.resume:
+                    run_dir = str(_latest_run(cfg.task.name))
+                else:
+                    _tell_interrupted(cfg.task.name, overrides)
             if verb != "train" and cfg.out_dir:
                 run_dir = cfg.out_dir
             if run_dir is not None:

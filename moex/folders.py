@@ -39,6 +39,14 @@ def write_status(out_dir: Path, **status) -> None:
     atomic_write(out_dir / STATUS, lambda tmp: Path(tmp).write_text(text))
 
 
+def read_status(out_dir: Path) -> str:
+    """A job folder's status (done, failed, interrupted), "" where none was written."""
+    try:
+        return str(json.loads((out_dir / STATUS).read_text()).get("status", ""))
+    except (OSError, ValueError, AttributeError):
+        return ""
+
+
 def discard_if_empty(out_dir: Path, verb: str) -> bool:
     """After a failed `evaluate` or `generate`: remove its new folder when it holds nothing but
     Hydra's log (the run folder itself is never touched). True when removed."""

@@ -22,7 +22,7 @@ from moex.config import (
     config_from_dict,
     paper_eval_sizes,
 )
-from moex.errors import check, never
+from moex.errors import ConfigError, check, never
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
@@ -131,8 +131,19 @@ def check_same_training(saved: dict, cfg: Config, path: Path) -> None:
     now = dataclasses.asdict(cfg)
     saved = dataclasses.asdict(config_from_dict(saved))
     for key in ("task", "model", "train", "seed", "num_runs", "precision"):
-        check(saved[key] == now[key], f"{path} was trained with a different {key} config; "
-                                      f"use another output folder or the same overrides")
+        if saved[key] != now[key]:
+            differ = _first_difference(saved[key], now[key], key)
+            raise ConfigError(f"{path} was trained with {differ[0]}={differ[1]}, not "
+                              f"{differ[2]}; use another output folder or the same overrides")
+
+
+def _first_difference(then, now, key: str) -> tuple[str, object, object]:
+    """The first dotted key whose value differs between two config trees, with both values."""
+    if isinstance(then, dict) and isinstance(now, dict):
+        for k in then:
+            if then[k] != now.get(k):
+                return _first_difference(then[k], now.get(k), f"{key}.{k}")
+    return key, then, now
 
 
 def open_checkpoint(cfg: Config, out_dir: Path) -> checkpoint.Checkpoint | None:

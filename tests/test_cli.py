@@ -167,6 +167,7 @@ def test_reber_trains_the_gating_network_only(tmp_path):
 
 @pytest.mark.parametrize("override, message", [
     ("task=nope", "task=nope is unknown; choose one of"),
+    ("noise_var=0.001", "unknown key noise_var; did you mean eval.noise_var?"),
     ("model.nope=1", "unknown key model.nope; allowed keys: model.num_experts"),
     ("model.gating.contxt_size=3", "allowed keys: model.gating.context_size, "),
     ("task.length=[1,2", "task.length: cannot parse the override"),
@@ -441,3 +442,28 @@ def test_a_single_run_composes_its_config_once_and_builds_its_data_once(tmp_path
     assert "    - hydra.mode=RUN\n" in hydra_cfg and "name: train\n" in hydra_cfg
     assert (run_dir / ".hydra" / "overrides.yaml").read_text().startswith("- task=lissajous2\n")
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["phase"] == "done"
+
+
+def test_resume_picks_the_newest_unfinished_run_and_a_rerun_names_it(tmp_path, monkeypatch,
+                                                                    capsys):
+    """resume=true continues the newest unfinished folder of the task (not a newer finished
+    one); the same command without it starts afresh but names the unfinished folder first."""
+    import json
+
+    from moex import cli
+
+    monkeypatch.chdir(tmp_path)
+    for name, status in (("2026-12-01_10-00-00", "interrupted"), ("2026-12-02_10-00-00", "done"),
+                         ("2026-12-03_10-00-00", "done")):
+        run = tmp_path / "outputs" / "lissajous2" / name
+        (run / ".hydra").mkdir(parents=True)
+        (run / "checkpoint.pt").write_bytes(b"")
+        (run / "status.json").write_text(json.dumps({"status": status}))
+        (run / ".hydra" / "overrides.yaml").write_text("- task=lissajous2\n- seed=3\n")
+    assert cli._latest_run("lissajous2").name == "2026-12-01_10-00-00"
+    cli._tell_interrupted("lissajous2", ["seed=3", "task=lissajous2"])
+    said = capsys.readouterr().err
+    assert "outputs/lissajous2/2026-12-01_10-00-00 holds an unfinished run" in said
+    assert "resume=true" in said
+    cli._tell_interrupted("lissajous2", ["seed=4", "task=lissajous2"])  # another command
+    assert capsys.readouterr().err == ""

@@ -111,7 +111,10 @@ def test_a_damaged_checkpoint_in_a_finished_folder_is_refused_untouched(trained,
     # a finished folder trained with other settings: refused before Hydra writes its config
     result = moex_here(["train", "task=lissajous2", *TINY, "seed=5", f"hydra.run.dir={trained}"],
                    cwd=tmp_path)
-    _one_error_line(result, "was trained with a different seed config")
+    _one_error_line(result, "was trained with seed=0, not 5")
+    result = moex_here(["train", "task=lissajous2", *TINY, "train.gating.steps=5",
+                        f"hydra.run.dir={trained}"], cwd=tmp_path)  # the differing key named
+    _one_error_line(result, "was trained with train.gating.steps=4, not 5")
 
 
 def test_report_names_a_damaged_file(trained, tmp_path, moex_here):
