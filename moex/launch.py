@@ -37,6 +37,11 @@ def main() -> None:
 
         print(f"moex {metadata.version('moex')}")
         return
+    if sys.argv[1:] == ["-sc", "query=bash"]:  # a Tab: answered without the heavy imports
+        from moex.completion import answer
+
+        answer()
+        return
     precision = helper_precision(sys.argv[1:])
     if precision is not None:
         compile_helper.start(precision)

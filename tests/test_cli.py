@@ -335,16 +335,40 @@ model: {num_experts: 3}
 
 
 def test_shell_completion_installs_and_completes_the_keys_of_each_verb(tmp_path):
+    """Verbs first, then the verb's groups, options and keys (one level at a time), folders
+    after `report`; each Tab answered by the `moex` entry point without Hydra or PyTorch."""
     script = _moex(["-sc", "install=bash"], tmp_path)
     assert script.returncode == 0 and "complete -o nospace" in script.stdout, script.stderr
-    for line, expected in (("moex train task.na", "task.name="),
-                           ("moex evaluate eval.nois", "eval.noise_var=")):
+    (tmp_path / "outputs" / "run1").mkdir(parents=True)
+    for line, expected, absent in (("moex ", {"train", "evaluate", "report"}, {"train."}),
+                                   ("moex tr", {"train"}, {"train.", "train="}),
+                                   ("moex train ", {"task=", "eval.", "seed="}, {"train"}),
+                                   ("moex train task.na", {"task.name="}, set()),
+                                   ("moex train task=r", {"task=reber"}, set()),
+                                   ("moex evaluate eval.nois", {"eval.noise_var="}, set()),
+                                   ("moex report out", {"outputs/"}, set()),
+                                   ("moex report outputs/r", {"outputs/run1/"}, set())):
         env = {**os.environ, "COMP_LINE": line, "COMP_POINT": str(len(line))}
-        done = subprocess.run(MOEX + ["-sc", "query=bash"], cwd=tmp_path, env=env,
-                              capture_output=True, text=True, timeout=120)
-        assert done.returncode == 0 and expected in done.stdout.split(), done.stderr
+        done = subprocess.run([sys.executable, "-X", "importtime", "-c",
+                               "from moex.launch import main; main()", "-sc", "query=bash"],
+                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+        said = set(done.stdout.split())
+        assert done.returncode == 0 and expected <= said and not absent & said, (line, said)
+        imported = {row.split("|")[-1].strip() for row in done.stderr.splitlines()}
+        assert not {"torch", "hydra", "numba", "pandas"} & imported, line
     bad = _moex(["-sc"], tmp_path)
     assert bad.returncode == 2 and "install=bash" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_completion_keys_are_those_the_configs_give():
+    """moex/completion_keys.json (what a Tab reads) is current: `python -m moex.completion`
+    writes it again whenever a config key or group changes."""
+    import json
+
+    from moex import completion
+
+    assert json.loads(completion.KEYS.read_text()) == json.loads(
+        json.dumps(completion.table())), "run: python -m moex.completion"
 
 
 @pytest.mark.slow
