@@ -68,9 +68,10 @@ def _train(phase: int, steps: int, adaptive: bool, backend) -> Counter:
     (1, False, 40, 0, 3), (1, True, 85, 1, 5), (2, False, 40, 0, 3), (2, True, 85, 1, 5)])
 def test_a_steady_state_gpu_step_stays_within_its_host_budget(monkeypatch, phase, adaptive,
                                                               max_ops, max_syncs, max_launches):
-    """One step = the counts of a 21-step training minus a 20-step one (the same logging and
-    checkpoint steps in both); with stubbed kernels every candidate step is accepted, so the
-    adaptive rate's k candidates are one call (2 launches) and one flag read."""
+    """One step = the counts of a 22-step training minus a 21-step one (the same logging and
+    checkpoint steps in both: progress lines at steps 2, 4, ..., 20, the last step's line being
+    the final one); with stubbed kernels every candidate step is accepted, so the adaptive
+    rate's k candidates are one call (2 launches) and one flag read."""
     gpu, why = available("gpu")
     if gpu is None:
         pytest.skip(f"backend gpu cannot run here: {why}")
@@ -87,9 +88,9 @@ def test_a_steady_state_gpu_step_stays_within_its_host_budget(monkeypatch, phase
         monkeypatch.setattr(module, "launch", launch)
     monkeypatch.setattr(phases._Problem, "trials", 4)  # a GPU's default (the interpreter's is 1)
     launches = [0]
-    short = _train(phase, 20, adaptive, gpu)
+    short = _train(phase, 21, adaptive, gpu)
     before = launches[0]
-    long = _train(phase, 21, adaptive, gpu)
+    long = _train(phase, 22, adaptive, gpu)
     step = {k: long[k] - short[k] for k in long if long[k] != short[k]}
     syncs = sum(step.get(k, 0) for k in SYNCS)
     ops = sum(v for k, v in step.items() if k != "boolean mask")
