@@ -201,7 +201,7 @@ def finish_run(cfg: Config, dataset: Dataset, saved: checkpoint.Checkpoint, out_
                         "frozen and its metrics are NaN", r)
         io.write_csv(out_dir / io.HISTORY, history)
         plotting.save_figure(plotting.plot_learning_curves(
-            history, f"learning curves: task {cfg.task.name}, runs 0-{cfg.num_runs - 1}"),
+            history, f"learning curves: task {cfg.task.name}, {numbered('run', cfg.num_runs)}"),
             out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
         history_written = True
     if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
@@ -262,7 +262,7 @@ LOGGED_METRICS = [(name, METRICS[name].text) for name in LOGGED]
 def _chosen_run(cfg: Config, metrics: pd.DataFrame | None) -> tuple[int, str]:
     """The run the single-run figures show, and a title that says which and why."""
     R = cfg.num_runs
-    runs = f"runs 0-{R - 1}" if R > 1 else "the only run"
+    runs = numbered("run", R) if R > 1 else "the only run"
     if cfg.plot.run >= 0:  # checked against num_runs with the config (load_task)
         return cfg.plot.run, f"run {cfg.plot.run} ({runs}; plot.run)"
     ok = None if metrics is None else metrics[~metrics["failed"].astype(bool)]
@@ -271,6 +271,13 @@ def _chosen_run(cfg: Config, metrics: pd.DataFrame | None) -> tuple[int, str]:
     run = int(ok.loc[ok["max_lyapunov"].idxmax(), "run"])
     lam = ok["max_lyapunov"].max()
     return run, f"run {run} ({runs}; the largest $\\lambda_{{\\max}}$ = {lam:+.1e})"
+
+
+def numbered(noun: str, shown: int, total: int | None = None) -> str:
+    """"run 0", "runs 0-4", "series 0-2 of 10": the indices shown (of `total` where more)."""
+    plural = noun if noun.endswith("s") else f"{noun}s"
+    text = f"{noun} 0" if shown == 1 else f"{plural} 0-{shown - 1}"
+    return text + (f" of {total}" if total is not None and total > shown else "")
 
 
 def _run_title(row) -> str:
@@ -296,9 +303,9 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
     if outputs.shape[-1] >= 2:
         fig, axes = plt.subplots(1, 2, figsize=(9, 5), constrained_layout=True, sharex=True,
                                  sharey=True)
+        S = len(dataset.series)
         plotting.plot_teaching_data(dataset.scale.to_data(dataset.series[:3]), axes[0],
-                                    f"teaching data (series 0-{min(3, len(dataset.series)) - 1}"
-                                    f" of {len(dataset.series)})")
+                                    f"teaching data ({numbered('series', min(3, S), S)})")
         plotting.plot_trajectory(outputs, gates, axes[1],
                                  f"closed loop, {label}\nlast {len(outputs)} steps")
         plotting.save_figure(fig, figures / "trajectory.png", fmt)
@@ -324,7 +331,8 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
             samples["outputs"], samples["gates"],
             [_run_title(row) + ("\na fixed point" if np.ptp(out, axis=0).max() < 1e-3 else "")
              for (_, row), out in zip(metrics.iterrows(), samples["outputs"], strict=True)],
-            f"the closed loop of each of the {cfg.num_runs} runs, last "
+            f"the closed loop of {'each of the ' * (cfg.num_runs > 1)}"
+            f"{numbered('run', cfg.num_runs)}, last "
             f"{samples['outputs'].shape[1]} steps{noisy}")
         plotting.save_figure(fig, figures / "runs.png", fmt)
     if gates.shape[-1] > 2 and outputs.shape[-1] >= 2:
@@ -446,7 +454,8 @@ def run_import(cfg: ImportConfig, out_dir: Path, stop=never) -> checkpoint.Check
     dataset = load_task(cfg)
     run_cfg, record = importer.import_networks(cfg, dataset)
     folders = importer.network_folders(cfg.source)
-    log.info("importing %d networks of the C tools (%s) on task %s into %s", run_cfg.num_runs,
+    log.info("importing %s of the C tools (%s) on task %s into %s",
+             "1 network" if run_cfg.num_runs == 1 else f"{run_cfg.num_runs} networks",
              "gating network alone" if record.beta is None else "mixture", cfg.task.name, out_dir)
     record.save(out_dir / checkpoint.NAME)
     importer.write_sources(out_dir, folders)

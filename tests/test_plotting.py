@@ -118,3 +118,12 @@ def test_scatter_ticks_cover_exponents_that_all_lie_near_zero():
     wide = runs.assign(max_lyapunov=runs["max_lyapunov"] * 1e3)  # past ±1e-4: symlog
     assert plotting.plot_scatter_by(wide, "max_lyapunov", "switch_prob",
                                     "switch_prob_task").axes[0].get_xscale() == "symlog"
+
+
+def test_titles_count_in_words_a_reader_expects():
+    """No "runs 0-0", "series 0-0 of 1" or "each of the 1 runs" in a title."""
+    from moex.pipeline import numbered
+
+    assert [numbered("run", 1), numbered("run", 5), numbered("series", 1, 1),
+            numbered("series", 3, 10), numbered("series", 2, 2)] == [
+        "run 0", "runs 0-4", "series 0", "series 0-2 of 10", "series 0-1"]
