@@ -240,6 +240,35 @@ def table():
     return pd.DataFrame(rows)
 
 
+def labels_table():
+    """Per design, from docs/mregn_control_networks.csv: networks, how many fit (E^g < 0.02),
+    the chaos label with its error (moex.metrics.lyapunov.chaos_label) beside the paper's
+    λ_max > 0, and how the closed loop switches (Table 2) or its test KL (Reber)."""
+    import pandas as pd
+
+    from moex.metrics.lyapunov import chaos_labels
+
+    networks = pd.read_csv(DOCS / "mregn_control_networks.csv")
+    rows = []
+    for design, group in networks.groupby("design", sort=False):
+        group = group[~group["failed"].astype(bool)]
+        labels = chaos_labels(group)
+        row = {"design": design, "networks": len(group),
+               "fit (E^g < 0.02)": int((group["E_g"] < 0.02).sum()),
+               "chaotic / undetermined / not chaotic": " / ".join(
+                   str(int((labels == name).sum()))
+                   for name in ("chaotic", "undetermined", "not chaotic")),
+               "λ_max > 0 (the paper's criterion)": int((group["max_lyapunov"] > 0).sum())}
+        if design.startswith("table2"):
+            row["switching: strict alternation (≥ 0.99) / one curve (≤ 0.01)"] = (
+                f"{int((group['switch_prob'] >= 0.99).sum())} / "
+                f"{int((group['switch_prob'] <= 0.01).sum())}")
+        else:
+            row["test KL, median"] = f"{group['block_kl_test'].median():.3f}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def _se(value: float) -> str:
     """A distance in standard errors; n/a where the control's networks do not spread (sd 0)."""
     return "n/a (sd 0)" if not math.isfinite(value) else f"{value:+.1f}"
@@ -263,6 +292,14 @@ def markdown(rows) -> str:
     return "\n".join(lines)
 
 
+def labels_markdown(frame) -> str:
+    """The labels table as Markdown (missing cells as —)."""
+    frame = frame.fillna("—")
+    lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
+    lines += ["| " + " | ".join(map(str, row)) + " |" for row in frame.itertuples(False)]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("mode", choices=["run", "lyapunov", "compare"])
@@ -277,6 +314,8 @@ def main(argv=None) -> int:
         rows = table()
         rows.to_csv(DOCS / "mregn_control_summary.csv", index=False)
         print(markdown(rows))
+        print()
+        print(labels_markdown(labels_table()))
         return 0
     if len(args.paths) != 2:
         parser.error(f"{args.mode} needs <bin folder> <out folder>")

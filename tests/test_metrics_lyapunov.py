@@ -130,3 +130,6 @@ def test_older_tables_are_labelled_from_their_error_columns():
                           "lyapunov_steps": [100000, 100000, 100000, np.nan]})
     assert chaos_labels(frame).tolist() == [CHAOTIC, UNDETERMINED, NOT_CHAOTIC, ""]
     assert chaos_labels(frame.drop(columns="max_lyapunov_se")).tolist()[:3] == [UNDETERMINED] * 3
+    # a table that gained the column: written labels kept, the older rows computed
+    mixed = frame.assign(chaos=[np.nan, NOT_CHAOTIC, np.nan, np.nan])
+    assert chaos_labels(mixed).tolist() == [CHAOTIC, NOT_CHAOTIC, NOT_CHAOTIC, ""]

@@ -117,15 +117,18 @@ def standard_error(samples: np.ndarray) -> float:
 
 def chaos_labels(frame) -> "pd.Series":  # noqa: F821 (pandas is imported by the caller)
     """The label of every row of a metrics table: its `chaos` column where the evaluation wrote
-    one, else computed from max_lyapunov, max_lyapunov_se and lyapunov_steps (older tables;
-    without a standard error every row is undetermined)."""
+    one, else computed from max_lyapunov, max_lyapunov_se and lyapunov_steps (older tables, or
+    older rows of a table that gained the column; without a standard error a row is
+    undetermined)."""
     import pandas as pd
 
-    if "chaos" in frame:
-        return frame["chaos"].fillna("").astype(str)
     se = frame["max_lyapunov_se"] if "max_lyapunov_se" in frame else pd.Series(np.nan, frame.index)
     steps = frame["lyapunov_steps"] if "lyapunov_steps" in frame else pd.Series(100000,
                                                                                 frame.index)
-    return pd.Series([chaos_label(m, s, int(t) if np.isfinite(t) else 1) for m, s, t in
-                      zip(frame["max_lyapunov"], se, steps.astype(float), strict=True)],
-                     index=frame.index, dtype=object)
+    computed = pd.Series([chaos_label(m, s, int(t) if np.isfinite(t) else 1) for m, s, t in
+                          zip(frame["max_lyapunov"], se, steps.astype(float), strict=True)],
+                         index=frame.index, dtype=object)
+    if "chaos" not in frame:
+        return computed
+    written = frame["chaos"].astype(object)
+    return written.where(written.notna() & (written != ""), computed)
