@@ -328,6 +328,16 @@ def test_the_control_table_is_the_one_the_csvs_give():
     assert table in (ROOT / "docs" / "mregn_control.md").read_text()
 
 
+def test_the_control_labels_table_is_the_one_the_csv_gives():
+    """docs/mregn_control.md quotes the chaos labels of every control design as the per-network
+    CSV gives them (the paper-setting designs included)."""
+    control = _script("mregn_control")
+    frame = control.labels_table()
+    assert {"table2_p05_paper", "table2_p025_paper", "reber_nc20_no_attraction"} <= set(
+        frame["design"])
+    assert control.labels_markdown(frame) in (ROOT / "docs" / "mregn_control.md").read_text()
+
+
 def test_collecting_the_control_keeps_the_designs_imported_in_another_sitting(tmp_path,
                                                                           monkeypatch):
     """`mregn_control.py compare` reads the designs imported under <out>; the rows of designs
