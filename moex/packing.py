@@ -13,6 +13,7 @@ An interrupted group saves every job's checkpoint; the same command resumes it.
 import dataclasses
 import logging
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +24,14 @@ from moex.pipeline import StopRequest, load_task, open_checkpoint
 from moex.run import Job, packing_key, saved_position, train_jobs
 
 log = logging.getLogger(__name__)
+# seconds of a packed batch's training each job's share (its networks / the batch's), by job
+# folder: its status.json adds them to its own time
+SHARED_SECONDS: dict[Path, float] = {}
+
+
+def shared_seconds(out_dir: Path) -> float:
+    """A job's share of the packed training done for it in this process (0 where none)."""
+    return SHARED_SECONDS.get(Path(out_dir).resolve(), 0.0)
 
 
 @dataclass
@@ -80,10 +89,14 @@ def train_group(jobs: list[Job], on_interrupt) -> None:
         return
     with StopRequest() as stop:
         try:
+            started = time.perf_counter()
             with provenance.recorded(folders, "train", first.backend, first.device,
                                      first.precision):
                 provenance.note(packed={"jobs": [str(f) for f in folders], "networks": total})
                 train_jobs(jobs, stop)
+            took = time.perf_counter() - started
+            for job in jobs:  # each job's share of the batch, by its networks
+                SHARED_SECONDS[Path(job.out_dir).resolve()] = took * job.cfg.num_runs / total
         except Interrupted as exc:
             on_interrupt(jobs, exc)
             sys.exit(128 + (stop.signum or 2))
