@@ -430,8 +430,13 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
 
 
 def _warn_ignored(cfg: Config, dataset: Dataset) -> None:
-    """A task without a signal (Reber: symbols only) has no experts and no phase 1: every
-    train.experts key set away from its default is named as ignored, not silently dropped."""
+    """Keys the task does not use are named as ignored, not silently dropped: task.num_series of
+    a csv task (its files decide), and every train.experts key set away from its default where
+    the task has no signal (Reber: symbols only; no experts, no phase 1)."""
+    S = len(dataset.series)
+    if cfg.task.name == "csv" and cfg.task.num_series not in (0, S):
+        log.warning("task.num_series=%d ignored: task csv trains on every series its files hold "
+                    "(%d)", cfg.task.num_series, S)
     if dataset.series.shape[-1] > 0:
         return
     default = dataclasses.asdict(ExpertPhaseConfig())

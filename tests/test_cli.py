@@ -280,8 +280,12 @@ def test_csv_run_evaluates_from_another_directory(tmp_path):
     run_dir = tmp_path / "run"
     args = ["task=csv", "task.path=data", "train.experts.steps=3", "train.gating.steps=2",
             "eval.num_samples=2", "eval.lyapunov_steps=20", "eval.transient=2"]
-    result = _moex(["train", *args, f"hydra.run.dir={run_dir}"], cwd=tmp_path / "a")
+    result = _moex(["train", *args, "task.num_series=5", f"hydra.run.dir={run_dir}"],
+                   cwd=tmp_path / "a")
     assert result.returncode == 0, result.stderr
+    said = result.stdout + result.stderr  # the sizes read, and the size the files overrule
+    assert "task csv: 2 series x 30 steps of 2 features" in said
+    assert "task.num_series=5 ignored: task csv trains on every series its files hold (2)" in said
     result = _moex(["evaluate", f"run_dir={run_dir}", f"out_dir={tmp_path}/ev"],
                    cwd=tmp_path / "b")
     assert result.returncode == 0, result.stderr
