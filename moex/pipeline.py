@@ -313,7 +313,10 @@ def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
     bad = dataset.violations(symbols[shown]) if dataset.violations else None
     axes = plotting.plot_gate_series(outputs[shown], gates[shown], symbols[shown],
                                      dataset.symbol_names, bad=bad)
-    axes[0].set_title(f"closed loop, {label}: outputs, gate openings and symbols")
+    axes[0].figure.suptitle(f"closed loop, {label}: " + ("outputs, gate openings and symbols"
+                                                         if outputs.shape[-1] else
+                                                         "gate openings and symbols"),
+                            fontsize=10)
     plotting.save_figure(axes[0].figure, figures / "gates.png", fmt)
     if gating_u.shape[-1] >= 2:
         tail = gating_u[len(gating_u) // 10:]  # the first tenth as a transient

@@ -191,8 +191,12 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
     K = gates.shape[1]
     image = axes[1].imshow(gates.T, aspect="auto", origin="lower", cmap="Greys", vmin=0, vmax=1,
                            interpolation="nearest", extent=(-0.5, len(gates) - 0.5, -0.5, K - 0.5))
-    axes[1].set_yticks(range(K))
-    axes[1].set_ylabel("expert")
+    if outputs.shape[1] or len(names) != K:
+        axes[1].set_yticks(range(K))
+        axes[1].set_ylabel("expert")
+    else:  # no signal (Reber): one gate per symbol, named by it
+        axes[1].set_yticks(range(K), [f"{k} ({name})" for k, name in enumerate(names)])
+        axes[1].set_ylabel("gate (its symbol)")
     axes[1].set_xlabel(f"step (the last {len(gates)} steps of the sample)")
     axes[1].figure.colorbar(image, ax=axes[1], label="gate opening g", pad=0.01, fraction=0.03)
     if names:  # every step's symbol in a short window, else the middle of each run of one
@@ -206,10 +210,11 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
             name = names[symbols[n]] if symbols[n] < len(names) else "–"  # no gate above 0.5
             axes[1].text(n, K - 0.45, name, ha="center", va="bottom", fontsize=8,
                          color="red" if bad is not None and bad[n] else "black")
-        axes[1].set_title("symbol of each step (the primitive the output is nearest to; red: "
-                          "one the grammar forbids)" if bad is not None else
-                          "symbol of each step (the primitive the output is nearest to: "
-                          + ", ".join(names) + ")", fontsize=8, loc="left", pad=12)
+        source = ("the symbol its largest gate emits" if not outputs.shape[1] else
+                  "the primitive the output is nearest to")
+        axes[1].set_title(f"symbol of each step ({source}; red: a step the grammar forbids)"
+                          if bad is not None else f"symbol of each step ({source}: "
+                          + ", ".join(names) + ")", fontsize=8, loc="left", pad=16)
     return axes
 
 

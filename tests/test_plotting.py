@@ -127,3 +127,30 @@ def test_titles_count_in_words_a_reader_expects():
     assert [numbered("run", 1), numbered("run", 5), numbered("series", 1, 1),
             numbered("series", 3, 10), numbered("series", 2, 2)] == [
         "run 0", "runs 0-4", "series 0", "series 0-2 of 10", "series 0-1"]
+
+
+def test_reber_gates_title_caption_and_symbol_row_never_overprint():
+    """A task without a signal (Reber) draws the gates alone: the figure's title, the symbols'
+    caption and the row of symbols are three separate bands (rendered boxes do not overlap),
+    and the gates are named by their symbols."""
+    import matplotlib.pyplot as plt
+
+    from moex.plotting import plot_gate_series
+
+    names = ["T", "P", "S", "X", "V", "E", "B"]
+    gates = np.full((100, 7), 1 / 7)
+    symbols = np.arange(100) % 7
+    axes = plot_gate_series(np.zeros((100, 0)), gates, symbols, names,
+                            bad=np.arange(100) % 9 == 0)
+    fig = axes[0].figure
+    fig.suptitle("closed loop, run 0: gate openings and symbols")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    title, caption = fig._suptitle.get_window_extent(renderer), axes[1].title.get_window_extent(
+        renderer)
+    row = [t.get_window_extent(renderer) for t in axes[1].texts]
+    assert not title.overlaps(caption)
+    assert not any(caption.overlaps(box) or title.overlaps(box) for box in row)
+    assert [t.get_text() for t in axes[1].get_yticklabels()][0] == "0 (T)"
+    assert "red: a step the grammar forbids" in axes[1].get_title(loc="left")
+    plt.close(fig)
