@@ -29,6 +29,17 @@ def steps(start: int, stop: int, **kwargs):
             shown.update()
 
 
+class BarOrLines(logging.Filter):
+    """On the terminal's handler: a progress line (a record logged with extra={"progress":
+    True}) is dropped where a progress bar shows the same on a terminal; log files and piped
+    output keep every line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        import sys
+
+        return not (getattr(record, "progress", False) and sys.stdout.isatty())
+
+
 class TerminalFormatter(logging.Formatter):
     """The terminal's log lines: the time and the message, and the level where it is not INFO
     (the run folder's log file keeps the full record)."""

@@ -65,3 +65,19 @@ def test_summary_lines_fit_the_terminal_and_never_split_a_number(columns, monkey
     assert all(STAMP + len(line) <= min(columns, 100) for line in lines)
     assert " ".join(line.strip() for line in lines) == "run 0: " + ", ".join(parts)
     assert all(line.startswith("    ") for line in lines[1:])
+
+
+def test_on_a_terminal_the_bar_replaces_the_periodic_progress_lines(monkeypatch):
+    """The console's filter drops progress records on a terminal (the bar shows them) and keeps
+    them in pipes and files; other records always pass."""
+    import logging
+
+    from moex.progress import BarOrLines
+
+    progress = logging.LogRecord("moex.train", logging.INFO, "", 0, "experts: step 10/100",
+                                 None, None)
+    progress.progress = True
+    other = logging.LogRecord("moex.train", logging.INFO, "", 0, "final", None, None)
+    for tty, kept in ((True, False), (False, True)):
+        monkeypatch.setattr(sys.stdout, "isatty", lambda tty=tty: tty)
+        assert BarOrLines().filter(progress) is kept and BarOrLines().filter(other)
