@@ -192,7 +192,7 @@ def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray
     image = axes[1].imshow(gates.T, aspect="auto", origin="lower", cmap="Greys", vmin=0, vmax=1,
                            interpolation="nearest", extent=(-0.5, len(gates) - 0.5, -0.5, K - 0.5))
     if outputs.shape[1] or len(names) != K:
-        axes[1].set_yticks(range(K))
+        axes[1].set_yticks(range(0, K, max(1, int(np.ceil(K / 12)))))  # at most 12 labels
         axes[1].set_ylabel("expert")
     else:  # no signal (Reber): one gate per symbol, named by it
         axes[1].set_yticks(range(K), [f"{k} ({name})" for k, name in enumerate(names)])
@@ -337,17 +337,23 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None, title:
                                figsize=(2 * cols, 2 * cols + 0.4), constrained_layout=True,
                                squeeze=False)
     colours = palette(K)
+    grid = np.atleast_2d(axes)
     for j, ax in enumerate(np.ravel(axes)):
-        ax.set_xticks([])
-        ax.set_yticks([])
         if j >= len(shown):  # the grid's spare panels
             ax.set_visible(False)
             continue
         i = shown[j]
         ax.scatter(outputs[winners == i, 0], outputs[winners == i, 1], s=1, color=colours[i])
-        ax.set_xlim(-1, 1)
-        ax.set_ylim(-1, 1)
+        ax.set_xlim(-1.05, 1.05)  # the common scale [-1, 1], a point on its edge off the spine
+        ax.set_ylim(-1.05, 1.05)
         ax.set_aspect("equal")
+        ax.set_xticks([-1, 0, 1])
+        ax.set_yticks([-1, 0, 1])
+        ax.tick_params(labelsize=6)
+        row, col = divmod(j, grid.shape[1])  # labels on the outer panels only
+        ax.set_xlabel("$y_1$" if row == grid.shape[0] - 1 or j + grid.shape[1] >= len(shown)
+                      else "", fontsize=7)
+        ax.set_ylabel("$y_2$" if col == 0 else "", fontsize=7)
         ax.set_title(f"expert {i} ({(winners == i).mean():.0%})", fontsize=7)
     never = [i for i in range(K) if i not in shown]
     lines = [title] if title else []

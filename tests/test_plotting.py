@@ -154,3 +154,24 @@ def test_reber_gates_title_caption_and_symbol_row_never_overprint():
     assert [t.get_text() for t in axes[1].get_yticklabels()][0] == "0 (T)"
     assert "red: a step the grammar forbids" in axes[1].get_title(loc="left")
     plt.close(fig)
+
+
+def test_many_experts_keep_their_ticks_readable_and_expert_panels_have_axes():
+    """24 experts: at most 12 expert ticks on gates.png; every panel of experts.png has ticks on
+    the common [-1, 1] scale and the outer panels name y_1 and y_2."""
+    import matplotlib.pyplot as plt
+
+    from moex.plotting import plot_expert_panels, plot_gate_series
+
+    rng = np.random.default_rng(0)
+    gates = rng.dirichlet(np.ones(24), 200)
+    outputs = rng.uniform(-1, 1, (200, 2))
+    axes = plot_gate_series(outputs, gates, gates.argmax(1) % 9, [str(i) for i in range(9)])
+    assert len(axes[1].get_yticks()) <= 12
+    plt.close(axes[0].figure)
+    panels = plot_expert_panels(outputs, gates)
+    shown = [ax for ax in np.ravel(panels) if ax.get_visible()]
+    assert all(list(ax.get_xticks()) == [-1, 0, 1] for ax in shown)
+    assert any(ax.get_xlabel() == "$y_1$" for ax in shown)
+    assert any(ax.get_ylabel() == "$y_2$" for ax in shown)
+    plt.close(shown[0].figure)
