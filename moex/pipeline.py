@@ -285,7 +285,8 @@ def _run_title(row) -> str:
     if row["failed"]:
         return f"run {row['run']}: failed"
     data = row.get("data_switch_prob", np.nan)
-    return (f"run {row['run']}: $\\lambda_{{\\max}}$ = {row['max_lyapunov']:+.1e}\n"
+    label = f" ({row['chaos']})" if isinstance(row.get("chaos"), str) and row["chaos"] else ""
+    return (f"run {row['run']}: $\\lambda_{{\\max}}$ = {row['max_lyapunov']:+.1e}{label}\n"
             f"switching {row.get('switch_prob', np.nan):.2f}"
             + (f" (data {data:.2f})" if np.isfinite(data) else ""))
 

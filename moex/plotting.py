@@ -299,16 +299,19 @@ def plot_run_trajectories(outputs: np.ndarray, gates: np.ndarray, titles: list[s
     rows = -(-R // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(max(2.3 * cols, 5.0), 2.6 * rows + 1.2),
                              layout="constrained", squeeze=False, sharex=True, sharey=True)
-    if title:
-        fig.suptitle(title)
+    if title:  # wrapped to the figure's width (about 9 characters an inch at this size)
+        import textwrap
+
+        fig.suptitle("\n".join(textwrap.wrap(title, int(fig.get_figwidth() * 9))))
     colours = np.array(palette(K), dtype=object)
-    reach = max(float(np.nanmax(np.abs(outputs[..., :2]))) if outputs.size else 1.0, 1e-6)
+    # one scale for all, a margin beyond the farthest point (never on the spine), at least ±0.1
+    reach = max(1.15 * float(np.nanmax(np.abs(outputs[..., :2]))) if outputs.size else 1.0, 0.1)
     for ax, points, gate, title in zip(axes.flat, outputs, gates, titles, strict=False):
         ax.scatter(points[:, 0], points[:, 1], s=0.5, c=list(colours[gate.argmax(-1)]),
                    rasterized=True)
         ax.set_aspect("equal")
-        ax.set_xlim(-1.05 * reach, 1.05 * reach)
-        ax.set_ylim(-1.05 * reach, 1.05 * reach)
+        ax.set_xlim(-reach, reach)
+        ax.set_ylim(-reach, reach)
         ax.set_title(title, fontsize=9)  # as large as the tick labels
     for ax in list(axes.flat)[R:]:
         ax.set_visible(False)
@@ -316,10 +319,11 @@ def plot_run_trajectories(outputs: np.ndarray, gates: np.ndarray, titles: list[s
         ax.set_xlabel("$y_1$")
     for ax in axes[:, 0]:
         ax.set_ylabel("$y_2$")
-    if K <= 12:
+    won = sorted(set(np.unique(gates.argmax(-1)).tolist()))  # the key lists only the winners
+    if len(won) <= 12:
         handles = [plt.Line2D([], [], ls="", marker="o", color=colours[k], label=f"expert {k}")
-                   for k in range(K)]
-        fig.legend(handles=handles, loc="outside lower center", ncol=min(K, 6),
+                   for k in won]
+        fig.legend(handles=handles, loc="outside lower center", ncol=min(len(won), 6),
                    title="colour: the winning expert")
     return fig
 

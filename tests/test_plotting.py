@@ -175,3 +175,20 @@ def test_many_experts_keep_their_ticks_readable_and_expert_panels_have_axes():
     assert any(ax.get_xlabel() == "$y_1$" for ax in shown)
     assert any(ax.get_ylabel() == "$y_2$" for ax in shown)
     plt.close(shown[0].figure)
+
+
+def test_run_panels_keep_points_off_the_spine_and_list_only_winning_experts():
+    """A fixed point near the edge of the data sits inside the common scale with a margin; the
+    colour key lists the experts that win somewhere, not all K."""
+    import matplotlib.pyplot as plt
+
+    from moex.plotting import plot_run_trajectories
+
+    outputs = np.tile([[0.01, -0.052]], (2, 50, 1))
+    gates = np.zeros((2, 50, 24))
+    gates[..., 11] = 1.0
+    fig = plot_run_trajectories(outputs, gates, ["run 0", "run 1"], "the closed loop")
+    low, high = fig.axes[0].get_ylim()
+    assert low < -0.052 * 1.1 and high > 0.052
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["expert 11"]
+    plt.close(fig)
