@@ -262,10 +262,15 @@ def plot_residence(model_hist: np.ndarray, ax=None, switch_prob: float | None = 
     k = np.arange(len(model))
     both = model + censored
     top = max(int(np.flatnonzero(both).max()) + 2 if both.any() else 10, 10)
+    # bars at least 1/50 of the axis wide (the last bin of 100 is no 1-pixel sliver)
+    width = np.full(len(k[1:top]), 0.8)
+    if top >= len(k):  # the overflow bin
+        width[-1] = max(0.8, len(k) / 50)
     if both[1:top].any():
-        ax.bar(k[1:top], model[1:top], color=OKABE_ITO[0], alpha=0.6, label="trained networks")
+        ax.bar(k[1:top], model[1:top], width=width, color=OKABE_ITO[0], alpha=0.6,
+               label="trained networks")
     if censored.any():
-        ax.bar(k[1:top], censored[1:top], bottom=model[1:top], color="none",
+        ax.bar(k[1:top], censored[1:top], width=width, bottom=model[1:top], color="none",
                edgecolor=OKABE_ITO[0], hatch="///", label="cut off by the sample's end (≥)")
     if switch_prob is not None:
         law = (1 - switch_prob) ** (k[1:top] - 1) * switch_prob
@@ -440,6 +445,10 @@ def plot_residence_panels(hists: dict[float, tuple[np.ndarray, np.ndarray | None
     for ax, (p, (hist, cut)) in zip(axes[0], sorted(hists.items(), reverse=True), strict=True):
         plot_residence(hist, ax=ax, switch_prob=p, censored_hist=cut)
         ax.set_title(f"P = {p:g}")
+    labels = {ax.get_xlabel() for ax in axes[0]}  # one x label for the row: none overlap
+    for ax in axes[0]:
+        ax.set_xlabel("")
+    fig.supxlabel(max(labels, key=len))
     return fig
 
 

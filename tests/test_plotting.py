@@ -192,3 +192,20 @@ def test_run_panels_keep_points_off_the_spine_and_list_only_winning_experts():
     assert low < -0.052 * 1.1 and high > 0.052
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["expert 11"]
     plt.close(fig)
+
+
+def test_residence_panels_share_one_x_label_and_the_overflow_bar_is_visible():
+    """Three P panels: one x label for the row (none overprint) and the last bin's bar (every
+    stay at least 100 laps) at least 1/50 of the axis wide."""
+    import matplotlib.pyplot as plt
+
+    from moex.plotting import plot_residence_panels
+
+    hist = np.zeros((1, 101), int)
+    hist[0, 1:4], hist[0, 100] = (50, 20, 5), 2
+    fig = plot_residence_panels({p: (hist, np.zeros_like(hist)) for p in (0.5, 0.25, 0.125)})
+    assert [ax.get_xlabel() for ax in fig.axes] == ["", "", ""]
+    assert "every stay at least as long" in fig.get_supxlabel()
+    widths = [patch.get_width() for patch in fig.axes[0].patches]
+    assert max(widths) >= 101 / 50
+    plt.close(fig)
