@@ -2,6 +2,7 @@
 noise floor of the tracking estimate, from a `paper_fig15` run folder.
 
     python docs/fig15.py outputs/paper_fig15/<date> [NOISY_EVAL_DIR]
+    python docs/fig15.py --power     # the detector's power to see the paper's flip
 
 writes docs/fig15_summary.csv (per network: the noise floor, flips, and the evaluation's λ_max and
 switching, with ρ² = 10⁻⁴ beside them when NOISY_EVAL_DIR, a `moex evaluate ... eval.noise_var=
@@ -13,7 +14,9 @@ The paper's flip: λ_max from −5.4·10⁻⁵ to +9.95·10⁻⁴ within 10 lear
 pair of consecutive tracked points (eval.every apart) going from below −FLOOR_FACTOR × floor to
 above +FLOOR_FACTOR × floor, where the floor is the standard deviation of the tracking estimate
 (track_samples × track_steps) of the trained network over REPEATS independent sets of initial
-states: a change smaller than that is the estimator's noise, not the network's.
+states: a change smaller than that is the estimator's noise, not the network's. `--power`
+injects the paper's flip into series that scatter by each network's floor and counts how often
+the detector finds it (docs/fig15_power.csv).
 """
 
 import sys
@@ -68,6 +71,30 @@ def flips(history: pd.DataFrame, floor: np.ndarray) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+PAPER_FLIP = (-5.4e-5, 9.95e-4)  # the paper's λ_max before and after its flip (Fig. 15)
+
+
+def power(floor: float, flip: tuple[float, float] = PAPER_FLIP, trials: int = 4000,
+          seed: int = 0) -> float:
+    """The share of `trials` in which `flips` finds a flip of λ_max from flip[0] to flip[1]
+    injected into a tracked series whose estimates scatter by the network's own noise floor
+    (normal, sd `floor`) around its true value: the detector's power for that flip."""
+    rng = np.random.default_rng(seed)
+    truth = np.array([flip[0]] * 5 + [flip[1]] * 5)  # the flip between steps 40 and 50
+    lam = truth + rng.normal(0.0, floor, (trials, len(truth)))
+    history = pd.DataFrame({"run": np.repeat(np.arange(trials), len(truth)), "phase": "gating",
+                            "step": np.tile(np.arange(len(truth)) * 10, trials),
+                            "max_lyapunov": lam.ravel()})
+    found = flips(history, np.full(trials, floor))
+    return float((found["flips_up"] > 0).mean())
+
+
+def power_table(summary: pd.DataFrame) -> pd.DataFrame:
+    """Each tracked network's power to see the paper's flip, at its own noise floor."""
+    return pd.DataFrame({"run": summary["run"], "floor": summary["floor"],
+                         "power_paper_flip": [power(f) for f in summary["floor"]]})
+
+
 def plot(history: pd.DataFrame, table: pd.DataFrame, path: Path, ev) -> None:
     """One panel per network: tracked λ_max against the gating step, the ±2-sd band shaded."""
     tracked = history[(history["phase"] == "gating") & history["max_lyapunov"].notna()]
@@ -99,6 +126,12 @@ def plot(history: pd.DataFrame, table: pd.DataFrame, path: Path, ev) -> None:
 
 
 def main() -> None:
+    if sys.argv[1:] == ["--power"]:  # the detector's power at the end-of-training floors
+        docs = Path(__file__).parent
+        table = power_table(pd.read_csv(docs / "fig15_end_summary.csv"))
+        table.to_csv(docs / "fig15_power.csv", index=False)
+        print(to_markdown(table))
+        return
     run_dir = Path(sys.argv[1])
     history = pd.read_csv(run_dir / "history.csv")
     table = flips(history, noise_floor(run_dir))

@@ -490,3 +490,15 @@ def test_the_training_length_tables_are_the_ones_the_csvs_give():
     assert length.to_markdown(length.table(frames)) in page
     assert length.to_markdown(length.differences(frames)) in page
     assert length.resolution(frames) in page
+
+
+def test_the_fig15_detector_finds_a_flip_it_can_see_and_not_one_inside_its_floor():
+    """docs/fig15.py `power`: a flip far beyond the noise floor is found every time, the paper's
+    flip (−5.4e-5 → +9.95e-4) at a floor of 1e-5 almost always, at the end-of-training floors
+    (≥ 2.2e-4) almost never; docs/fig15_power.csv is what the summary's floors give."""
+    fig15 = _script("fig15")
+    assert fig15.power(0.01, (-1.0, 1.0), trials=500) == 1.0
+    assert fig15.power(1e-5, trials=500) > 0.95
+    assert fig15.power(2.2e-4, trials=500) < 0.1
+    table = fig15.power_table(pd.read_csv(ROOT / "docs" / "fig15_end_summary.csv"))
+    pd.testing.assert_frame_equal(table, pd.read_csv(ROOT / "docs" / "fig15_power.csv"))
