@@ -430,9 +430,18 @@ def tool_question() -> str:
             f"attractors, on which both methods agree trajectory by trajectory.")
 
 
+SHORT = {"result": "result", "quantity": "quantity", "paper": "paper",
+         "moex mean ± sd (n); median; beyond 3 SD": "moex: mean ± sd (n); median; beyond 3 SD",
+         "moex − paper [95 %] (margin)": "moex − paper [95 %] (margin) → verdict"}
+
+
 def markdown(frame: pd.DataFrame, evidence: bool = False) -> str:
-    """The table; REPRODUCTION.md quotes it without the evidence column, docs/verdicts.md with."""
-    frame = frame if evidence else frame.drop(columns="evidence")
+    """The table: REPRODUCTION.md quotes it in five columns (the interval and the verdict in
+    one), docs/verdicts.md whole, with the evidence column."""
+    if not evidence:
+        frame = frame.assign(**{"moex − paper [95 %] (margin)": frame["moex − paper [95 %] "
+                                                                        "(margin)"]
+                                + " → " + frame["verdict"]})[list(SHORT)].rename(columns=SHORT)
     lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
     lines += ["| " + " | ".join(map(str, row)) + " |" for row in frame.itertuples(False)]
     return "\n".join(lines)
