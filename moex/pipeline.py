@@ -178,7 +178,9 @@ def run_train(cfg: Config, out_dir: Path,
     out_dir, stop = Path(out_dir), stop or StopRequest()
     saved = open_checkpoint(cfg, out_dir)
     if saved is not None and saved.phase != "done":
-        log.info("resuming %s from its %s phase", out_dir / checkpoint.NAME, saved.phase)
+        step = (saved.train_state or {}).get("step")
+        log.info("resuming %s: %s phase from step %s", out_dir / checkpoint.NAME, saved.phase,
+                 step if step is not None else "0 (its start)")
     backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name)
     dataset = load_task(cfg)

@@ -57,8 +57,10 @@ def test_sigterm_then_resume_is_bit_identical(tmp_path):
     assert stopped["phase"] in ("experts", "gating") and stopped["train_state"]["step"] > 0
     assert json.loads((killed / "status.json").read_text())["status"] == "interrupted"
     resumed = _run(ARGS + [f"hydra.run.dir={killed}"], tmp_path)
-    _, err = resumed.communicate(timeout=300)
+    out, err = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, err
+    step = stopped["train_state"]["step"]  # the resumed run says so, and from which step
+    assert f"{stopped['phase']} phase from step {step}" in out + err
     _, err = reference.communicate(timeout=300)
     assert reference.returncode == 0, err
     a = torch.load(clean / "checkpoint.pt", weights_only=True)
