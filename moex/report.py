@@ -371,7 +371,9 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
         # colour over settings whose data differ
         group = "arm" if runs["arm"].notna().any() or not keys else "setting"
         if group == "setting":  # every varying setting: the data's switching is per setting
-            runs = runs.assign(setting=runs[keys].astype(str).agg(", ".join, axis=1))
+            runs = runs.assign(setting=[", ".join(f"{k} {v}" for k, v in zip(keys, row,
+                                                                             strict=True))
+                                        for row in runs[keys].itertuples(index=False)])
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", group,
                                        reference=runs.get("data_switch_prob"), band=NEAR)
         noise = runs.get("noise_var", pd.Series(dtype=float)).dropna().unique()

@@ -362,3 +362,26 @@ def test_one_network_reads_without_nan_and_labels_count_beside_the_papers_criter
     cells = lyapunov_cells(runs.assign(lyapunov_samples=[50, 50, 50, 1]))
     assert cells == ["7e-06 ± 6.5e-06 (undetermined)", "0.01 ± 0.0001 (chaotic)",
                      "-0.02 ± 0.001 (not chaotic)", "0.001 (1 sample; undetermined)"]
+
+
+def test_switching_against_lambda_draws_each_settings_own_data_line(tmp_path):
+    """A sweep over P: the switching-vs-λ_max figure draws the data's switching per P (never
+    one line averaged over the three P values)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from unittest import mock
+
+    from moex import plotting
+
+    for job, (p, data) in enumerate([(0.5, 0.47), (0.25, 0.26), (0.125, 0.13)]):
+        _fake_job(tmp_path / str(job), f"task:\n  name: lissajous2\n  switch_prob: {p}\n",
+                  {"max_lyapunov": [0.001, 0.002], "switch_prob": [data, data],
+                   "data_switch_prob": [data, data]})
+    with mock.patch.object(plotting, "plot_scatter_by", wraps=plotting.plot_scatter_by) as drawn:
+        report(tmp_path)
+    runs, _, _, group = drawn.call_args.args[:4]
+    levels = drawn.call_args.kwargs["reference"].groupby(runs[group]).mean()
+    assert sorted(levels.round(2)) == [0.13, 0.26, 0.47]
+    assert set(runs[group]) == {"switch_prob_task 0.5", "switch_prob_task 0.25",
+                                "switch_prob_task 0.125"}
