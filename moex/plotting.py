@@ -495,6 +495,11 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
                   else label(x))
     ax.set_ylabel(label(y))
     ax.set_title(f"{label(y)} against {label(x)}, one point per network")
-    ax.legend(fontsize=7, ncol=2, loc="center left", bbox_to_anchor=(1.01, 0.5),
+    import textwrap
+
+    handles, labels = ax.get_legend_handles_labels()  # long setting names wrapped, not wide
+    labels = ["\n".join(textwrap.wrap(text, 32)) for text in labels]
+    ax.legend(handles, labels, fontsize=7, ncol=2 if len(labels) > 8 else 1, loc="center left",
+              bbox_to_anchor=(1.01, 0.5),
               title=names_of.get(group, group) if runs[group].notna().any() else None)
     return fig

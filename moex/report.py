@@ -37,6 +37,9 @@ BOOKKEEPING = ("out_dir", "resume", "cache_dir", "run_dir", "num_runs", "eval.en
                "plot.")
 # heat-map panels (Figs. 14, 16): setting -> the panel's title
 PANELS = {"context_size": "NC = {:g}", "noise_var_setting": "ρ² = {:g}"}
+# the settings that change a task's data (and so its switching probability)
+DATA_KEYS = ("task", "switch_prob_task", "num_series", "length", "task.transition_rule",
+             "task.choice_prob", "task.period")
 NEAR = 0.05  # a network "switches at the data's rate" within ±NEAR (the P = 0.5 study's goal)
 
 
@@ -369,11 +372,11 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
     if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
         # coloured by the study arm, else by the first setting that varies (e.g. P), never one
         # colour over settings whose data differ
-        group = "arm" if runs["arm"].notna().any() or not keys else "setting"
-        if group == "setting":  # every varying setting: the data's switching is per setting
-            runs = runs.assign(setting=[", ".join(f"{k} {v}" for k, v in zip(keys, row,
-                                                                             strict=True))
-                                        for row in runs[keys].itertuples(index=False)])
+        data_keys = [k for k in keys if k in DATA_KEYS]  # what sets the data's switching
+        group = "arm" if runs["arm"].notna().any() or not data_keys else "setting"
+        if group == "setting":  # one group (and data line) per data setting, named by its keys
+            runs = runs.assign(setting=[", ".join(f"{k} {v}" for k, v in zip(
+                data_keys, row, strict=True)) for row in runs[data_keys].itertuples(index=False)])
         fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", group,
                                        reference=runs.get("data_switch_prob"), band=NEAR)
         noise = runs.get("noise_var", pd.Series(dtype=float)).dropna().unique()

@@ -385,3 +385,22 @@ def test_switching_against_lambda_draws_each_settings_own_data_line(tmp_path):
     assert sorted(levels.round(2)) == [0.13, 0.26, 0.47]
     assert set(runs[group]) == {"switch_prob_task 0.5", "switch_prob_task 0.25",
                                 "switch_prob_task 0.125"}
+
+
+def test_a_report_of_unlike_runs_draws_without_a_warning(tmp_path):
+    """Runs of different tasks, sizes and data: every figure drawn without a matplotlib warning
+    (long setting names are wrapped in the key, not allowed to squeeze the axes to nothing)."""
+    import warnings
+
+    for job, (task, nt, lt, p) in enumerate([("reber", 3, 200, 0.5), ("lissajous9", 2, 200, 0.5),
+                                             ("lissajous2", 10, 1000, 0.5),
+                                             ("lissajous2", 2, 40, 0.25)]):
+        _fake_job(tmp_path / str(job), f"task:\n  name: {task}\n  num_series: {nt}\n  length: {lt}"
+                  f"\n  switch_prob: {p}\nmodel:\n  gating:\n    context_size: {5 + job}\n",
+                  {"max_lyapunov": [0.001, -0.1], "switch_prob": [1.0, 0.0],
+                   "data_switch_prob": [0.5, 0.5]})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        report(tmp_path)
+    assert [str(w.message) for w in caught if issubclass(w.category, UserWarning)] == []
+    assert (tmp_path / "figures" / "switch_prob_vs_lyapunov.png").stat().st_size > 0
