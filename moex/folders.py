@@ -72,7 +72,7 @@ def sweep_summary(sweep_dir: Path, verb: str) -> str:
             seconds += float(status.get("seconds", 0.0))
     jobs = len(list(sweep_dir.glob("*/.hydra")))
     counts = ", ".join(f"{n} {state}" for state, n in sorted(ended.items())) or f"{jobs} jobs"
-    hint = f"; compare them with: moex report {sweep_dir}" if verb == "train" else ""
+    hint = f"\nmoex: compare them with: moex report {sweep_dir}" if verb == "train" else ""
     return f"moex: sweep folder {sweep_dir}: {jobs} jobs ({counts}, {seconds / 60:.1f} min){hint}"
 
 

@@ -393,9 +393,11 @@ def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFram
     `out_dir`: metrics.csv, samples.npz, figures/ and the evaluation settings used."""
     run = load_run(tool)
     saved, ev = run.saved, run.cfg.eval
-    log.info("evaluating %d networks of %s (task %s) at %d samples x %d steps (+%d transient), "
-             "noise variance %g, into %s", run.cfg.num_runs, tool.run_dir, run.cfg.task.name,
-             ev.num_samples, ev.lyapunov_steps, ev.transient, ev.noise_var, out_dir)
+    networks = "1 network" if run.cfg.num_runs == 1 else f"{run.cfg.num_runs} networks"
+    for line in progress.packed(f"evaluating {networks} of task {run.cfg.task.name}:", [
+            f"{ev.num_samples} samples x {ev.lyapunov_steps} steps (+{ev.transient} transient)",
+            f"noise variance {ev.noise_var:g}", f"from {tool.run_dir}", f"into {out_dir}"]):
+        log.info("%s", line)
     metrics = evaluate_run(run.cfg, run.dataset, saved.experts, saved.beta, saved.gating,
                            Path(out_dir), saved.failed, run.backend, stop)
     io.write_yaml(Path(out_dir) / io.EVAL_SETTINGS, dataclasses.asdict(run.cfg.eval))

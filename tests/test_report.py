@@ -22,9 +22,9 @@ def test_tiny_paper_table2_sweep_and_report(launcher, tmp_path):
         (["hydra.launcher.n_jobs=2"] if launcher == "joblib" else []),
         cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr
-    last = result.stdout.strip().splitlines()[-1]  # the sweep's summary names what to run next
-    assert last.startswith(f"moex: sweep folder {sweep.resolve()}: 3 jobs (3 done"), last
-    assert last.endswith(f"compare them with: moex report {sweep.resolve()}"), last
+    summary, last = result.stdout.strip().splitlines()[-2:]  # and what to run next
+    assert summary.startswith(f"moex: sweep folder {sweep.resolve()}: 3 jobs (3 done"), summary
+    assert last == f"moex: compare them with: moex report {sweep.resolve()}", last
     jobs = sorted((p for p in sweep.iterdir() if p.is_dir()),
                   key=lambda p: -float(p.joinpath(".hydra/config.yaml").read_text()
                                        .split("switch_prob: ")[1].split()[0]))
