@@ -5,8 +5,8 @@
 
 Each row: the paper's number; ours as mean ± sd (n) over the table's own batch (one data set,
 independent networks), with its median and the number of networks beyond 3 robust SDs; where
-the same design ran on more data sets, their random-effects mean (`pooled`, evidence only: its
-data sets reuse initial networks, so it is no count of independent units); the difference
+the same design ran on more data sets, the mean over independent units (`pooled`: an initial
+network reused on several data sets is one unit; evidence beside the verdict); the difference
 moex − paper with its 95 % interval; the authors' code trained on the same data and scored by
 moex (docs/mregn_control.py), where run; and the verdict of ONE RULE (`decide`):
   - the interval of moex − paper (z 1.96) counts the paper's own sampling error: its n networks
@@ -176,51 +176,49 @@ def _control(table, setting, metric) -> str:
     return "—"
 
 
-def replications(table, setting, metric) -> list[np.ndarray]:
-    """The row's networks grouped by data set, every independent data set of the same design:
-    the table's own batch (data set 0), the data-seed experiments' other data sets (5 networks
-    each) and Table 2's runs with a data set per network (one network each). Retrains of the
-    same seeds on the same data are left out (the same networks again, round-off apart)."""
+def units(table, setting, metric) -> pd.DataFrame:
+    """Every network of the row's design, on every data set it ran on, with its unit: the
+    initial network it grew from. The table's batch (seed 0, runs 0..n-1, data set 0), the
+    data-seed experiments (runs 0-4 of seed 0 again, on other data sets: the same units) and, in
+    Table 2, the runs with a data set per network (seeds 100 on: units of their own). Retrains of
+    the same seeds on the same data are left out (the same networks again, round-off apart)."""
+    def frame(runs, unit):
+        return pd.DataFrame({"unit": unit, "value": runs[metric].to_numpy()})
+
     if table == "Table 1":
-        groups = [_table1_runs(setting)[metric].dropna().to_numpy()]
+        batch = _table1_runs(setting)
+        frames = [frame(batch, batch["run"].map("seed 0 run {}".format))]
         if setting == 20:
             seeds = pd.read_csv(DOCS / "data_seeds_reber_summary.csv")
             seeds = seeds[(seeds["task.data_seed"] != 0) & ~seeds.failed.astype(bool)]
-            groups += [g[metric].dropna().to_numpy() for _, g in seeds.groupby("task.data_seed")]
-        return groups
+            frames.append(frame(seeds, seeds["run"].map("seed 0 run {}".format)))
+        return pd.concat(frames, ignore_index=True).dropna()
     p = float(setting.removeprefix("P = "))
     two = pd.read_csv(DOCS / "table2_summary.csv")
-    groups = [two[metric][(two.switch_prob_task == p) & ~two.failed.astype(bool)].dropna()
-              .to_numpy()]
+    two = two[(two.switch_prob_task == p) & ~two.failed.astype(bool)]
     seeds = pd.read_csv(DOCS / DATA_SEEDS[p])
     seeds = seeds[(seeds["task.data_seed"] != 0) & ~seeds.failed.astype(bool)]
-    groups += [g[metric].dropna().to_numpy() for _, g in seeds.groupby("task.data_seed")]
     own = pd.read_csv(DOCS / "table2_own_data_summary.csv")
-    own = own[(own.switch_prob_task == p) & ~own.failed.astype(bool)][metric].dropna()
-    return groups + [np.array([x]) for x in own]
+    own = own[(own.switch_prob_task == p) & ~own.failed.astype(bool)]
+    return pd.concat([frame(two, two["run"].map("seed 0 run {}".format)),
+                      frame(seeds, seeds["run"].map("seed 0 run {}".format)),
+                      frame(own, [f"seed {s} run {r}" for s, r in zip(own["seed"], own["run"],
+                                                                      strict=True)])],
+                     ignore_index=True).dropna()
 
 
 DATA_SEEDS = {0.5: "data_seeds_p05_summary.csv", 0.25: "data_seeds_summary.csv",
               0.125: "data_seeds_p0125_summary.csv"}
 
 
-def pooled(groups: list[np.ndarray]) -> tuple[float, float, float]:
-    """Random-effects mean over data sets: (mean, its standard error, the spread of one network
-    about the design's mean). The within-data variance is pooled from the groups of more than
-    one network; the between-data variance is the variance of the group means beyond what the
-    within-data variance explains (method of moments, at least 0); each group weighs
-    1 / (between + within / n). One group: the plain mean and sd/√n."""
-    groups = [g for g in groups if len(g)]
-    sizes = np.array([len(g) for g in groups], float)
-    means = np.array([g.mean() for g in groups])
-    several = [g for g in groups if len(g) > 1]
-    within = sum(((g - g.mean()) ** 2).sum() for g in several) / sum(len(g) - 1 for g in several)
-    if len(groups) == 1:
-        return means[0], np.sqrt(within / sizes[0]), np.sqrt(within)
-    between = max(0.0, means.var(ddof=1) - np.mean(within / sizes))
-    weights = 1 / (between + within / sizes)
-    mean = (weights * means).sum() / weights.sum()
-    return mean, 1 / np.sqrt(weights.sum()), np.sqrt(between + within)
+def pooled(frame: pd.DataFrame) -> tuple[float, float, int, int]:
+    """The mean over independent units (the model: each initial network is one draw; its value
+    is the mean of its networks over the data sets it ran on; units are independent and weigh
+    the same), its standard error sd(unit means) / √units, the number of units and of
+    observations. An initial network reused on six data sets counts once, not six times."""
+    means = frame.groupby("unit")["value"].mean()
+    return (float(means.mean()), float(means.std(ddof=1) / np.sqrt(len(means))), len(means),
+            len(frame))
 
 
 Z = 1.96  # two-sided 95 %
@@ -277,8 +275,7 @@ def _carried(values: np.ndarray, word: str, judge) -> str:
 def _row(table, setting, metric, paper, values) -> dict:
     values = values.dropna().to_numpy(float)
     n, mean, sd = len(values), values.mean(), values.std(ddof=1)
-    groups = replications(table, setting, metric)
-    center, se, _ = pooled(groups)
+    center, se, networks, observations = pooled(units(table, setting, metric))
     paper_n = PAPER_N[table]
 
     def judge(x):
@@ -299,13 +296,13 @@ def _row(table, setting, metric, paper, values) -> dict:
     median = np.median(values)
     beyond = int((np.abs(values - median) > 3 * spread).sum())
     own = _own_data(table, setting, metric)
-    networks = sum(len(g) for g in groups)
     return {"result": f"{table}, {setting}", "quantity": METRICS[metric],
             "paper": f"{paper:.4g}",
             "moex mean ± sd (n); median; beyond 3 SD": f"{mean:.4g} ± {sd:.2g} ({n}); "
                                                         f"{median:.4g}; {beyond}",
-            "pooled ± SE (data sets, networks)": (f"{center:.4g} ± {se:.2g} ({len(groups)}, "
-                                                  f"{networks})" if len(groups) > 1 else "—"),
+            "pooled over initial networks ± SE (networks, observations)": (
+                f"{center:.4g} ± {se:.2g} ({networks}, {observations})"
+                if observations > n else "—"),
             "moex − paper [95 %] (margin)": f"{diff:+.3g} [{low:+.3g}, {high:+.3g}] "
                                             f"(± {margin:.2g})",
             "authors' code (n)": _control(table, setting, metric),
@@ -362,7 +359,7 @@ def _share(table, setting, paper_percent, lyapunov) -> dict:
             "paper": f"{paper_percent:g} %",
             "moex mean ± sd (n); median; beyond 3 SD": f"{100 * positive / n:.0f} % "
             f"({positive} / {n}); > 10⁻⁴: {100 * strict / n:.0f} %",
-            "pooled ± SE (data sets, networks)": "—",
+            "pooled over initial networks ± SE (networks, observations)": "—",
             "moex − paper [95 %] (margin)": f"{diff:+.0f} [{low:+.0f}, {high:+.0f}] points "
                                             f"(± {MARGIN_SHARE:g})",
             "authors' code (n)": _control(table, setting, "positive_percent"),

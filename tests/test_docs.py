@@ -408,24 +408,24 @@ def test_paired_estimates_agree_with_themselves():
     assert off["largest_gap"].tolist() == [0.0, pytest.approx(0.03)]
 
 
-def test_the_pooled_mean_weighs_data_sets_by_their_own_spread_and_the_between_data_spread():
-    """Random-effects pooling of data sets (docs/verdicts.py): one data set gives the plain mean
-    and sd/√n; data sets drawn around one mean with no between-data spread give about sd/√N over
-    all N networks; a between-data spread s_b keeps the standard error near s_b/√J however
-    many networks each data set has, and the mean comes back."""
+def test_the_pooled_mean_counts_an_initial_network_once_however_many_data_sets_it_ran_on():
+    """docs/verdicts.py `pooled`, on cases with known answers: 5 initial networks each run on 6
+    data sets with no data effect (the same value 6 times) and 25 networks run once give the
+    plain mean and sd/√30 of the 30 networks' values (not /√55); a unit's data sets are averaged
+    before units are."""
     verdicts = _script("verdicts")
     rng = np.random.default_rng(3)
-    one = rng.normal(2.0, 1.0, 50)
-    mean, se, spread = verdicts.pooled([one])
-    assert mean == one.mean() and np.isclose(se, one.std(ddof=1) / np.sqrt(50))
-    same = [rng.normal(2.0, 1.0, 20) for _ in range(30)]
-    mean, se, _ = verdicts.pooled(same)
-    assert abs(mean - 2.0) < 0.1 and abs(se / (1 / np.sqrt(600)) - 1) < 0.3
-    centres = rng.normal(5.0, 2.0, 400)
-    spread_out = [rng.normal(c, 0.5, 20) for c in centres]
-    mean, se, spread = verdicts.pooled(spread_out)
-    assert abs(mean - 5.0) < 0.4 and abs(se / (2.0 / np.sqrt(400)) - 1) < 0.2
-    assert abs(spread / np.sqrt(4.0 + 0.25) - 1) < 0.15
+    values = rng.normal(2.0, 1.0, 30)
+    frame = pd.DataFrame({"unit": [f"n{i}" for i in range(5) for _ in range(6)]
+                          + [f"n{i}" for i in range(5, 30)],
+                          "value": np.concatenate([np.repeat(values[:5], 6), values[5:]])})
+    mean, se, units, observations = verdicts.pooled(frame)
+    assert (units, observations) == (30, 55)
+    assert np.isclose(mean, values.mean()) and np.isclose(se, values.std(ddof=1) / np.sqrt(30))
+    two = pd.DataFrame({"unit": ["a", "a", "b"], "value": [1.0, 3.0, 5.0]})
+    assert verdicts.pooled(two)[0] == 3.5  # a's mean 2 and b's 5, each once
+    table2 = verdicts.units("Table 2", "P = 0.25", "switch_prob")
+    assert table2["unit"].nunique() < len(table2)  # the data-seed networks share units
 
 
 def test_two_trajectories_give_the_exponent_the_jacobian_gives():
