@@ -373,7 +373,8 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None, title:
     return axes
 
 
-HEAT_LABELS = {"positive_percent": r"share of networks with $\lambda_{\max} > 0$ (%)",
+HEAT_LABELS = {"positive_percent": r"share with $\lambda_{\max} > 0$, the paper's criterion (%)",
+               "chaotic_percent": r"share chaotic: $\lambda_{\max}$ > 0 beyond 2 s.e. (%)",
                "num_series": "number of series NT", "length": "length of a series LT"}
 
 

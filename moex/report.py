@@ -357,7 +357,8 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
         # where NT and LT each take two values or more and the column has a value
         others = [k for k in PANELS if k in summary] + [
             k for k in keys if k not in ("num_series", "length", *PANELS)]
-        for column in ("E_closed_mean", "positive_percent", "nonperiodic_fraction_mean"):
+        for column in ("E_closed_mean", "chaotic_percent", "positive_percent",
+                       "nonperiodic_fraction_mean"):
             if column not in summary:
                 continue
             panels = [(_panel_title(others, values), group)

@@ -163,8 +163,8 @@ def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
     assert (summary["num_runs"] == 2).all() and len(summary) == 8
     # one figure per column, its panels (NC 10 at ρ² 0 and 0.001) side by side
     assert sorted(p.name for p in (tmp_path / "figures").glob("heatmap_*")) == [
-        "heatmap_E_closed_mean.png", "heatmap_nonperiodic_fraction_mean.png",
-        "heatmap_positive_percent.png"]
+        "heatmap_E_closed_mean.png", "heatmap_chaotic_percent.png",
+        "heatmap_nonperiodic_fraction_mean.png", "heatmap_positive_percent.png"]
 
 
 def test_no_heat_map_without_two_values_on_each_axis_and_none_of_a_column_without_values(
