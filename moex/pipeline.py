@@ -254,7 +254,7 @@ def chaos_parts(ok: pd.DataFrame, ev) -> list[str]:
     how many meet the paper's criterion (λ_max > 0) alone."""
     labels = ok["chaos"].value_counts()
     counts = ", ".join(f"{labels.get(name, 0)} {name}" for name in CHAOS_LABELS)
-    return [f"{counts} (λ_max beyond {ev.chaos_z:g} s.e. of 0)",
+    return [f"{counts} (λ_max beyond {ev.chaos_z:g} s.e. and 1/{ev.lyapunov_steps} of 0)",
             f"λ_max > 0 (the paper's criterion) in {int((ok['max_lyapunov'] > 0).sum())}"]
 
 
