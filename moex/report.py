@@ -255,7 +255,8 @@ def paper_tables(summary: pd.DataFrame, keys: list[str]) -> dict[str, pd.DataFra
         cols = ["arm", *_others(keys, "arm"), "switch_prob_mean", "switch_prob_std",
                 "data_switch_prob_mean",
                 "near_data_percent", "max_lyapunov_mean", "positive_percent", "positive_ci_low",
-                "positive_ci_high", "nonperiodic_fraction_mean", "E_mean", "E_g_mean",
+                "positive_ci_high", "chaotic_percent", "undetermined_count",
+                "nonperiodic_fraction_mean", "E_mean", "E_g_mean",
                 "E_closed_mean", "num_runs", "failed_runs"]
         tables["p05_study"] = summary[[c for c in cols if c in summary]]  # in sweep order
     return tables

@@ -39,10 +39,11 @@ class PaperTable:
 PAPER_TABLES = (
     PaperTable("table1", "reber", "context_size", PAPER_TABLE1,
                ("E_g_mean", "block_kl_train_mean", "block_kl_test_mean", "max_lyapunov_mean",
-                "positive_percent", "num_runs")),
+                "positive_percent", "chaotic_percent", "undetermined_count", "num_runs")),
     PaperTable("table2", "lissajous2", "switch_prob_task", PAPER_TABLE2,
                ("data_switch_prob_mean", "switch_prob_mean", "switch_prob_std",
                 "near_data_percent", "max_lyapunov_mean", "max_lyapunov_std", "positive_percent",
-                "positive_ci_low", "positive_ci_high", "nonperiodic_fraction_mean", "num_runs"),
+                "positive_ci_low", "positive_ci_high", "chaotic_percent", "undetermined_count",
+                "nonperiodic_fraction_mean", "num_runs"),
                needs_several=True, descending=True),
 )
