@@ -37,7 +37,8 @@ def main() -> None:
 
         print(f"moex {metadata.version('moex')}")
         return
-    if sys.argv[1:] == ["-sc", "query=bash"]:  # a Tab: answered without the heavy imports
+    if sys.argv[1:] in (["-sc", "query=bash"], ["-sc", "query=fish"]):  # a Tab (zsh asks as
+        # bash does): answered without the heavy imports
         from moex.completion import answer
 
         answer()

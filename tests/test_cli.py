@@ -360,6 +360,10 @@ def test_shell_completion_installs_and_completes_the_keys_of_each_verb(tmp_path)
         assert done.returncode == 0 and expected <= said and not absent & said, (line, said)
         imported = {row.split("|")[-1].strip() for row in done.stderr.splitlines()}
         assert not {"torch", "hydra", "numba", "pandas"} & imported, line
+    fish = subprocess.run([sys.executable, "-c", "from moex.launch import main; main()", "-sc",
+                           "query=fish"], cwd=tmp_path, capture_output=True, text=True,
+                          env={**os.environ, "COMP_LINE": "moex ev"}, timeout=60)
+    assert fish.stdout.split() == ["evaluate"]  # fish asks with COMP_LINE alone
     bad = _moex(["-sc"], tmp_path)
     assert bad.returncode == 2 and "install=bash" in bad.stderr and "Traceback" not in bad.stderr
 
