@@ -26,7 +26,7 @@ SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
             "eval.lyapunov_steps": "eval_steps"}
 # replicates, not settings: jobs that differ only in these pool into one row (they still tell
 # networks apart, `_network_key`)
-REPLICATES = ("seed", "task.data_seed")
+REPLICATES = ("seed", "task.data_seed", "source")  # source: the C tools' folders an import read
 CHOICES = {"p05_arm": "arm"}  # config groups whose chosen option is a setting
 # keys that are no setting of a network: where a job writes, how often it logs, what it plots,
 # and how many networks it trains (run r is seeded by (seed, r) alone: run 0 of one run and of
@@ -101,7 +101,8 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
     for name, folder, settings, status in found:
         columns = {column: settings.get(key) for key, column in _columns(varying).items()}
         metrics_path = folder / io.METRICS
-        state = status.get("status", "running or killed")
+        # a job without status.json (an import, an older run) is done once its metrics exist
+        state = status.get("status", "done" if metrics_path.exists() else "running or killed")
         if state == "done" and not metrics_path.exists():
             state = "missing metrics"
         jobs.append({"job": name, **columns, "status": state,
@@ -453,4 +454,5 @@ def main(argv: list[str] | None = None) -> None:
         print(short_summary(out["summary"], out.get("keys", [])))
     written = sorted(str(p.relative_to(out_dir)) for p in Path(out_dir).glob("tables/*.md"))
     print(f"moex: report written to {out_dir} ({(jobs['status'] == 'done').sum()} of "
-          f"{len(jobs)} jobs done): summary.csv, {', '.join(written)}, figures/")
+          f"{len(jobs)} jobs done)")
+    print(f"moex: summary.csv, {', '.join(written)}, figures/")

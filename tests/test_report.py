@@ -404,3 +404,16 @@ def test_a_report_of_unlike_runs_draws_without_a_warning(tmp_path):
         report(tmp_path)
     assert [str(w.message) for w in caught if issubclass(w.category, UserWarning)] == []
     assert (tmp_path / "figures" / "switch_prob_vs_lyapunov.png").stat().st_size > 0
+
+
+def test_imported_runs_are_done_and_their_source_folders_are_no_setting(tmp_path):
+    """`moex import` folders (no status.json, a metrics.csv) count as done; the C tools' source
+    folders tell networks apart like a seed but are no setting: two imports of one setting pool."""
+    for job in ("a", "b"):
+        _fake_job(tmp_path / job, f"source:\n- /c/{job}/net001\ntask:\n  name: lissajous2\n",
+                  {"max_lyapunov": [0.001, 0.002]})
+        (tmp_path / job / "status.json").unlink()
+    out = report([tmp_path / "a", tmp_path / "b"], tmp_path / "out")
+    assert set(out["jobs"]["status"]) == {"done"}
+    assert len(out["summary"]) == 1 and out["summary"]["num_runs"].iloc[0] == 4
+    assert "source" not in out["summary"] and out["repeats"].empty
