@@ -453,6 +453,8 @@ def main(argv: list[str] | None = None) -> None:
     if "summary" in out:
         print(short_summary(out["summary"], out.get("keys", [])))
     written = sorted(str(p.relative_to(out_dir)) for p in Path(out_dir).glob("tables/*.md"))
-    print(f"moex: report written to {out_dir} ({(jobs['status'] == 'done').sum()} of "
-          f"{len(jobs)} jobs done)")
-    print(f"moex: summary.csv, {', '.join(written)}, figures/")
+    from moex.progress import packed
+
+    print("\n".join(packed(f"moex: {(jobs['status'] == 'done').sum()} of {len(jobs)} jobs done; "
+                           f"wrote", ["summary.csv", *written, "figures/"], width=100)))
+    print(f"moex: report written to {out_dir}")  # last: the one line a path may make long
