@@ -246,7 +246,7 @@ def labels_table():
     λ_max > 0, and how the closed loop switches (Table 2) or its test KL (Reber)."""
     import pandas as pd
 
-    from moex.metrics.lyapunov import chaos_labels
+    from moex.metrics.lyapunov import CHAOS_LABELS, chaos_labels
 
     networks = pd.read_csv(DOCS / "mregn_control_networks.csv")
     rows = []
@@ -255,9 +255,8 @@ def labels_table():
         labels = chaos_labels(group)
         row = {"design": design, "networks": len(group),
                "fit (E^g < 0.02)": int((group["E_g"] < 0.02).sum()),
-               "chaotic / undetermined / not chaotic": " / ".join(
-                   str(int((labels == name).sum()))
-                   for name in ("chaotic", "undetermined", "not chaotic")),
+               " / ".join(CHAOS_LABELS): " / ".join(str(int((labels == name).sum()))
+                                                   for name in CHAOS_LABELS),
                "λ_max > 0 (the paper's criterion)": int((group["max_lyapunov"] > 0).sum())}
         if design.startswith("table2"):
             row["switching: strict alternation (≥ 0.99) / one curve (≤ 0.01)"] = (
@@ -294,10 +293,9 @@ def markdown(rows) -> str:
 
 def labels_markdown(frame) -> str:
     """The labels table as Markdown (missing cells as —)."""
-    frame = frame.fillna("—")
-    lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
-    lines += ["| " + " | ".join(map(str, row)) + " |" for row in frame.itertuples(False)]
-    return "\n".join(lines)
+    from moex.report import to_markdown
+
+    return to_markdown(frame.fillna("—")).rstrip("\n")
 
 
 def main(argv=None) -> int:

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from moex.report import wilson_interval
+from moex.report import to_markdown, wilson_interval
 from moex.tasks.paper import PAPER_TABLE1, PAPER_TABLE2
 
 DOCS = Path(__file__).resolve().parent
@@ -282,7 +282,7 @@ def _row(table, setting, metric, paper, values) -> dict:
         return decide(*_mean_interval(x, paper, paper_n)[1:4])
 
     diff, low, high, margin, spread = _mean_interval(values, paper, paper_n)
-    word = judge(values)
+    word = decide(low, high, margin)
     kind = "differs, cause open" if word == "differs" else word
     cause, evidence = "", ""
     if (table, setting, metric) in CAUSES:  # its evidence always; its cause where it differs
@@ -349,7 +349,7 @@ def _share(table, setting, paper_percent, lyapunov) -> dict:
                                       paper_n)[1:], MARGIN_SHARE)
 
     diff, low, high = share_interval(positive, n, paper_percent, paper_n)
-    word = judge(lyapunov)
+    word = decide(low, high, MARGIN_SHARE)
     evidence = "—"
     if word == "inconclusive":
         p = positive / n if 0 < positive < n else paper_percent / 100
@@ -439,9 +439,7 @@ def markdown(frame: pd.DataFrame, evidence: bool = False) -> str:
         frame = frame.assign(**{"moex − paper [95 %] (margin)": frame["moex − paper [95 %] "
                                                                         "(margin)"]
                                 + " → " + frame["verdict"]})[list(SHORT)].rename(columns=SHORT)
-    lines = ["| " + " | ".join(frame.columns) + " |", "|" + "---|" * len(frame.columns)]
-    lines += ["| " + " | ".join(map(str, row)) + " |" for row in frame.itertuples(False)]
-    return "\n".join(lines)
+    return to_markdown(frame).rstrip("\n")
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from omegaconf import OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from moex import config, folders, pipeline, provenance, report
+from moex import config, folders, packing, pipeline, provenance, report
 from moex.config import EvaluateConfig, register_configs
 from moex.errors import ConfigError, Interrupted, check, closest_first
 
@@ -320,7 +320,8 @@ def _job(run, verb: str):
             where = "" if folders.discard_if_empty(out_dir, verb) else f" (traceback in {out_dir})"
             print(f"moex: error: {type(exc).__name__}: {exc}{where}", file=sys.stderr)
             sys.exit(1)
-        status(status="done", seconds=round(time.time() - started + _shared_seconds(out_dir), 1))
+        status(status="done",  # a packed job adds its share of the batch's training
+               seconds=round(time.time() - started + packing.shared_seconds(out_dir), 1))
         print(f"moex: run folder {out_dir}")
 
     return task_function
@@ -334,12 +335,6 @@ VERBS = {
 }
 VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
                "generate": pipeline.load_run, "import": pipeline.check_import}
-
-
-def _shared_seconds(out_dir: Path) -> float:
-    """The job's share of a packed batch's training (0 without the packed launcher)."""
-    packing = sys.modules.get("moex.packing")
-    return packing.shared_seconds(out_dir) if packing is not None else 0.0
 
 
 def _latest_run(task: str) -> Path:

@@ -274,11 +274,11 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         row.update(block_length=cfg.block_length, block_kl_train=float(kl_train[r]))
         if test is not None:
             row["block_kl_test"] = cfg.block_kl(test, sampled[r])
+        se = standard_error(lam[:, 0])
         row.update({
             "max_lyapunov": float(lam[:, 0].mean()),
-            "max_lyapunov_se": standard_error(lam[:, 0]),
-            "chaos": chaos_label(lam[:, 0].mean(), standard_error(lam[:, 0]),
-                                 cfg.lyapunov_steps, cfg.chaos_z),
+            "max_lyapunov_se": se,
+            "chaos": chaos_label(lam[:, 0].mean(), se, cfg.lyapunov_steps, cfg.chaos_z),
             "lyapunov_positive": bool(lam[:, 0].mean() > 0),
             "positive_sample_fraction": float((lam[:, 0] > 0).mean()),
             **{f"lyapunov_{i + 1}": float(lam[:, i].mean()) for i in range(1, lam.shape[1])},

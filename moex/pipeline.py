@@ -235,7 +235,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     ok = metrics[~metrics["failed"]]
     _plot_samples(samples, dataset, cfg, out_dir, metrics, cfg.eval.noise_var)
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
-    for line in progress.packed(f"of {len(ok)} run{'s' * (len(ok) != 1)}:",
+    for line in progress.packed(f"of {progress.counted(len(ok), 'run')}:",
                                 chaos_parts(ok, cfg.eval), sep=";"):
         log.info("%s", line)
     for _, row in ok.iterrows():  # whole "name value" pairs per line, within the terminal
@@ -393,7 +393,7 @@ def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFram
     `out_dir`: metrics.csv, samples.npz, figures/ and the evaluation settings used."""
     run = load_run(tool)
     saved, ev = run.saved, run.cfg.eval
-    networks = "1 network" if run.cfg.num_runs == 1 else f"{run.cfg.num_runs} networks"
+    networks = progress.counted(run.cfg.num_runs, "network")
     for line in progress.packed(f"evaluating {networks} of task {run.cfg.task.name}:", [
             f"{ev.num_samples} samples x {ev.lyapunov_steps} steps (+{ev.transient} transient)",
             f"noise variance {ev.noise_var:g}", f"from {tool.run_dir}", f"into {out_dir}"]):
@@ -468,7 +468,7 @@ def run_import(cfg: ImportConfig, out_dir: Path, stop=never) -> checkpoint.Check
     run_cfg, record = importer.import_networks(cfg, dataset)
     folders = importer.network_folders(cfg.source)
     log.info("importing %s of the C tools (%s) on task %s into %s",
-             "1 network" if run_cfg.num_runs == 1 else f"{run_cfg.num_runs} networks",
+             progress.counted(run_cfg.num_runs, "network"),
              "gating network alone" if record.beta is None else "mixture", cfg.task.name, out_dir)
     record.save(out_dir / checkpoint.NAME)
     importer.write_sources(out_dir, folders)

@@ -324,7 +324,7 @@ def plot_run_trajectories(outputs: np.ndarray, gates: np.ndarray, titles: list[s
         ax.set_xlabel("$y_1$")
     for ax in axes[:, 0]:
         ax.set_ylabel("$y_2$")
-    won = sorted(set(np.unique(gates.argmax(-1)).tolist()))  # the key lists only the winners
+    won = np.unique(gates.argmax(-1)).tolist()  # the key lists only the winners
     if len(won) <= 12:
         handles = [plt.Line2D([], [], ls="", marker="o", color=colours[k], label=f"expert {k}")
                    for k in won]
@@ -359,10 +359,9 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None, title:
         ax.set_xticks([-1, 0, 1])
         ax.set_yticks([-1, 0, 1])
         ax.tick_params(labelsize=6)
-        row, col = divmod(j, grid.shape[1])  # labels on the outer panels only
-        ax.set_xlabel("$y_1$" if row == grid.shape[0] - 1 or j + grid.shape[1] >= len(shown)
-                      else "", fontsize=7)
-        ax.set_ylabel("$y_2$" if col == 0 else "", fontsize=7)
+        # labels on the outer panels only: y_1 where no panel is below, y_2 in the first column
+        ax.set_xlabel("$y_1$" if j + grid.shape[1] >= len(shown) else "", fontsize=7)
+        ax.set_ylabel("$y_2$" if j % grid.shape[1] == 0 else "", fontsize=7)
         ax.set_title(f"expert {i} ({(winners == i).mean():.0%})", fontsize=7)
     never = [i for i in range(K) if i not in shown]
     lines = [title] if title else []

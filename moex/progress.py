@@ -55,6 +55,11 @@ class TerminalFormatter(logging.Formatter):
         return line
 
 
+def counted(n: int, noun: str) -> str:
+    """"1 run", "2 runs": a count with its noun in the number it needs."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 STAMP = len("00:00:00 ")  # the terminal formatter's time before each message
 
 

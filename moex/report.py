@@ -14,6 +14,7 @@ from moex import io, plotting, provenance
 from moex.errors import ConfigError, check
 from moex.metrics.lyapunov import CHAOS_LABELS, chaos_labels
 from moex.metrics.table import REPORTED
+from moex.progress import packed
 from moex.tasks.paper import PAPER_TABLES
 
 METRICS = REPORTED  # the metric table's columns of a report
@@ -198,25 +199,27 @@ def aggregate(runs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     table = grouped[[m for m in METRICS if m in ok]].agg(["mean", "std"])
     table.columns = [f"{m}_{s}" for m, s in table.columns]
     positives, count = grouped["max_lyapunov"].apply(lambda x: int((x > 0).sum())), grouped.size()
-    table["positive_percent"] = 100 * positives / count
-    ci = [wilson_interval(k, n) for k, n in zip(positives, count, strict=True)]
-    table["positive_ci_low"] = [low for low, _ in ci]
-    table["positive_ci_high"] = [high for _, high in ci]
+    _share(table, "positive", positives, count)
     labels = chaos_labels(ok)  # the label with its error, beside the paper's criterion
     for name in CHAOS_LABELS:
         hits = (labels == name).groupby([ok[k] for k in keys], dropna=False).sum()
         table[f"{name.replace(' ', '_')}_count"] = hits.reindex(table.index, fill_value=0)
-    chaotic = table["chaotic_count"]
-    table["chaotic_percent"] = 100 * chaotic / count
-    ci = [wilson_interval(k, n) for k, n in zip(chaotic, count, strict=True)]
-    table["chaotic_ci_low"] = [low for low, _ in ci]
-    table["chaotic_ci_high"] = [high for _, high in ci]
+    _share(table, "chaotic", table["chaotic_count"], count)
     if {"switch_prob", "data_switch_prob"} <= set(ok):
         near = (ok["switch_prob"] - ok["data_switch_prob"]).abs() <= NEAR
         table["near_data_percent"] = near.groupby([ok[k] for k in keys], dropna=False).mean() * 100
     table["num_runs"] = count
     table["failed_runs"] = runs.groupby(keys, dropna=False).size() - table["num_runs"]
     return table.reset_index()
+
+
+def _share(table: pd.DataFrame, name: str, hits, count) -> None:
+    """The columns `<name>_percent`, `<name>_ci_low` and `<name>_ci_high`: hits / count per
+    setting, with its 95 % Wilson interval."""
+    table[f"{name}_percent"] = 100 * hits / count
+    ci = [wilson_interval(k, n) for k, n in zip(hits, count, strict=True)]
+    table[f"{name}_ci_low"] = [low for low, _ in ci]
+    table[f"{name}_ci_high"] = [high for _, high in ci]
 
 
 def to_markdown(frame: pd.DataFrame) -> str:
@@ -311,9 +314,8 @@ SHOWN = (("E_g", "E^g"), ("block_kl_test", "KL test"), ("switch_prob", "switchin
 def short_summary(summary: pd.DataFrame, keys: list[str], width: int = 100) -> str:
     """A few lines for the terminal (≤ `width` columns): per setting, n, the key metrics as
     mean ± sd (the value alone for one network), the chaos labels' counts and the share with
-    λ_max > 0 (the paper's criterion); the whole tables are in tables/."""
-    import textwrap
-
+    λ_max > 0 (the paper's criterion); the whole tables are in tables/. A "name value" pair is
+    never split across lines."""
     lines = []
     for row in summary.itertuples(index=False):
         row = row._asdict()
@@ -323,11 +325,10 @@ def short_summary(summary: pd.DataFrame, keys: list[str], width: int = 100) -> s
                                                 if row["num_runs"] > 1 else "")
             for m, text in SHOWN if f"{m}_mean" in row and pd.notna(row[f"{m}_mean"])]
         if "chaotic_count" in row:
-            parts.append(f"chaotic {row['chaotic_count']}, undetermined "
-                         f"{row['undetermined_count']}, not {row['not_chaotic_count']}; "
-                         f"λ_max > 0 in {row['positive_percent']:.0f} %")
-        lines += textwrap.wrap(f"{setting}: {'; '.join(parts)}", width,
-                               subsequent_indent="    ")
+            parts += [f"chaotic {row['chaotic_count']}, undetermined {row['undetermined_count']}, "
+                      f"not {row['not_chaotic_count']}",
+                      f"λ_max > 0 in {row['positive_percent']:.0f} %"]
+        lines += packed(f"{setting}:", parts, sep="; ", width=width)
     return "\n".join(lines)
 
 
@@ -453,8 +454,6 @@ def main(argv: list[str] | None = None) -> None:
     if "summary" in out:
         print(short_summary(out["summary"], out.get("keys", [])))
     written = sorted(str(p.relative_to(out_dir)) for p in Path(out_dir).glob("tables/*.md"))
-    from moex.progress import packed
-
     print("\n".join(packed(f"moex: {(jobs['status'] == 'done').sum()} of {len(jobs)} jobs done; "
                            f"wrote", ["summary.csv", *written, "figures/"], width=100)))
     print(f"moex: report written to {out_dir}")  # last: the one line a path may make long

@@ -230,7 +230,6 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     def statistics(values: dict) -> dict[str, torch.Tensor]:
         return {k: torch.as_tensor(v, device=device) for k, v in values.items()}
 
-    started = time.perf_counter()
     for step in progress.steps(start, steps, desc=phase):
         if hooks.should_stop() and hooks.save is not None:
             save(step)
@@ -310,12 +309,11 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
             started = time.perf_counter()
         elif (step + 1) % max(steps // 10, 1) == 0 and step < steps - 1:  # progress in the log
             speed = (step - start) / (time.perf_counter() - started)  # steps per second
-            alive = int((~failed).sum())
-            log.info("%s: step %d/%d, %s mean %.4g over %d run%s; %.1f steps/s, %s left",
+            log.info("%s: step %d/%d, %s mean %.4g over %s; %.1f steps/s, %s left",
                      phase, step + 1, steps, error or criterion,
-                     stats[error or criterion][~failed].mean().item(), alive,
-                     "s" * (alive != 1), speed, _duration((steps - step - 1) / speed),
-                     extra={"progress": True})
+                     stats[error or criterion][~failed].mean().item(),
+                     progress.counted(int((~failed).sum()), "run"), speed,
+                     _duration((steps - step - 1) / speed), extra={"progress": True})
         if hooks.save is not None and hooks.save_every and (step + 1) % hooks.save_every == 0:
             save(step + 1)
     final = statistics(problem.value(net, ~failed))  # the trained parameters, as evaluation sees
@@ -325,10 +323,9 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     if steps > start:  # the last line states the trained parameters' value, as history.csv
         values = final[error or criterion][~failed]
         if len(values):
-            log.info("%s: step %d/%d (final), %s mean %.4g (min %.3g, max %.3g) over %d run%s",
+            log.info("%s: step %d/%d (final), %s mean %.4g (min %.3g, max %.3g) over %s",
                      phase, steps, steps, error or criterion, values.mean().item(),
-                     values.min().item(), values.max().item(), len(values),
-                     "s" * (len(values) != 1))
+                     values.min().item(), values.max().item(), progress.counted(len(values), "run"))
     return _host(views), rows
 
 
