@@ -373,7 +373,7 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None, title:
 
 
 HEAT_LABELS = {"positive_percent": r"share with $\lambda_{\max} > 0$, the paper's criterion (%)",
-               "chaotic_percent": r"share chaotic: $\lambda_{\max}$ > 0 beyond 2 s.e. (%)",
+               "chaotic_percent": r"share chaotic: $\lambda_{\max}$ above 0 beyond its error (%)",
                "num_series": "number of series NT", "length": "length of a series LT"}
 
 
