@@ -42,6 +42,9 @@ DOCS = Path(__file__).resolve().parent
 COLUMNS = ["run", "E_closed", "max_lyapunov", "max_lyapunov_se", "switch_prob",
            "nonperiodic_fraction"]
 CELL = ["context_size", "num_series", "length"]
+# a `moex report` summary names the cell by config keys; this study's tables by short names
+FROM_REPORT = {"model.gating.context_size": "context_size", "task.num_series": "num_series",
+               "task.length": "length"}
 NAMES = {"context_size": "NC", "num_series": "NT", "length": "LT", "noise_var": "ρ²"}
 CHAOS = 0.0  # λ_max above this: chaotic, the paper's criterion (Tables 1-2)
 SENSITIVITY = 1e-4  # the stated second criterion, beside it (see `zero_band`)
@@ -84,10 +87,15 @@ def merge_cells(parts: list[pd.DataFrame]) -> pd.DataFrame:
     return runs.sort_values(CELL + ["noise_var", "run"], ignore_index=True)
 
 
+def read_report(path: Path) -> pd.DataFrame:
+    """A `moex report` summary.csv with the cell's columns under this study's names."""
+    return pd.read_csv(path).rename(columns=FROM_REPORT)
+
+
 def collect_grid(report_dir: Path) -> pd.DataFrame:
     """The grid: `moex report`'s per-network table, one row per network, cell and ρ², with the
     NT 20 cells trained on their own (`NT20_CELLS`; their sample counts were not recorded)."""
-    return merge_cells([pd.read_csv(report_dir / "summary.csv")]
+    return merge_cells([read_report(report_dir / "summary.csv")]
                        + [pd.read_csv(DOCS / name).assign(num_series=20, length=length)
                           for name, length in NT20_CELLS.items()])
 
@@ -126,8 +134,8 @@ def replication(table: pd.DataFrame) -> pd.DataFrame:
     """The retrained grid against its first training (the same seeds and commands, another CPU
     and kernel build; docs/capacity_summary.csv and capacity_nc20_summary.csv), network by
     network without noise: how far round-off alone moves a network's outcome."""
-    first = pd.concat([pd.read_csv(DOCS / name) for name in FIRST_TRAINING])
-    first = first[first.noise_var_setting == 0]
+    first = pd.concat([read_report(DOCS / name) for name in FIRST_TRAINING])
+    first = first[first["eval.noise_var"] == 0]
     keys = CELL + ["run"]
     pairs = table[table.noise_var == 0].merge(first[keys + OUTCOMES], on=keys,
                                               suffixes=("", "_first"))
@@ -511,7 +519,7 @@ def main(mode: str, source: Path) -> None:
     if mode in ("grid", "add"):
         name = "capacity_grid_summary.csv"
         table = (collect_grid(source) if mode == "grid" else
-                 merge_cells([pd.read_csv(DOCS / name), pd.read_csv(source / "summary.csv")]))
+                 merge_cells([pd.read_csv(DOCS / name), read_report(source / "summary.csv")]))
         print(f"zero band (largest λ_max of an all-periodic network): {zero_band(table):.3g}")
         print(cell_tables(table))
         print(to_markdown(replication(table)))

@@ -128,7 +128,7 @@ def overview() -> pd.DataFrame:
 
 
 def per_data_set(runs: pd.DataFrame) -> pd.DataFrame:
-    if (runs["task"] == "lissajous2").all():
+    if (runs["task.name"] == "lissajous2").all():
         agg = {"switch_prob": ("switch_prob", "mean"), "switch_sd": ("switch_prob", "std"),
                "stay_on_one_curve": ("switch_prob", lambda x: int((x < STAYS).sum())),
                "data_switch_prob": ("data_switch_prob", "first")}

@@ -24,23 +24,25 @@ NETWORKS = "10 networks per cell, P = 0.5, the paper's training"
 # Fig. 14: one row per quantity without noise; Fig. 16: one row per noise level ρ²
 FIG14 = ["E_closed_mean", "positive_percent"]
 FIG16 = "nonperiodic_fraction_mean"
+NC, NT, LT = "model.gating.context_size", "task.num_series", "task.length"  # moex report's names
 
 
 def _heat_row(axes, summary: pd.DataFrame, column: str, limits, row_title: str) -> None:
     """One row of NT × LT panels, one per NC, on one colour range with one colour bar."""
-    panels = list(summary.groupby("context_size"))
+    panels = list(summary.groupby(NC))
     for i, (ax, (nc, cell)) in enumerate(zip(axes, panels, strict=True)):
-        plotting.plot_heatmap(cell, "num_series", "length", column, ax=ax, limits=limits,
+        plotting.plot_heatmap(cell, NT, LT, column, ax=ax, limits=limits,
                               title=f"NC = {nc:g}{row_title}", colorbar=i == len(panels) - 1)
         if i:
             ax.set_ylabel("")
 
 
 def capacity() -> None:
-    runs = pd.read_csv(DOCS / "capacity_grid_summary.csv")
-    keys = ["num_series", "length", "context_size", "noise_var"]
+    runs = pd.read_csv(DOCS / "capacity_grid_summary.csv").rename(  # the study's short names
+        columns={"context_size": NC, "num_series": NT, "length": LT})
+    keys = [NT, LT, NC, "noise_var"]
     summary = aggregate(runs, keys)  # positive_percent: λ_max > 0, the paper's criterion
-    ncs, noises = summary.context_size.nunique(), sorted(summary.noise_var.unique())
+    ncs, noises = summary[NC].nunique(), sorted(summary.noise_var.unique())
     quiet = summary[summary.noise_var == 0]
     fig, axes = plt.subplots(len(FIG14), ncs, figsize=(4.2 * ncs, 3.5 * len(FIG14)),
                              constrained_layout=True, squeeze=False)
@@ -61,10 +63,10 @@ def capacity() -> None:
 def scatters() -> None:
     table1 = pd.read_csv(DOCS / "table1_summary.csv")
     plotting.save_figure(plotting.plot_scatter_by(table1, "max_lyapunov", "block_kl_test",
-                                                  "context_size", log_y=True),
+                                                  NC, log_y=True),
                          DOCS / "table1_kl_vs_lyapunov.png")
     study = pd.read_csv(DOCS / "p05_study_summary.csv")
-    plotting.save_figure(plotting.plot_scatter_by(study, "max_lyapunov", "switch_prob", "arm",
+    plotting.save_figure(plotting.plot_scatter_by(study, "max_lyapunov", "switch_prob", "p05_arm",
                                                   reference=study["data_switch_prob"],
                                                   band=NEAR),
                          DOCS / "p05_study_switch_vs_lyapunov.png")

@@ -71,7 +71,7 @@ def spearman(a: np.ndarray, b: np.ndarray, permutations: int = 20000) -> tuple[f
 def main(run_dir: str) -> None:
     ours = measures(Path(run_dir) / "checkpoint.pt")
     table2 = pd.read_csv(DOCS / "table2_summary.csv")
-    soft = table2[table2.switch_prob_task == 0.5][["run", "E", "switch_prob", "max_lyapunov"]]
+    soft = table2[table2["task.switch_prob"] == 0.5][["run", "E", "switch_prob", "max_lyapunov"]]
     both = ours.merge(soft, on="run")
     both.to_csv(DOCS / "junction_ambiguity.csv", index=False)
     gap = (both.E_here / both.E - 1).abs()

@@ -141,19 +141,20 @@ def train_one(design: str, seed: int, bin_dir: Path, out: Path) -> str:
 
 # design: (moex's per-network CSV in docs/, its filter, the paper's table and setting, metrics)
 COMPARED = {
-    "reber_nc20": ("table1_summary.csv", ("context_size", 20), ("Table 1", 20),
+    "reber_nc20": ("table1_summary.csv", ("model.gating.context_size", 20), ("Table 1", 20),
                    ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov")),
-    "reber_nc30": ("table1_summary.csv", ("context_size", 30), ("Table 1", 30),
+    "reber_nc30": ("table1_summary.csv", ("model.gating.context_size", 30), ("Table 1", 30),
                    ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov")),
-    "table2_p05": ("table2_summary.csv", ("switch_prob_task", 0.5), ("Table 2", 0.5),
+    "table2_p05": ("table2_summary.csv", ("task.switch_prob", 0.5), ("Table 2", 0.5),
                    ("switch_prob", "max_lyapunov")),
-    "table2_p025": ("table2_summary.csv", ("switch_prob_task", 0.25), ("Table 2", 0.25),
+    "table2_p025": ("table2_summary.csv", ("task.switch_prob", 0.25), ("Table 2", 0.25),
                     ("switch_prob", "max_lyapunov")),
-    "reber_nc20_no_attraction": ("table1_summary.csv", ("context_size", 20), ("Table 1", 20),
+    "reber_nc20_no_attraction": ("table1_summary.csv", ("model.gating.context_size", 20),
+                                 ("Table 1", 20),
                                  ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov")),
-    "table2_p05_paper": ("table2_summary.csv", ("switch_prob_task", 0.5), ("Table 2", 0.5),
+    "table2_p05_paper": ("table2_summary.csv", ("task.switch_prob", 0.5), ("Table 2", 0.5),
                          ("switch_prob", "max_lyapunov")),
-    "table2_p025_paper": ("table2_summary.csv", ("switch_prob_task", 0.25), ("Table 2", 0.25),
+    "table2_p025_paper": ("table2_summary.csv", ("task.switch_prob", 0.25), ("Table 2", 0.25),
                           ("switch_prob", "max_lyapunov")),
 }
 DOCS = Path(__file__).resolve().parent
@@ -211,9 +212,9 @@ def table():
             continue
         ours = pd.read_csv(DOCS / csv)
         ours = ours[(ours[key] == value) & ~ours["failed"].astype(bool)]
-        paper_frame, paper_key, n_paper = ((PAPER_TABLE1, "context_size", 50)
+        paper_frame, paper_key, n_paper = ((PAPER_TABLE1, "model.gating.context_size", 50)
                                            if name == "Table 1"
-                                           else (PAPER_TABLE2, "switch_prob_task", 30))
+                                           else (PAPER_TABLE2, "task.switch_prob", 30))
         paper_row = paper_frame.set_index(paper_key).loc[setting]
         their = theirs.loc[theirs["design"] == design, "max_lyapunov"].astype(float)
         for metric in (*metrics, "positive_percent"):

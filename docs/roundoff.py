@@ -29,12 +29,12 @@ MOVED = 0.05  # a switching probability that moved more than this counts as a ch
 
 def _table2(p: float, n: int) -> pd.DataFrame:
     runs = pd.read_csv(DOCS / "table2_summary.csv")
-    return runs[runs.switch_prob_task == p].sort_values("run").head(n)[COLUMNS]
+    return runs[runs["task.switch_prob"] == p].sort_values("run").head(n)[COLUMNS]
 
 
 def _arm(name: str) -> pd.DataFrame:
     runs = pd.read_csv(DOCS / "p05_study_summary.csv")
-    return runs[runs.arm == name].sort_values("run")[COLUMNS]
+    return runs[runs["p05_arm"] == name].sort_values("run")[COLUMNS]
 
 
 def pairs() -> pd.DataFrame:
@@ -44,7 +44,7 @@ def pairs() -> pd.DataFrame:
         "soft, P = 0.5 (R)": (_table2(0.5, 10), _arm("baseline")),
         "soft, P = 0.25 (R, CPU)": (_table2(0.25, 5),
                                     seeds[seeds["task.data_seed"] == 0][COLUMNS]),
-        "one-hot, P = 0.5 (R, CPU)": (onehot[onehot.switch_prob_task == 0.5]
+        "one-hot, P = 0.5 (R, CPU)": (onehot[onehot["task.switch_prob"] == 0.5]
                                       .sort_values("run").head(10)[COLUMNS],
                                       _arm("targets_onehot")),
     }

@@ -50,7 +50,7 @@ def table() -> tuple[pd.DataFrame, pd.DataFrame]:
     one = pd.read_csv(DOCS / "table2_summary.csv")
     rows, tests = [], []
     for _, paper in PAPER_TABLE2.iterrows():
-        p = paper["switch_prob_task"]
+        p = paper["task.switch_prob"]
         mine, theirs = at_p(own, p), at_p(one, p)
         if mine.empty:
             continue

@@ -49,7 +49,7 @@ def _one(runs: pd.DataFrame, paper: float) -> dict:
 
 def at_p(runs: pd.DataFrame, p: float) -> pd.DataFrame:
     """The networks of one P of Table 2 that did not fail."""
-    return runs[(runs["switch_prob_task"] == p) & ~runs["failed"].astype(bool)]
+    return runs[(runs["task.switch_prob"] == p) & ~runs["failed"].astype(bool)]
 
 
 def table() -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -57,7 +57,7 @@ def table() -> tuple[pd.DataFrame, pd.DataFrame]:
     soft = pd.read_csv(DOCS / "table2_summary.csv")
     rows, pairs = [], []
     for _, paper in PAPER_TABLE2.iterrows():
-        p = paper["switch_prob_task"]
+        p = paper["task.switch_prob"]
         mine, theirs = at_p(onehot, p), at_p(soft, p)
         if mine.empty:
             continue

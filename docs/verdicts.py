@@ -45,15 +45,15 @@ def _distance(values: pd.Series, paper: float, digits: str = ".3f") -> str:
 
 def _paper(table: str, setting: float, metric: str) -> float:
     """The paper's number: Table 1 by NC, Table 2 by P."""
-    frame, key = ((PAPER_TABLE1, "context_size") if table == "Table 1"
-                  else (PAPER_TABLE2, "switch_prob_task"))
+    frame, key = ((PAPER_TABLE1, "model.gating.context_size") if table == "Table 1"
+                  else (PAPER_TABLE2, "task.switch_prob"))
     return float(frame.set_index(key).loc[setting, f"paper_{metric}"])
 
 
 def _onehot(p: float) -> str:
     onehot = pd.read_csv(DOCS / "table2_onehot30_summary.csv")
     return ("one-hot targets on the same seeds (another CPU): "
-            + _distance(onehot.switch_prob[onehot.switch_prob_task == p],
+            + _distance(onehot.switch_prob[onehot["task.switch_prob"] == p],
                         _paper("Table 2", p, "switch_prob")))
 
 
@@ -112,7 +112,7 @@ def _saturated_nc10() -> str:
 
 def _table1_runs(nc: int) -> pd.DataFrame:
     reber = pd.read_csv(DOCS / "table1_summary.csv")
-    return reber[(reber["context_size"] == nc) & ~reber["failed"]]
+    return reber[(reber["model.gating.context_size"] == nc) & ~reber["failed"]]
 
 
 def _reber_test_open_nc30() -> str:
@@ -195,11 +195,11 @@ def units(table, setting, metric) -> pd.DataFrame:
         return pd.concat(frames, ignore_index=True).dropna()
     p = float(setting.removeprefix("P = "))
     two = pd.read_csv(DOCS / "table2_summary.csv")
-    two = two[(two.switch_prob_task == p) & ~two.failed.astype(bool)]
+    two = two[(two["task.switch_prob"] == p) & ~two.failed.astype(bool)]
     seeds = pd.read_csv(DOCS / DATA_SEEDS[p])
     seeds = seeds[(seeds["task.data_seed"] != 0) & ~seeds.failed.astype(bool)]
     own = pd.read_csv(DOCS / "table2_own_data_summary.csv")
-    own = own[(own.switch_prob_task == p) & ~own.failed.astype(bool)]
+    own = own[(own["task.switch_prob"] == p) & ~own.failed.astype(bool)]
     return pd.concat([frame(two, two["run"].map("seed 0 run {}".format)),
                       frame(seeds, seeds["run"].map("seed 0 run {}".format)),
                       frame(own, [f"seed {s} run {r}" for s, r in zip(own["seed"], own["run"],
@@ -317,7 +317,7 @@ def _own_data(table, setting, metric) -> str:
         return ""
     own = pd.read_csv(DOCS / "table2_own_data_summary.csv")
     p = float(setting.removeprefix("P = "))
-    runs = own[metric][(own.switch_prob_task == p) & ~own.failed.astype(bool)]
+    runs = own[metric][(own["task.switch_prob"] == p) & ~own.failed.astype(bool)]
     paper = _paper("Table 2", p, metric)
     digits = ".3f" if metric == "switch_prob" else ".3g"
     return (f"with a data set per network: {_distance(runs, paper, digits)}" if len(runs)
@@ -370,7 +370,7 @@ def _share(table, setting, paper_percent, lyapunov) -> dict:
 def verdicts() -> pd.DataFrame:
     rows = []
     for _, paper in PAPER_TABLE1.iterrows():
-        nc = int(paper["context_size"])
+        nc = int(paper["model.gating.context_size"])
         runs = _table1_runs(nc)
         for metric in ("E_g", "block_kl_train", "block_kl_test", "max_lyapunov"):
             rows.append(_row("Table 1", nc, metric, paper[f"paper_{metric}"], runs[metric]))
@@ -378,8 +378,8 @@ def verdicts() -> pd.DataFrame:
                            runs["max_lyapunov"]))
     two = pd.read_csv(DOCS / "table2_summary.csv")
     for _, paper in PAPER_TABLE2.iterrows():
-        p = paper["switch_prob_task"]
-        runs = two[(two["switch_prob_task"] == p) & ~two["failed"]]
+        p = paper["task.switch_prob"]
+        runs = two[(two["task.switch_prob"] == p) & ~two["failed"]]
         for metric in ("switch_prob", "max_lyapunov"):
             rows.append(_row("Table 2", f"P = {p:g}", metric, paper[f"paper_{metric}"],
                              runs[metric]))

@@ -221,6 +221,13 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
     """
     generator = evaluation_generator(cfg)
+    ev = cfg.eval
+    for line in progress.packed(f"evaluating {progress.counted(cfg.num_runs, 'run')}:", [
+            "the closed loop from the trained states,",
+            f"λ_max and symbols over {ev.transient} + {ev.lyapunov_steps} steps from "
+            f"{ev.num_samples} {ev.initial_states} states per run"
+            + (f", noise ρ² = {ev.noise_var:g}" if ev.noise_var else "")]):
+        log.info("%s", line)  # (no silent pause: at the paper's scale this takes minutes)
     with np.errstate(invalid="ignore"), provenance.part("evaluation"):
         rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg.eval,
                                  generator, backend, cfg.train.gating.target_temperature, stop)

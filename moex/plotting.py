@@ -374,7 +374,7 @@ def plot_expert_panels(outputs: np.ndarray, gates: np.ndarray, axes=None, title:
 
 HEAT_LABELS = {"positive_percent": r"share with $\lambda_{\max} > 0$, the paper's criterion (%)",
                "chaotic_percent": r"share chaotic: $\lambda_{\max}$ above 0 beyond its error (%)",
-               "num_series": "number of series NT", "length": "length of a series LT"}
+               "task.num_series": "number of series NT", "task.length": "length of a series LT"}
 
 
 def _column_label(column: str, sep: str = " ") -> str:
@@ -489,8 +489,8 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     ax.margins(x=0.08)
     if log_y:
         ax.set_yscale("log")
-    names_of = {"context_size": "NC (context units of the gating RNN)", "arm": "study arm",
-                "switch_prob_task": "P (the data's switching probability)"}
+    names_of = {"model.gating.context_size": "NC (context units of the gating RNN)",
+                "p05_arm": "study arm", "task.switch_prob": "P (the data's switching probability)"}
     ax.set_xlabel(f"{label(x)} (linear within ±{LINTHRESH:g}, logarithmic beyond)" if wide
                   else label(x))
     ax.set_ylabel(label(y))

@@ -18,17 +18,15 @@ from moex.progress import packed
 from moex.tasks.paper import PAPER_TABLES
 
 METRICS = REPORTED  # the metric table's columns of a report
-# settings the paper's tables and figures are keyed by, under short column names; every other
-# setting that varies between jobs becomes a column under its dotted config key
-SETTINGS = {"task.name": "task", "task.switch_prob": "switch_prob_task",
-            "task.num_series": "num_series", "task.length": "length",
-            "model.gating.context_size": "context_size", "eval.noise_var": "noise_var_setting",
-            "eval.jacobian_gates": "jacobian_gates", "eval.num_samples": "eval_samples",
-            "eval.lyapunov_steps": "eval_steps"}
+# settings the paper's tables and figures are keyed by: a column under its config key even where
+# every job agrees; every other setting that varies between jobs becomes a column too
+SETTINGS = ("task.name", "task.switch_prob", "task.num_series", "task.length",
+            "model.gating.context_size", "eval.noise_var", "eval.jacobian_gates",
+            "eval.num_samples", "eval.lyapunov_steps")
 # replicates, not settings: jobs that differ only in these pool into one row (they still tell
 # networks apart, `_network_key`)
 REPLICATES = ("seed", "task.data_seed", "source")  # source: the C tools' folders an import read
-CHOICES = {"p05_arm": "arm"}  # config groups whose chosen option is a setting
+CHOICES = ("p05_arm",)  # config groups whose chosen option is a setting (column: the group)
 # keys that are no setting of a network: where a job writes, how often it logs, what it plots,
 # and how many networks it trains (run r is seeded by (seed, r) alone: run 0 of one run and of
 # five is one network)
@@ -37,9 +35,10 @@ BOOKKEEPING = ("out_dir", "resume", "cache_dir", "run_dir", "num_runs", "eval.en
                "train.checkpoint_every", "train.experts.log_every", "train.gating.log_every",
                "plot.")
 # heat-map panels (Figs. 14, 16): setting -> the panel's title
-PANELS = {"context_size": "NC = {:g}", "noise_var_setting": "ρ² = {:g}"}
+PANELS = {"model.gating.context_size": "NC = {:g}", "eval.noise_var": "ρ² = {:g}"}
 # the settings that change a task's data (and so its switching probability)
-DATA_KEYS = ("task", "switch_prob_task", "num_series", "length", "task.transition_rule",
+DATA_KEYS = ("task.name", "task.switch_prob", "task.num_series", "task.length",
+             "task.transition_rule",
              "task.choice_prob", "task.period")
 NEAR = 0.05  # a network "switches at the data's rate" within ±NEAR (the P = 0.5 study's goal)
 
@@ -168,12 +167,13 @@ def varying_settings(jobs: list[dict]) -> list[str]:
 
 
 def _columns(varying: list[str]) -> dict[str, str]:
-    """Column name of each setting: the short names of SETTINGS and CHOICES (always present),
-    then every other varying key under its config key (a choice as its group name)."""
-    columns = dict(SETTINGS)
-    columns.update({f"choice:{group}": name for group, name in CHOICES.items()})
+    """Column name of each setting: its config key, for SETTINGS and CHOICES (always present) and
+    every other key that varies (a choice under its group's name; one named like a setting's
+    column gets the suffix `_choice`)."""
+    columns = {key: key for key in SETTINGS}
+    columns.update({f"choice:{group}": group for group in CHOICES})
     for key in varying:
-        if key not in columns:  # a choice named like a setting column (task=...) gets a suffix
+        if key not in columns:
             name = key.removeprefix("choice:")
             columns[key] = name if name not in columns.values() else f"{name}_choice"
     return columns
@@ -247,16 +247,16 @@ def paper_tables(summary: pd.DataFrame, keys: list[str]) -> dict[str, pd.DataFra
     own."""
     tables = {}
     for paper in PAPER_TABLES:
-        ours = summary[summary["task"] == paper.task]
+        ours = summary[summary["task.name"] == paper.task]
         if not len(ours) or (paper.needs_several and ours[paper.key].nunique() < 2):
             continue
-        cols = [c for c in (paper.key, *_others(keys, paper.key, "task"), *paper.columns)
+        cols = [c for c in (paper.key, *_others(keys, paper.key, "task.name"), *paper.columns)
                 if c in ours]
         tables[paper.name] = (paper.numbers.merge(ours[cols], on=paper.key, how="outer")
                               .sort_values(paper.key, ascending=not paper.descending,
                                            ignore_index=True))
-    if "arm" in summary:
-        cols = ["arm", *_others(keys, "arm"), "switch_prob_mean", "switch_prob_std",
+    if "p05_arm" in summary:
+        cols = ["p05_arm", *_others(keys, "p05_arm"), "switch_prob_mean", "switch_prob_std",
                 "data_switch_prob_mean",
                 "near_data_percent", "max_lyapunov_mean", "positive_percent", "positive_ci_low",
                 "positive_ci_high", "chaotic_percent", "undetermined_count",
@@ -291,11 +291,11 @@ def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, 
     if len(repeats):
         _write_table(sweep_dir, "repeats", repeats)
     io.write_csv(sweep_dir / "summary.csv", runs)
-    summary = aggregate(runs, keys or ["task"])
-    if "arm" in summary:  # arms in the sweep's order, not alphabetical
-        first = {arm: i for i, arm in enumerate(pd.unique(runs["arm"]))}
-        summary = summary.sort_values("arm", key=lambda a: a.map(first), ignore_index=True)
-    for k in ("task", "switch_prob_task", "context_size"):  # always present for paper tables
+    summary = aggregate(runs, keys or ["task.name"])
+    if "p05_arm" in summary:  # arms in the sweep's order, not alphabetical
+        first = {arm: i for i, arm in enumerate(pd.unique(runs["p05_arm"]))}
+        summary = summary.sort_values("p05_arm", key=lambda a: a.map(first), ignore_index=True)
+    for k in ("task.name", "task.switch_prob", "model.gating.context_size"):  # paper tables
         if k not in summary:
             summary[k] = runs[k].iloc[0]
     _write_table(sweep_dir, "by_setting", summary)
@@ -317,8 +317,7 @@ def short_summary(summary: pd.DataFrame, keys: list[str], width: int = 100) -> s
     λ_max > 0 (the paper's criterion); the whole tables are in tables/. A "name value" pair is
     never split across lines."""
     lines = []
-    for row in summary.itertuples(index=False):
-        row = row._asdict()
+    for row in summary.to_dict("records"):  # (itertuples would rename the dotted keys)
         setting = ", ".join(f"{k} {row[k]}" for k in keys if k in row) or "all runs"
         parts = [f"n {row['num_runs']}"] + [
             f"{text} {row[f'{m}_mean']:.3g}" + (f" ± {row[f'{m}_std']:.2g}"
@@ -354,12 +353,12 @@ def _panel_title(keys: list[str], values) -> str:
 
 def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> None:
     figures = sweep_dir / "figures"
-    if {"num_series", "length"} <= set(summary):
+    if {"task.num_series", "task.length"} <= set(summary):
         # one panel per value of every other setting that varies (NC, and the noise level when
         # re-evaluations add one: Fig. 16), all panels of a column in one figure; a panel only
         # where NT and LT each take two values or more and the column has a value
         others = [k for k in PANELS if k in summary] + [
-            k for k in keys if k not in ("num_series", "length", *PANELS)]
+            k for k in keys if k not in ("task.num_series", "task.length", *PANELS)]
         for column in ("E_closed_mean", "chaotic_percent", "positive_percent",
                        "nonperiodic_fraction_mean"):
             if column not in summary:
@@ -367,17 +366,17 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
             panels = [(_panel_title(others, values), group)
                       for values, group in (summary.groupby(others) if others
                                             else [((), summary)])
-                      if group["num_series"].nunique() > 1 and group["length"].nunique() > 1
-                      and group[column].notna().any()]
+                      if group["task.num_series"].nunique() > 1
+                      and group["task.length"].nunique() > 1 and group[column].notna().any()]
             if panels:
-                fig = plotting.plot_heatmaps(panels, "num_series", "length", column,
+                fig = plotting.plot_heatmaps(panels, "task.num_series", "task.length", column,
                                              _limits(summary[column], column))
                 plotting.save_figure(fig, figures / f"heatmap_{column}.png", fmt)
-    if "arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
+    if "p05_arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
         # coloured by the study arm, else by the first setting that varies (e.g. P), never one
         # colour over settings whose data differ
         data_keys = [k for k in keys if k in DATA_KEYS]  # what sets the data's switching
-        group = "arm" if runs["arm"].notna().any() or not data_keys else "setting"
+        group = "p05_arm" if runs["p05_arm"].notna().any() or not data_keys else "setting"
         if group == "setting":  # one group (and data line) per data setting, named by its keys
             runs = runs.assign(setting=[", ".join(f"{k} {v}" for k, v in zip(
                 data_keys, row, strict=True)) for row in runs[data_keys].itertuples(index=False)])
@@ -390,13 +389,13 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
                          f"on x_n")
         plotting.save_figure(fig, figures / "switch_prob_vs_lyapunov.png", fmt)
     for paper in PAPER_TABLES:  # a symbolic task's table per network: chaos and the test KL
-        ours = runs[runs["task"] == paper.task]
-        if paper.key == "context_size" and ours["context_size"].nunique() > 1 \
+        ours = runs[runs["task.name"] == paper.task]
+        nc = "model.gating.context_size"
+        if paper.key == nc and ours[nc].nunique() > 1 \
                 and {"max_lyapunov", "block_kl_test"} <= set(ours):
-            fig = plotting.plot_scatter_by(ours, "max_lyapunov", "block_kl_test", "context_size",
-                                           log_y=True)
+            fig = plotting.plot_scatter_by(ours, "max_lyapunov", "block_kl_test", nc, log_y=True)
             plotting.save_figure(fig, figures / f"{paper.name}_kl_vs_lyapunov.png", fmt)
-    liss = jobs[(jobs["status"] == "done") & jobs["switch_prob_task"].notna()
+    liss = jobs[(jobs["status"] == "done") & jobs["task.switch_prob"].notna()
                 & ~jobs["job"].str.contains("/evaluate/")]  # Fig. 9: the trained evaluation
     hists = {}
     for _, job in liss.iterrows():
@@ -405,9 +404,9 @@ def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> No
             with np.load(path) as data:
                 if "residence_hist" in data:  # cut-off stays: not in older folders
                     cut = data.get("residence_censored_hist", 0 * data["residence_hist"])
-                    hists.setdefault(job["switch_prob_task"], []).append(
+                    hists.setdefault(job["task.switch_prob"], []).append(
                         (data["residence_hist"], cut))
-    if len(hists) > 1 and liss["task"].nunique() == 1:  # one task's curves, by P
+    if len(hists) > 1 and liss["task.name"].nunique() == 1:  # one task's curves, by P
         fig = plotting.plot_residence_panels(
             {p: tuple(np.concatenate(part) for part in zip(*h, strict=True))
              for p, h in hists.items()})

@@ -67,6 +67,8 @@ def test_train_from_another_directory_leaves_the_documented_files(tmp_path, moex
     assert set(metrics["chaos"]) <= {"chaotic", "undetermined", "not chaotic"}
     log = (run_dir / "train.log").read_text()
     assert "(the paper's criterion) in" in log and "± nan" not in log
+    # the evaluation says what it does before it starts (no silent pause after training)
+    assert log.index("evaluating 2 runs:") < log.index("of 2 runs:")
     assert all(f"({label})" in page for label in metrics["chaos"])
     # 200 steps hold at most 8 laps, too few to test periods up to 100: no sample is judged
     assert (metrics["periodicity_samples"] == 0).all()

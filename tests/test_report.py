@@ -45,11 +45,11 @@ def test_tiny_paper_table2_sweep_and_report(launcher, tmp_path):
     assert "failed RuntimeError: boom" in out.stdout and "missing metrics" in out.stdout
     # the terminal gets a short summary (whole tables are in tables/), every line ≤ 100 columns
     assert max(len(line) for line in out.stdout.splitlines()[:-1]) <= 100, out.stdout
-    assert "switch_prob_task 0.5: n 2; " in out.stdout and "tables/table2.md" in out.stdout
+    assert "task.switch_prob 0.5: n 2; " in out.stdout and "tables/table2.md" in out.stdout
     table2 = pd.read_csv(sweep / "tables" / "table2.csv")
-    assert table2["switch_prob_task"].tolist() == [0.5, 0.25, 0.125]
+    assert table2["task.switch_prob"].tolist() == [0.5, 0.25, 0.125]
     assert table2["paper_switch_prob"].tolist() == [0.451033, 0.275999, 0.150866]
-    row = table2.set_index("switch_prob_task")
+    row = table2.set_index("task.switch_prob")
     assert row.loc[0.125, "num_runs"] != row.loc[0.125, "num_runs"]  # missing, not zero
     assert row.loc[0.5, "num_runs"] == 2
     assert (sweep / "tables" / "table2.md").read_text().count("missing") >= 1
@@ -123,12 +123,12 @@ def test_report_of_a_study_reads_the_arm_from_hydra_choices(tmp_path):
                    "max_lyapunov": [0.002, -0.001], "E_g": [0.002, 0.003]},
                   choices=f"      p05_arm: {arm}\n      task: lissajous2\n")
     out = report(tmp_path)
-    study = out["p05_study"].set_index("arm")
+    study = out["p05_study"].set_index("p05_arm")
     assert study.loc["baseline", "near_data_percent"] == 50
     assert study.loc["nc30", "near_data_percent"] == 100
     assert study.loc["baseline", "positive_percent"] == 50
     assert (tmp_path / "figures" / "switch_prob_vs_lyapunov.png").stat().st_size > 0
-    assert pd.read_csv(tmp_path / "tables" / "p05_study.csv")["arm"].tolist() == \
+    assert pd.read_csv(tmp_path / "tables" / "p05_study.csv")["p05_arm"].tolist() == \
         ["baseline", "nc30"]
 
 
@@ -157,7 +157,7 @@ def test_report_adds_re_evaluations_as_their_own_setting(tmp_path):
     jobs = out["jobs"].set_index("job")
     assert jobs.loc["0/evaluate/2026-11-25_09-00-00", "status"] == "done"
     assert jobs.loc["0/evaluate/2026-11-25_10-00-00", "status"] == "running or killed"
-    summary = out["summary"].set_index(["noise_var_setting", "num_series", "length"])
+    summary = out["summary"].set_index(["eval.noise_var", "task.num_series", "task.length"])
     assert summary.loc[(0.0, 2, 250), "nonperiodic_fraction_mean"] == 0.0
     assert summary.loc[(0.001, 5, 500), "nonperiodic_fraction_mean"] == 0.75
     assert (summary["num_runs"] == 2).all() and len(summary) == 8
@@ -226,7 +226,7 @@ def test_report_of_table1_tabulates_per_context_size_and_plots_each_network(tmp_
                   f"task:\n  name: reber\nmodel:\n  gating:\n    context_size: {nc}\n",
                   {"E_g": [0.1, 0.2], "block_kl_train": [1.0, 2.0], "block_kl_test": [1.5, 2.5],
                    "max_lyapunov": [0.2, -0.01]})
-    table1 = report(tmp_path)["table1"].set_index("context_size")
+    table1 = report(tmp_path)["table1"].set_index("model.gating.context_size")
     assert table1.loc[10, "block_kl_test_mean"] == 2.0 and table1.loc[10, "positive_percent"] == 50
     assert table1.loc[10, "paper_block_kl_test"] == 2.388665
     assert table1.loc[30, "num_runs"] != table1.loc[30, "num_runs"]  # not run: missing
@@ -234,7 +234,7 @@ def test_report_of_table1_tabulates_per_context_size_and_plots_each_network(tmp_
 
 
 def test_report_never_pools_a_setting_it_has_no_name_for(tmp_path):
-    """A sweep over a key the report has no short name for (the phase-2 target temperature):
+    """A sweep over a key none of the paper's tables is keyed by (the phase-2 target temperature):
     one row per value, the key named in summary.csv, by_setting, jobs and Table 2."""
     for job, (p, temperature, switch) in enumerate([(0.5, 1, [0.1, 0.2]), (0.5, 0, [0.5, 0.6]),
                                                    (0.25, 1, [0.3, 0.3]), (0.25, 0, [0.2, 0.2])]):
@@ -246,7 +246,7 @@ def test_report_never_pools_a_setting_it_has_no_name_for(tmp_path):
                   {"switch_prob": switch, "max_lyapunov": [0.1, 0.2]})
     out = report(tmp_path)
     key = "train.gating.target_temperature"
-    summary = out["summary"].set_index(["switch_prob_task", key])
+    summary = out["summary"].set_index(["task.switch_prob", key])
     assert len(summary) == 4 and (summary["num_runs"] == 2).all()
     assert summary.loc[(0.5, 1), "switch_prob_mean"] == pytest.approx(0.15)
     assert summary.loc[(0.5, 0), "switch_prob_mean"] == pytest.approx(0.55)
@@ -269,13 +269,14 @@ def test_report_groups_jobs_that_lack_a_key_apart_from_those_that_set_it(tmp_pat
 
 
 def test_a_sweep_over_a_config_group_names_the_choice_apart_from_the_setting(tmp_path):
-    """`-m task=reber,lissajous2` varies both task.name and the `task` choice: two columns."""
+    """`-m task=reber,lissajous2` varies both task.name and the `task` choice: two columns,
+    each named as the config names it."""
     for job, task in enumerate(["reber", "lissajous2"]):
         _fake_job(tmp_path / str(job), f"task:\n  name: {task}\nmodel:\n  gating:\n"
                   f"    context_size: 20\n", {"max_lyapunov": [0.1, 0.2]},
                   choices=f"      task: {task}\n")
     summary = report(tmp_path)["summary"]
-    assert summary["task"].tolist() == summary["task_choice"].tolist() and len(summary) == 2
+    assert summary["task.name"].tolist() == summary["task"].tolist() and len(summary) == 2
 
 
 def test_report_compares_runs_from_different_folders(tmp_path):
@@ -299,7 +300,7 @@ def test_report_compares_runs_from_different_folders(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     summary = pd.read_csv(tmp_path / "both" / "tables" / "by_setting.csv")
-    assert summary["context_size"].tolist() == [5, 6]
+    assert summary["model.gating.context_size"].tolist() == [5, 6]
     # provenance: both folders say what produced them, the same machine and versions
     record = json.loads((tmp_path / "nc5" / "provenance.json").read_text())[-1]
     assert record["verb"] == "train" and record["backend"] == "cpu"
@@ -383,8 +384,8 @@ def test_switching_against_lambda_draws_each_settings_own_data_line(tmp_path):
     runs, _, _, group = drawn.call_args.args[:4]
     levels = drawn.call_args.kwargs["reference"].groupby(runs[group]).mean()
     assert sorted(levels.round(2)) == [0.13, 0.26, 0.47]
-    assert set(runs[group]) == {"switch_prob_task 0.5", "switch_prob_task 0.25",
-                                "switch_prob_task 0.125"}
+    assert set(runs[group]) == {"task.switch_prob 0.5", "task.switch_prob 0.25",
+                                "task.switch_prob 0.125"}
 
 
 def test_a_report_of_unlike_runs_draws_without_a_warning(tmp_path):

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import pandas as pd
 
 PAPER_TABLE1 = pd.DataFrame({  # Reber, mean of 50 trials (Table 1)
-    "context_size": [10, 20, 30, 50],
+    "model.gating.context_size": [10, 20, 30, 50],
     "paper_E_g": [0.144868, 0.010118, 0.005721, 0.004339],
     "paper_block_kl_train": [2.511791, 0.258037, 0.051233, 0.006338],
     "paper_block_kl_test": [2.388665, 0.309089, 0.327273, 0.290858],
@@ -14,7 +14,7 @@ PAPER_TABLE1 = pd.DataFrame({  # Reber, mean of 50 trials (Table 1)
     "paper_positive_percent": [88, 98, 100, 100],
 })
 PAPER_TABLE2 = pd.DataFrame({  # two Lissajous curves, mean of 30 trials (Table 2)
-    "switch_prob_task": [0.5, 0.25, 0.125],
+    "task.switch_prob": [0.5, 0.25, 0.125],
     "paper_switch_prob": [0.451033, 0.275999, 0.150866],
     "paper_max_lyapunov": [0.001076, 0.002080, 0.002829],
     "paper_positive_percent": [93, 96, 96],
@@ -37,10 +37,10 @@ class PaperTable:
 
 
 PAPER_TABLES = (
-    PaperTable("table1", "reber", "context_size", PAPER_TABLE1,
+    PaperTable("table1", "reber", "model.gating.context_size", PAPER_TABLE1,
                ("E_g_mean", "block_kl_train_mean", "block_kl_test_mean", "max_lyapunov_mean",
                 "positive_percent", "chaotic_percent", "undetermined_count", "num_runs")),
-    PaperTable("table2", "lissajous2", "switch_prob_task", PAPER_TABLE2,
+    PaperTable("table2", "lissajous2", "task.switch_prob", PAPER_TABLE2,
                ("data_switch_prob_mean", "switch_prob_mean", "switch_prob_std",
                 "near_data_percent", "max_lyapunov_mean", "max_lyapunov_std", "positive_percent",
                 "positive_ci_low", "positive_ci_high", "chaotic_percent", "undetermined_count",
