@@ -41,6 +41,27 @@ def test_gpu_session_script_smoke_runs_every_section(tmp_path):
         "gpu_session.md", "sections.csv", "table2_jobs.csv", "table2_metrics.csv"]
 
 
+def test_the_device_session_calls_fit_a_visit_and_leave_out_the_cpu_only_tests():
+    """On a GPU the default call (sections 0, 2, 4, 5) and the second (--only 1,3) each stay
+    within 8 minutes by their sections' limits (a device command may run 10); section 1's
+    selection runs neither the interpreter smoke above (minutes, and meant for the CPU) nor the
+    AOT compiles (tests/test_gpu_aot.py)."""
+    script = (ROOT / "benchmarks" / "gpu_session.sh").read_text()
+    limits = {int(n): int(s) for n, s in re.findall(r'section (\d) "[^"]*" \\?\s*\$\(lim (\d+)\)',
+                                                    script)}
+    assert sorted(limits) == [0, 1, 2, 3, 4, 5]
+    assert 'echo 0,2,4,5' in script
+    assert sum(limits[n] for n in (0, 2, 4, 5)) <= 480 and limits[1] + limits[3] <= 480
+    selection = re.search(r'tests=\(-m "gpu or not slow" -k "([^"]+)"\)', script).group(1)
+    listed = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p",
+                             "no:cacheprovider", "-o", "addopts=", "-m", "gpu or not slow", "-k",
+                             selection, str(ROOT / "tests")], capture_output=True, text=True,
+                            timeout=300, cwd=ROOT)
+    ids = [line for line in listed.stdout.splitlines() if "::" in line]
+    assert len(ids) > 30 and "tests/test_kernels.py::test_cuda_backends_match_cpu[gpu]" in ids
+    assert not [i for i in ids if "smoke" in i or "test_gpu_aot" in i or "device_session" in i]
+
+
 def test_the_comparison_with_the_c_tools_refuses_a_folder_that_is_no_checkout(tmp_path):
     """benchmarks/bench_vs_mregn.py builds the authors' tools from a checkout the user names
     (never committed here, so CI has none): a wrong folder ends with the build script's one-line

@@ -394,10 +394,13 @@ def test_exponents_at_a_fixed_point_converge_to_log_eigenvalue_moduli(fixed_poin
 
 
 def test_nearest_symbols_match_reference(backend):
-    """Tensors in, int64 tensors out on the backend's device, the reference's symbols."""
+    """Tensors in, int64 tensors out on the backend's device, the reference's symbols; with more
+    prototypes than one of the gpu kernel's tiles, a tie between two tiles going to the first."""
     g = torch.Generator().manual_seed(0)
-    points, prototypes = torch.rand(3, 37, 2, generator=g) * 2 - 1, torch.rand(11, 2, generator=g)
-    symbols = torch.randint(0, 4, (11,), generator=g)
+    points, prototypes = torch.rand(3, 37, 2, generator=g) * 2 - 1, torch.rand(40, 2, generator=g)
+    symbols = torch.randint(0, 4, (40,), generator=g)
+    prototypes[33], symbols[33] = prototypes[2], (symbols[2] + 1) % 4  # the same point, tiles 1, 3
+    points[0, 0] = prototypes[2]
     got = backend.nearest_symbols(points, prototypes, symbols)
     assert got.dtype == torch.int64 and got.shape == (3, 37)
     assert got.device.type == torch.device(backend.device).type

@@ -27,8 +27,16 @@ from moex.kernels.gpu.lanes import TRIALS, Net, launch, pow2, strides
 from moex.kernels.gpu.rnn import _row, _tanh, device
 from moex.kernels.noise import input_noise
 
-BT = 64  # time steps per tile of the objective kernels
+BT = 64  # time steps per tile of the objective kernels, at most
+TILE = 1024  # entries of an objective kernel's (BT, K, D) tiles, at most (`time_tile`)
 BJ = 16  # lanes per tile of the attraction sum
+
+
+def time_tile(T: int, *widths: int) -> int:
+    """Time steps per tile of an objective kernel: BT, fewer where its (BT, KP, DP) tiles would
+    hold more than TILE entries (24 experts: 16 steps; at 64 the phase-1 objective spilled 1.2-1.7
+    KB per thread in its compile for an H200, `benchmarks/gpu_aot.py`)."""
+    return min(BT, pow2(T), max(8, TILE // math.prod(pow2(w) for w in widths)))
 
 
 @device
@@ -237,7 +245,7 @@ class ExpertProblem(_Problem):
                                    0.5 * math.log(2 * math.pi * std ** 2)], dtype=self.dtype,
                                   device=self.device)
         self.meta = dict(S=S, T=T, K=K, D=D, KP=pow2(K), DP=pow2(D), H=M, HP=pow2(M),
-                         OWN=int(self.own), BT=min(BT, pow2(T)), BJ=BJ)
+                         OWN=int(self.own), BT=time_tile(T, K, D), BJ=BJ)
         super().__init__(num_runs)
 
     def _net(self, copies):
@@ -281,7 +289,7 @@ class GatingProblem(_Problem):
         self.X = self.clean.clone()
         self.entropy = torch.xlogy(self.targets, self.targets).sum((1, 2, 3))
         self.const = torch.tensor([model.sigma_min ** 2], dtype=self.dtype, device=self.device)
-        self.meta = dict(S=S, T=T_g, K=K, KP=pow2(K), H=H, HP=pow2(H), BT=min(BT, pow2(T_g)),
+        self.meta = dict(S=S, T=T_g, K=K, KP=pow2(K), H=H, HP=pow2(H), BT=time_tile(T_g, K),
                          BJ=BJ)
         super().__init__(R)
 

@@ -25,8 +25,9 @@ and at the start, where c_{-1} = tanh(u_0 + b) feeds step 0 with r = W_recᵀ ε
     ∂u_0 = (1 - ε) a_0 + (1 - c_{-1}²) r,  ∂b += (1 - c_{-1}²) r.
 With the attraction, ∂u_0 += (μ - u_0) / v (μ, v: the lane's mean and floored variance of
 {u_0..u_T}, held constant). The program sums its lanes' gradients (in a fixed order: reruns are
-exact) and writes them, ∂τ = -ε² ∂ε included, into the training loop's gradient buffer; a run
-that is not active keeps what its gradients held.
+exact; the weight matrices' over the lanes at every step, so that one (H, H) sum, not one per
+lane, stays in registers through the time loop) and writes them, ∂τ = -ε² ∂ε included, into the
+training loop's gradient buffer; a run that is not active keeps what its gradients held.
 
 Real-valued constants are never kernel arguments: a Python float reaches a GPU kernel as a
 float32 scalar (ε = 0.2 became 0.2000000030 in float64 runs), so they are read from memory.
@@ -199,9 +200,6 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
         c0 = _tanh(u0 + b_c)
         zero_h = tl.zeros((BL, HP), dtype=w_rec.dtype)
         a, back, g_b_c, g_eps = zero_h, zero_h, zero_h, zero_h
-        g_w_in = tl.zeros((BL, HP, NIP), dtype=w_rec.dtype)
-        g_w_rec = tl.zeros((BL, HP, HP), dtype=w_rec.dtype)
-        g_w_out = tl.zeros((BL, NOP, HP), dtype=w_rec.dtype)
         g_b_o = tl.zeros((BL, NOP), dtype=w_rec.dtype)
         for step in range(T):
             t = T - 1 - step
@@ -215,9 +213,9 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
             a = (1.0 - eps) * a + dq
             ea = eps * a
             g_b_o += do
-            g_w_out += do[:, :, None] * c[:, None, :]
-            g_w_in += ea[:, :, None] * _row(X, xrow * T + t, ok, i, NI)[:, None, :]
-            g_w_rec += ea[:, :, None] * prev[:, None, :]
+            n_w_out += tl.sum(do[:, :, None] * c[:, None, :], axis=0)
+            n_w_in += tl.sum(ea[:, :, None] * _row(X, xrow * T + t, ok, i, NI)[:, None, :], axis=0)
+            n_w_rec += tl.sum(ea[:, :, None] * prev[:, None, :], axis=0)
             if LEARN_EPS:
                 u = _row(U, lane * T + t, ok, h, H)
                 u_prev = tl.where(first, u0, _row(U, lane * T + t - 1, before, h, H))
@@ -235,9 +233,6 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
         n_b_c += tl.sum(g_b_c + dq, axis=0)
         n_b_o += tl.sum(g_b_o, axis=0)
         n_eps += tl.sum(g_eps, axis=0)
-        n_w_in += tl.sum(g_w_in, axis=0)
-        n_w_rec += tl.sum(g_w_rec, axis=0)
-        n_w_out += tl.sum(g_w_out, axis=0)
     tl.store(G_B_C + r * sG_B_C + k * H + h, n_b_c, mask=on_h & (h < H))
     on_o = tl.load(ACTIVE + r + 0 * o) != 0
     tl.store(G_B_O + r * sG_B_O + k * NO + o, n_b_o, mask=on_o & (o < NO))

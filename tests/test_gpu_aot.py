@@ -1,0 +1,44 @@
+"""Every Triton kernel compiled for an NVIDIA H200 (sm_90a) on the CPU, at the sizes users run
+(`benchmarks/gpu_aot.py`, in a process of its own: the suite may have set up Triton's
+interpreter): no training kernel spills and none exceeds its budget, except the cases `KNOWN`
+names, which a redesign must clear (the test then fails until they leave `KNOWN`: the list is
+exact both ways). The evaluation's kernels (closed loop, symbol reader) are compiled at Table 2's
+sizes only (each of their compiles takes 5-20 s here)."""
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("triton")
+ROOT = Path(__file__).resolve().parent.parent
+SIZES = ["table2", "table2_f32", "table1_nc20", "table1_nc50", "lissajous9"]
+TRAINING = {"rnn_forward", "rnn_backward", "mixture_objective", "softmax_objective"}
+# (size, kernel, what is over): over budget today. Since the backward kernel sums its lanes'
+# weight gradients at every step, Table 2's phase 2 (80 B) and NC 50 (40 B) no longer spill; the
+# float32 phase-1 backward spills 8 B at 96 registers (BENCHMARKS.md, "Compiled for an H200")
+KNOWN = {("table2_f32", "rnn_backward", "spills 8 B")}
+
+
+@pytest.mark.parametrize("size", SIZES)
+def test_every_kernel_compiles_for_an_h200_within_its_budget(size, tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    table = tmp_path / "aot.csv"
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_aot.py"), "--sizes",
+                           size, "--csv", str(table), *([] if size == "table2" else
+                                                        ["--training"])],
+                          capture_output=True, text=True, env=env, timeout=600)
+    with open(table) as f:
+        rows = list(csv.DictReader(f))
+    kernels = {row["kernel"] for row in rows}
+    # every training kernel (a symbolic task has no phase 1), the evaluation's at Table 2
+    assert kernels >= TRAINING - ({"mixture_objective"} if size.startswith("table1") else set())
+    assert size != "table2" or {"closed_loop_kernel", "nearest_kernel"} <= kernels
+    assert all(int(row["registers"]) > 0 and int(row["instructions"]) > 0 for row in rows)
+    over = {(size, row["kernel"], problem) for row in rows if row["over budget"] != "-"
+            for problem in row["over budget"].split("; ")}
+    assert over == {k for k in KNOWN if k[0] == size}
+    assert done.returncode == (1 if over else 0), done.stderr[-2000:]
