@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("triton")
+pytestmark = pytest.mark.aot  # not in the default run: .ci/run runs `pytest -m aot` after it
 ROOT = Path(__file__).resolve().parent.parent
 SIZES = ["table2", "table2_f32", "table1_nc20", "table1_nc50", "lissajous9"]
 TRAINING = {"rnn_forward", "rnn_backward", "mixture_objective", "softmax_objective"}
