@@ -90,11 +90,11 @@ def _load(ptr, offs, mask):
     return tl.load(ptr + offs, mask=mask, other=0.0)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["N", "STEPS"])  # one compile whatever the chunk and samples
 def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
                        G_W_IN, G_W_REC, G_W_OUT, G_B_C, G_B_O, G_EPS,
                        EU, GU, XL, GL, VEU, VGU, VXL, VGL, NOISE, OUT_Y, OUT_G, OUT_U, GROWTH, N,
-                       STEPS: tl.constexpr, K: tl.constexpr, M: tl.constexpr, D: tl.constexpr,
+                       STEPS, K: tl.constexpr, M: tl.constexpr, D: tl.constexpr,
                        H: tl.constexpr, TAU: tl.constexpr, KP: tl.constexpr, MP: tl.constexpr,
                        DP: tl.constexpr, HP: tl.constexpr, TP: tl.constexpr, BN: tl.constexpr,
                        KT: tl.constexpr, KTP: tl.constexpr,
