@@ -19,7 +19,7 @@ from moex.config import Config, RunFolder
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
-from moex.pipeline import evaluation_generator, in_data_units, load_run
+from moex.pipeline import evaluation_generators, in_data_units, load_run
 from moex.run import Job, train_jobs
 from moex.tasks import Dataset, TaskConfig, user_data
 from moex.tasks.scaling import fit_scale
@@ -91,7 +91,8 @@ class Fitted:
         sizes = dict(num_samples=4, lyapunov_steps=5000, transient=500) if quick else {}
         cfg = dataclasses.replace(self.config.eval, **{**sizes, **eval_settings})
         result = evaluate(self.experts, self.beta, self.gating, self.dataset,
-                          self.config.model.delay, cfg, evaluation_generator(self.config),
+                          self.config.model.delay, cfg,
+                          evaluation_generators(self.config.seed, len(self.gating["w_out"])),
                           self.backend, self.config.train.gating.target_temperature)
         return pd.DataFrame(result.rows)
 

@@ -5,6 +5,7 @@ memory. The dynamics themselves are `moex.model.closed_loop_step` and a backend'
 import torch
 
 from moex import progress
+from moex.draws import draw
 from moex.errors import never, stop_if_asked
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import benettin, chunks, initial_tangents
@@ -42,12 +43,12 @@ def random_state(experts, gating, num_samples, num_features, delay,
     dtype = gating["w_out"].dtype
 
     def uniform(*shape):
-        return torch.rand(shape, generator=generator, dtype=dtype) * 2 - 1
+        return draw(torch.rand, shape, generator, dtype) * 2 - 1
 
     M = experts["w_rec"].shape[-1] if experts else 0
     # normalised exponentials: uniform on the probability simplex
-    e = -torch.log(torch.rand((R, num_samples, delay, K), generator=generator,
-                              dtype=dtype).clamp_min(1e-300))
+    e = -torch.log(draw(torch.rand, (R, num_samples, delay, K), generator,
+                        dtype).clamp_min(1e-300))
     return ClosedLoopState(uniform(R, num_samples, K if experts else 0, M),
                            uniform(R, num_samples, H),
                            uniform(R, num_samples, delay, num_features),
@@ -60,7 +61,7 @@ def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
     if noise_std <= 0:
         return None
     x = state.inputs[..., 0, :]
-    return torch.stack([noise_std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+    return torch.stack([noise_std * draw(torch.randn, x.shape, generator, x.dtype)
                         for _ in range(steps)], 2)
 
 

@@ -19,6 +19,7 @@ from moex.closed_loop import (
     random_state,
     trained_state,
 )
+from moex.draws import Generators
 from moex.errors import check, check_positive, never
 from moex.kernels import Backend, get_backend
 from moex.metrics import switching
@@ -193,14 +194,15 @@ def _switching_columns(symbols, winners, dataset: Dataset, cfg: EvalConfig) -> t
 
 
 def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfig,
-             generator: torch.Generator, backend: Backend | None = None,
+             generator: Generators, backend: Backend | None = None,
              target_temperature: float = 1.0, should_stop=never) -> Evaluation:
     """All metrics of R trained networks, one row per run, and arrays for the figures.
 
     Args:
         experts, beta, gating: trained parameters (experts empty and beta None for D = 0).
         dataset: the task's data (training series, labels, test data, symbol rule, period).
-        delay: τ; cfg: evaluation settings; generator: random initial states and noise.
+        delay: τ; cfg: evaluation settings; generator: random initial states, tangents and
+            noise (a list of one per run: run r's then do not depend on the other runs).
         backend: where the closed loop runs; target_temperature: that of the phase-2 targets
             (E^g is measured against the targets the gating RNN was fitted to).
         should_stop: asked between chunks of the closed loop (`Interrupted` when True).

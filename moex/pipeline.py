@@ -34,9 +34,11 @@ from moex.train import ExpertPhaseConfig, phase2_targets
 log = logging.getLogger(__name__)
 
 
-def evaluation_generator(cfg: Config) -> torch.Generator:
-    """The generator of an evaluation's random initial states and noise, fixed by the seed."""
-    return torch.Generator().manual_seed(run_seeds(cfg.seed, 1)[0] ^ 0xE7A1)
+def evaluation_generators(seed: int, num_runs: int) -> list[torch.Generator]:
+    """One generator per run for an evaluation's random initial states, tangents and noise, run
+    r's fixed by (seed, r) alone: a network's evaluation does not depend on how many are
+    evaluated beside it (run 0's is the one generator every run shared before 2026-12-04)."""
+    return [torch.Generator().manual_seed(s ^ 0xE7A1) for s in run_seeds(seed, num_runs)]
 
 
 _BUILT: dict[tuple, Dataset] = {}  # generated data sets of this process by their settings, oldest
@@ -220,7 +222,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
 
     Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
     """
-    generator = evaluation_generator(cfg)
+    generator = evaluation_generators(cfg.seed, len(gating["w_out"]))
     ev = cfg.eval
     for line in progress.packed(f"evaluating {progress.counted(cfg.num_runs, 'run')}:", [
             "the closed loop from the trained states,",

@@ -84,6 +84,33 @@ def test_the_metric_table_of_a_lissajous_task():
         assert then.switch_prob == first.switch_prob or math.isnan(first.switch_prob)
 
 
+def test_a_networks_evaluation_is_the_same_alone_and_in_a_batch():
+    """With a generator per run (`evaluation_generators`), run 0 evaluated beside another network
+    draws the same initial states, tangents and noise as alone: its metrics agree (the closed
+    loop of a batch equals its runs alone to rounding); with one generator shared by the batch
+    (before 2026-12-04) its random initial states depended on the batch."""
+    from moex.pipeline import evaluation_generators
+
+    model = ModelConfig()
+    model.experts.context_size, model.gating.context_size = 4, 5
+    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+                                                      num_test_series=1), model)
+    noisy = dataclasses.replace(QUICK, noise_var=1e-3)
+
+    def run0(runs: int, generators) -> pd.Series:
+        first = {k: v[:runs] for k, v in experts.items()}, beta[:runs], {
+            k: v[:runs] for k, v in gating.items()}
+        return pd.DataFrame(evaluate(first[0], first[1], first[2], data, 1, noisy,
+                                     generators).rows).iloc[0]
+
+    alone, batch = run0(1, evaluation_generators(7, 1)), run0(2, evaluation_generators(7, 2))
+    for column in ("E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
+                   "max_lyapunov_noisy", "max_lyapunov_se", "switch_prob"):
+        assert batch[column] == pytest.approx(alone[column], rel=1e-9, abs=1e-12), column
+    shared = run0(2, torch.Generator().manual_seed(evaluation_generators(7, 1)[0].initial_seed()))
+    assert shared["max_lyapunov"] != pytest.approx(alone["max_lyapunov"], rel=1e-9, abs=1e-12)
+
+
 def test_metrics_a_task_cannot_have_are_left_out():
     model = ModelConfig(num_experts=7)
     model.gating.context_size = 4

@@ -7,6 +7,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from moex.draws import Generators, draw
 from moex.errors import never, stop_if_asked
 
 # (tangents (B..., dim, k), steps, counted, done) -> (tangents, Σ ln |R_vv| over those steps)
@@ -14,10 +15,11 @@ Advance = Callable[[torch.Tensor, int, bool, int], tuple[torch.Tensor, torch.Ten
 
 
 def initial_tangents(state: torch.Tensor, num_exponents: int,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
-    """k random orthonormal tangent vectors (B..., dim, k) per trajectory of `state` (B..., dim)."""
+                     generator: Generators = None) -> torch.Tensor:
+    """k random orthonormal tangent vectors (B..., dim, k) per trajectory of `state` (B..., dim);
+    with a list of generators, one per entry of B's first axis (a run's own)."""
     shape = state.shape[:-1] + (state.shape[-1], num_exponents)
-    tangents = torch.randn(shape, generator=generator, dtype=torch.float64).to(state)
+    tangents = draw(torch.randn, shape, generator).to(state)
     return torch.linalg.qr(tangents)[0]
 
 
