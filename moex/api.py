@@ -20,7 +20,7 @@ from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.pipeline import evaluation_generators, in_data_units, load_run
-from moex.run import Job, train_jobs
+from moex.run import Job, run_generators, train_jobs
 from moex.tasks import Dataset, TaskConfig, user_data
 from moex.tasks.scaling import fit_scale
 from moex.train import phase2_targets
@@ -103,7 +103,7 @@ class Fitted:
         trained initial state of series k."""
         S, _, D = self.dataset.series.shape
         check(-1 <= from_series < S, f"from_series={from_series} is outside [-1, {S - 1}]")
-        generator = torch.Generator().manual_seed(seed)
+        generator = run_generators(seed, len(self.gating["w_out"]))  # run r's: (seed, r) alone
         delay = self.config.model.delay
         if from_series < 0:
             state = random_state(self.experts, self.gating, num_samples, D, delay, generator)

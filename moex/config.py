@@ -101,7 +101,7 @@ class GenerateConfig(RunFolder):
     num_samples: int = 4  # random initial states per network
     noise_var: float = 0.0  # ρ², Gaussian noise on x_n at every step (Sec. 4.3)
     from_series: int = -1  # -1: random initial states; k: the trained initial state of series k
-    seed: int = 0
+    seed: int = 0  # run r draws its initial states and noise from (seed, r) alone
 
     def __post_init__(self):
         super().__post_init__()

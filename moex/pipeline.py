@@ -27,7 +27,7 @@ from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
 from moex.metrics.table import LOGGED, METRICS
-from moex.run import Job, run_seeds, train_jobs
+from moex.run import Job, run_generators, train_jobs
 from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
 from moex.train import ExpertPhaseConfig, phase2_targets
 
@@ -38,7 +38,7 @@ def evaluation_generators(seed: int, num_runs: int) -> list[torch.Generator]:
     """One generator per run for an evaluation's random initial states, tangents and noise, run
     r's fixed by (seed, r) alone: a network's evaluation does not depend on how many are
     evaluated beside it (run 0's is the one generator every run shared before 2026-12-04)."""
-    return [torch.Generator().manual_seed(s ^ 0xE7A1) for s in run_seeds(seed, num_runs)]
+    return run_generators(seed, num_runs, salt=0xE7A1)
 
 
 _BUILT: dict[tuple, Dataset] = {}  # generated data sets of this process by their settings, oldest
@@ -419,7 +419,7 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
     run = load_run(tool)
     cfg, saved, dataset = run.cfg, run.saved, run.dataset
     experts, gating = saved.experts, saved.gating
-    generator = torch.Generator().manual_seed(tool.seed)
+    generator = run_generators(tool.seed, len(gating["w_out"]))  # run r's samples: (seed, r)
     D = dataset.series.shape[2]
     if tool.from_series < 0:
         state = random_state(experts, gating, tool.num_samples, D, cfg.model.delay, generator)

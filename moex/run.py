@@ -48,11 +48,17 @@ def run_seeds(seed: int, num_runs: int) -> list[int]:
     return [int(np.random.SeedSequence([seed, r]).generate_state(1)[0]) for r in range(num_runs)]
 
 
+def run_generators(seed: int, num_runs: int, salt: int = 0) -> list[torch.Generator]:
+    """A generator per run, run r's seeded by (seed, r) alone (and `salt`, which keeps apart the
+    streams of different uses): what run r draws does not depend on the runs beside it."""
+    return [torch.Generator().manual_seed(s ^ salt) for s in run_seeds(seed, num_runs)]
+
+
 def initial_parameters(cfg: Config, num_series: int, num_features: int,
                        dtype: torch.dtype) -> tuple[dict, dict]:
     """The experts (none when D = 0) and the gating RNN of every run before training, run r
     drawn from a generator seeded by (seed, r) alone."""
-    generators = [torch.Generator().manual_seed(s) for s in run_seeds(cfg.seed, cfg.num_runs)]
+    generators = run_generators(cfg.seed, cfg.num_runs)
     experts = (init_experts(cfg.model, num_series, num_features, generators, dtype)
                if num_features > 0 else {})
     return experts, init_gating(cfg.model, num_series, num_features, generators, dtype)

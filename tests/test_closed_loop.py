@@ -93,3 +93,21 @@ def test_gate_estimates_temperature():
     hard = gate_estimates(beta, 0.0)
     assert torch.equal(hard.argmax(-1), beta.argmax(-1)) and torch.equal(hard.sum(-1),
                                                                        torch.ones(2, 3, 5))
+
+
+def test_a_runs_random_states_and_noise_do_not_depend_on_the_runs_beside_it():
+    """With a generator per run (`moex.run.run_generators`, as `moex generate` and the evaluation
+    draw), run 0's samples from a batch of two equal its samples alone, bit for bit."""
+    from moex.run import run_generators
+
+    _, experts, gating = _model()
+
+    def run0(runs: int) -> dict:
+        first = ({k: v[:runs] for k, v in experts.items()}, {k: v[:runs] for k, v in gating.items()})
+        gens = run_generators(5, runs)
+        state = random_state(*first, 3, 2, 2, gens)
+        return generate(*first, state, 20, noise_std=0.1, generator=gens)
+
+    alone, batch = run0(1), run0(2)
+    for name in ("outputs", "gates"):
+        assert torch.equal(batch[name][:1], alone[name]), name
