@@ -103,7 +103,7 @@ def test_a_runs_random_states_and_noise_do_not_depend_on_the_runs_beside_it():
     _, experts, gating = _model()
 
     def run0(runs: int) -> dict:
-        first = ({k: v[:runs] for k, v in experts.items()}, {k: v[:runs] for k, v in gating.items()})
+        first = tuple({k: v[:runs] for k, v in net.items()} for net in (experts, gating))
         gens = run_generators(5, runs)
         state = random_state(*first, 3, 2, 2, gens)
         return generate(*first, state, 20, noise_std=0.1, generator=gens)
