@@ -74,11 +74,11 @@ def test_gate_series_labels_every_step_of_a_short_window_and_each_run_of_a_long_
 
 
 def test_scatter_draws_networks_that_belong_to_no_study_arm():
-    """A run folder that is not a study arm has an empty `arm` column: every network is still a
+    """A run folder that is not a study arm has an empty `p05_arm` column: every network is still a
     point (in one group), and the legend does not call them a study arm."""
     runs = pd.DataFrame({"max_lyapunov": [1e-3, 2e-3, -1e-5], "switch_prob": [0.4, 0.5, 0.0],
-                         "arm": [np.nan] * 3})
-    fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "arm")
+                         "p05_arm": [np.nan] * 3})
+    fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "p05_arm")
     ax = fig.axes[0]
     assert sum(len(c.get_offsets()) for c in ax.collections) == 3
     assert ax.get_legend().get_title().get_text() == ""
@@ -109,15 +109,15 @@ def test_scatter_ticks_cover_exponents_that_all_lie_near_zero():
 
     rng = np.random.default_rng(0)
     runs = pd.DataFrame({"max_lyapunov": rng.normal(0, 2e-6, 12),
-                         "switch_prob": rng.uniform(0.2, 0.21, 12), "switch_prob_task": 0.5})
-    fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "switch_prob_task")
+                         "switch_prob": rng.uniform(0.2, 0.21, 12), "task.switch_prob": 0.5})
+    fig = plotting.plot_scatter_by(runs, "max_lyapunov", "switch_prob", "task.switch_prob")
     ax = fig.axes[0]
     fig.canvas.draw()
     ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
     assert ax.get_xscale() == "linear" and 0.0 in ticks and len(ticks) >= 4
     wide = runs.assign(max_lyapunov=runs["max_lyapunov"] * 1e3)  # past ±1e-4: symlog
     assert plotting.plot_scatter_by(wide, "max_lyapunov", "switch_prob",
-                                    "switch_prob_task").axes[0].get_xscale() == "symlog"
+                                    "task.switch_prob").axes[0].get_xscale() == "symlog"
 
 
 def test_titles_count_in_words_a_reader_expects():
