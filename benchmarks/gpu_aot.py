@@ -198,6 +198,8 @@ def compile_all(launches: list[Launch]) -> list[dict]:
     from triton.backends.nvidia.compiler import get_ptxas
     from triton.compiler import ASTSource
 
+    from moex.kernels.gpu.lanes import OPTIONS
+
     tools = Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
     target = GPUTarget("cuda", 90, 32)
     ptxas = get_ptxas(target.arch).path
@@ -209,7 +211,8 @@ def compile_all(launches: list[Launch]) -> list[dict]:
             continue
         start = time.perf_counter()
         compiled = triton.compile(ASTSource(launch.kernel, launch.signature, launch.constexprs),
-                                  target=target, options={"num_warps": launch.num_warps})
+                                  target=target, options={"num_warps": launch.num_warps,
+                                                          **OPTIONS})
         shown = {k: v for k, v in launch.constexprs.items()
                  if k in ("STEPS", "KT", "TANGENT", "COUNT", "KEEP_U", "LEARN_EPS", "ATTRACT",
                           "KEEP_C", "TRIALS", "BL", "BN", "HP", "KP")}

@@ -24,7 +24,7 @@ import torch
 import triton
 import triton.language as tl
 
-from moex.kernels.gpu.lanes import launched, pow2
+from moex.kernels.gpu.lanes import OPTIONS, launched, pow2
 from moex.kernels.gpu.rnn import _tanh, device
 from moex.model import ClosedLoopRun
 
@@ -281,7 +281,7 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
         STEPS=steps, K=K, M=M, D=D, H=H, TAU=TAU, BN=samples * pad["KTP"],
         KT=max(num_tangents, 1), EXPERTS=bool(experts), TANGENT=bool(num_tangents),
         NOISY=noise is not None, COUNT=bool(count and num_tangents),
-        UNIFORM=bool(uniform_gates), KEEP_U=bool(potentials), **pad))
+        UNIFORM=bool(uniform_gates), KEEP_U=bool(potentials), **pad, **OPTIONS))
 
     def back(x, shape):
         return x.reshape(shape).to(home) if x is not dummy else torch.zeros(shape, dtype=dtype)

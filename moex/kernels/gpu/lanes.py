@@ -32,6 +32,9 @@ NUM_WARPS = _knob("MOEX_GPU_WARPS", "4")
 TRIALS = _knob("MOEX_GPU_TRIALS", "1" if INTERPRET else "4")
 COMPILED: dict[str, object] = {}  # kernel name -> the last compiled kernel launched (CUDA only)
 PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN kernels read
+# every launch's compile options beside its warps: a multiply and an add fused into one FMA, as
+# Triton 3.9 does by default and 3.10 will not (pinned, so that its bits do not change with it)
+OPTIONS = {"enable_fp_fusion": True}
 
 
 def launched(name: str, kernel) -> None:
@@ -42,7 +45,8 @@ def launched(name: str, kernel) -> None:
 
 def launch(kernel, programs: int, *args, **meta) -> None:
     """One launch of a training kernel on `programs` programs."""
-    launched(kernel.fn.__name__, kernel[(programs,)](*args, num_warps=NUM_WARPS, **meta))
+    launched(kernel.fn.__name__, kernel[(programs,)](*args, num_warps=NUM_WARPS, **OPTIONS,
+                                                     **meta))
 
 
 def kernel_report() -> list[dict]:

@@ -5,7 +5,7 @@ import torch
 import triton
 import triton.language as tl
 
-from moex.kernels.gpu.lanes import pow2
+from moex.kernels.gpu.lanes import OPTIONS, pow2
 
 PB = 16  # prototypes per tile of the kernel's loop
 
@@ -50,5 +50,6 @@ def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
     out = torch.empty(len(flat), dtype=torch.int64, device=device)
     P, block = len(proto), 128
     nearest_kernel[(triton.cdiv(len(flat), block),)](flat, proto, symbols, out, len(flat), P=P,
-                                                     D=D, DP=pow2(D), PB=PB, BLOCK=block)
+                                                     D=D, DP=pow2(D), PB=PB, BLOCK=block,
+                                                     **OPTIONS)
     return out.reshape(points.shape[:-1])
