@@ -28,7 +28,9 @@ def _knob(name: str, default: str) -> int:
 
 LANE_BUDGET = _knob("MOEX_GPU_LANE_BUDGET", "4096")
 NUM_WARPS = _knob("MOEX_GPU_WARPS", "4")
-# k candidates cost a GPU little more than one; in Triton's interpreter (a CPU) k times as much
+# k candidates are one call of k·R networks' forward passes: on a GPU k times the work in one
+# launch (what that costs is unmeasured: the session's sweep, section 3, times 1, 4 and 8); in
+# Triton's interpreter (a CPU) k times the time, so 1 there
 TRIALS = _knob("MOEX_GPU_TRIALS", "1" if INTERPRET else "4")
 COMPILED: dict[str, object] = {}  # kernel name -> the last compiled kernel launched (CUDA only)
 PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN kernels read
