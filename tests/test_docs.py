@@ -343,6 +343,46 @@ def test_the_control_labels_table_is_the_one_the_csv_gives():
     assert control.labels_markdown(frame) in (ROOT / "docs" / "mregn_control.md").read_text()
 
 
+def test_the_controls_prose_numbers_are_the_csvs():
+    """The numbers docs/mregn_control.md writes out in words for the paper-setting designs (the
+    NC 20 arm without u₀ attraction, Table 2's counts so far) are those of the per-network CSV."""
+    from math import comb
+
+    from moex.report import wilson_interval
+
+    nets = pd.read_csv(ROOT / "docs" / "mregn_control_networks.csv")
+    page = " ".join((ROOT / "docs" / "mregn_control.md").read_text().split())
+    arm = nets[nets.design == "reber_nc20_no_attraction"]
+    default = nets[nets.design == "reber_nc20"]
+    fit = int((arm.E_g < 0.02).sum())
+    assert f"all {len(arm)} networks** (E^g {arm.E_g.mean():.4f} ± {arm.E_g.std():.4f}" in page
+    assert f"(λ_max {arm.max_lyapunov.mean():.3f} ± {arm.max_lyapunov.std():.3f};" in page
+    assert (f"test KL of {arm.block_kl_test.mean():.3f} ± {arm.block_kl_test.std():.2g}, median "
+            f"{arm.block_kl_test.median():.3f}") in page
+    train = arm.block_kl_train
+    assert f"training KL of {train.mean():.3f} ± {train.std():.3f}" in page
+    assert int((default.E_g < 0.02).sum()) == 0 and fit == len(arm) == 20
+    p_fisher = 1 / comb(len(arm) + len(default), fit)  # all fit in one arm, none in the other
+    mantissa, exponent = f"{p_fisher:.0e}".split("e-")
+    superscript = exponent.lstrip("0").translate(str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹"))
+    assert f"p = 1/C({len(arm) + len(default)}, {fit}) = {mantissa}·10⁻{superscript}" in page
+    for design, p in (("table2_p05_paper", "0.5"), ("table2_p025_paper", "0.25")):
+        runs = nets[nets.design == design]
+        count = runs.chaos.value_counts()
+        positive = int((runs.max_lyapunov > 0).sum())
+        assert f"{len(runs)} networks per P so far" in page
+        if p == "0.5":
+            strict = int((runs.switch_prob >= 0.99).sum())
+            high = wilson_interval(int(count.get("chaotic", 0)), len(runs))[1]
+            assert f"(0 of {len(runs)}; 95 % Wilson interval [0, {high:.0f}] %): {strict} of " \
+                f"{len(runs)}" in page and count.get("chaotic", 0) == 0
+            assert f"λ_max > 0 in {positive} of {len(runs)} by the paper's criterion" in page
+        else:
+            assert (f"At P = 0.25: {count.get('chaotic', 0)} chaotic, "
+                    f"{count.get('undetermined', 0)} undetermined, {count.get('not chaotic', 0)} "
+                    f"not chaotic (λ_max > 0 in {positive} of {len(runs)})") in page
+
+
 def test_collecting_the_control_keeps_the_designs_imported_in_another_sitting(tmp_path,
                                                                           monkeypatch):
     """`mregn_control.py compare` reads the designs imported under <out>; the rows of designs
