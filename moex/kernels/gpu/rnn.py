@@ -31,7 +31,8 @@ training loop's gradient buffer; a run that is not active keeps what its gradien
 
 Real-valued constants are never kernel arguments: a Python float reaches a GPU kernel as a
 float32 scalar (ε = 0.2 became 0.2000000030 in float64 runs), so they are read from memory.
-Loop bounds are `tl.constexpr` (the interpreter that runs these kernels on a CPU needs it).
+Loop bounds are `tl.constexpr` (a training's sizes are fixed, so each compiles once; Triton's
+interpreter also runs runtime bounds, as the closed loop's chunk length is).
 """
 
 import os
