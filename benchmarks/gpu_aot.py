@@ -205,17 +205,17 @@ def compile_all(launches: list[Launch]) -> list[dict]:
     ptxas = get_ptxas(target.arch).path
     rows, seen = [], {}
     for launch in launches:
-        if launch.key() in seen:
-            seen[launch.key()]["sizes"] += f" {launch.size}" * (launch.size not in
-                                                                 seen[launch.key()]["sizes"])
+        if launch.key() in seen:  # the same compile at another size
+            sizes = seen[launch.key()]["sizes"].split()
+            seen[launch.key()]["sizes"] = " ".join(dict.fromkeys([*sizes, launch.size]))
             continue
         start = time.perf_counter()
         compiled = triton.compile(ASTSource(launch.kernel, launch.signature, launch.constexprs),
                                   target=target, options={"num_warps": launch.num_warps,
                                                           **OPTIONS})
         shown = {k: v for k, v in launch.constexprs.items()
-                 if k in ("STEPS", "KT", "TANGENT", "COUNT", "KEEP_U", "LEARN_EPS", "ATTRACT",
-                          "KEEP_C", "TRIALS", "BL", "BN", "HP", "KP")}
+                 if k in ("KT", "TANGENT", "COUNT", "KEEP_U", "LEARN_EPS", "ATTRACT", "KEEP_C",
+                          "BL", "BN", "HP", "KP")}
         row = {"sizes": launch.size, "kernel": launch.name,
                "dtype": "fp32" if "*fp32" in launch.signature.values() else "fp64",
                "warps": launch.num_warps, "constexprs": " ".join(f"{k}={v}" for k, v in

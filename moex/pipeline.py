@@ -222,10 +222,10 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
 
     Runs marked `failed` (non-finite during training) keep their row with NaN metrics.
     """
-    generator = evaluation_generators(cfg.seed, len(gating["w_out"]))
-    ev = cfg.eval
-    for line in progress.packed(f"evaluating {progress.counted(cfg.num_runs, 'run')}:", [
-            "the closed loop from the trained states,",
+    R, ev = len(gating["w_out"]), cfg.eval
+    generator = evaluation_generators(cfg.seed, R)
+    for line in progress.packed(f"evaluating {progress.counted(R, 'run')}:", [
+            "the closed loop from the trained states",
             f"λ_max and symbols over {ev.transient} + {ev.lyapunov_steps} steps from "
             f"{ev.num_samples} {ev.initial_states} states per run"
             + (f", noise ρ² = {ev.noise_var:g}" if ev.noise_var else "")]):
@@ -401,11 +401,10 @@ def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFram
     """Re-run the evaluation of a finished run from its checkpoint (no retraining) into
     `out_dir`: metrics.csv, samples.npz, figures/ and the evaluation settings used."""
     run = load_run(tool)
-    saved, ev = run.saved, run.cfg.eval
-    networks = progress.counted(run.cfg.num_runs, "network")
-    for line in progress.packed(f"evaluating {networks} of task {run.cfg.task.name}:", [
-            f"{ev.num_samples} samples x {ev.lyapunov_steps} steps (+{ev.transient} transient)",
-            f"noise variance {ev.noise_var:g}", f"from {tool.run_dir}", f"into {out_dir}"]):
+    saved = run.saved
+    networks = progress.counted(run.cfg.num_runs, "network")  # (how: evaluate_run's line)
+    for line in progress.packed(f"re-evaluating {networks} of task {run.cfg.task.name}",
+                                [f"from {tool.run_dir}", f"into {out_dir}"], sep=""):
         log.info("%s", line)
     metrics = evaluate_run(run.cfg, run.dataset, saved.experts, saved.beta, saved.gating,
                            Path(out_dir), saved.failed, run.backend, stop)

@@ -38,8 +38,7 @@ BOOKKEEPING = ("out_dir", "resume", "cache_dir", "run_dir", "num_runs", "eval.en
 PANELS = {"model.gating.context_size": "NC = {:g}", "eval.noise_var": "ρ² = {:g}"}
 # the settings that change a task's data (and so its switching probability)
 DATA_KEYS = ("task.name", "task.switch_prob", "task.num_series", "task.length",
-             "task.transition_rule",
-             "task.choice_prob", "task.period")
+             "task.transition_rule", "task.choice_prob", "task.period")
 NEAR = 0.05  # a network "switches at the data's rate" within ±NEAR (the P = 0.5 study's goal)
 
 
@@ -97,9 +96,9 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
                 choices, {"status": "done"} if (folder / io.METRICS).exists() else {})
     varying = [k for k in varying_settings([settings for _, _, settings, _ in found])
                if k not in REPLICATES]
-    runs, jobs = [], []
+    runs, jobs, named = [], [], _columns(varying)
     for name, folder, settings, status in found:
-        columns = {column: settings.get(key) for key, column in _columns(varying).items()}
+        columns = {column: settings.get(key) for key, column in named.items()}
         metrics_path = folder / io.METRICS
         # a job without status.json (an import, an older run) is done once its metrics exist
         state = status.get("status", "done" if metrics_path.exists() else "running or killed")
@@ -115,7 +114,7 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
                                     f"metrics.csv; fix or remove it")
             runs.append(metrics.assign(job=name, network_of=_network_key(settings), **columns))
     return (pd.concat(runs, ignore_index=True) if runs else pd.DataFrame(), pd.DataFrame(jobs),
-            [_columns(varying)[k] for k in varying])
+            [named[k] for k in varying])
 
 
 def _network_key(settings: dict) -> str:

@@ -48,8 +48,8 @@ class TaskConfig:
     def __post_init__(self):
         check(self.name in TASKS, f"task.name={self.name!r} is unknown; choose one of "
                                   f"{', '.join(closest_first(self.name, TASKS))}")
-        check(self.num_series >= (0 if self.name == "csv" else 1),
-              f"task.num_series={self.num_series} must be >= 1")
+        least = 0 if self.name == "csv" else 1  # csv: 0, every series its files hold
+        check(self.num_series >= least, f"task.num_series={self.num_series} must be >= {least}")
         check(self.num_test_series >= 0,
               f"task.num_test_series={self.num_test_series} must be >= 0")
         check(self.length >= 0 if self.name == "csv" else self.length >= 3,
