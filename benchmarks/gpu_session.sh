@@ -45,9 +45,10 @@ if [ -n "$cache" ]; then  # Triton's kernel cache, one file (a device call retur
   export TRITON_CACHE_DIR="$scratch/triton_cache"; mkdir -p "$TRITON_CACHE_DIR"
   [ -f "$cache" ] && tar xzf "$cache" -C "$TRITON_CACHE_DIR"
 fi
+py=${PYTHON:-python3}  # a relative path (PYTHON=.venv/bin/python) as seen from here, not scratch
+[[ $py == */* ]] && py=$(cd "$(dirname "$py")" && pwd)/$(basename "$py")
 cd "$scratch"  # whatever a tool leaves in its working folder (pytest caches) goes with it
 export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}"
-py=${PYTHON:-python3}
 cores=$(nproc)
 if [ $smoke = 1 ]; then  # the CPU, Triton's interpreter, toy sizes: every section, in ~2 min
   export TRITON_INTERPRET=1
