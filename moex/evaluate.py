@@ -138,7 +138,8 @@ def _train_block_kl(targets, closed_gates, cfg: EvalConfig) -> np.ndarray:
 def track_metrics(experts, targets, gating, series, delay, cfg: EvalConfig,
                   generator, backend: Backend | None = None) -> dict[str, torch.Tensor]:
     """The cheap subset tracked during training (paper Figs. 3, 6, 11): the training-data block
-    KL and the maximum Lyapunov exponent on `track_samples` × `track_steps`, per run (R,)."""
+    KL and the maximum Lyapunov exponent on `track_samples` × `track_steps` with its standard
+    error over those samples (NaN for one sample), per run (R,)."""
     with torch.no_grad():
         closed = generate(experts, gating, trained_state(experts, gating, targets, series, delay),
                           targets.shape[2], backend=backend)
@@ -148,7 +149,10 @@ def track_metrics(experts, targets, gating, series, delay, cfg: EvalConfig,
                                    min(cfg.transient, cfg.track_steps), generator,
                                    backend=backend)[..., 0]
     kl = _train_block_kl(targets, closed["gates"], cfg)
-    return {"block_kl_train": torch.as_tensor(kl), "max_lyapunov": lam.mean(1).cpu()}
+    lam = lam.cpu()
+    se = torch.tensor([standard_error(row.numpy()) for row in lam], dtype=lam.dtype)
+    return {"block_kl_train": torch.as_tensor(kl), "max_lyapunov": lam.mean(1),
+            "max_lyapunov_se": se}
 
 
 def _teacher_forced(experts, beta, gating, series, delay, targets):

@@ -76,8 +76,10 @@ LEARNING_PANELS = [  # (phase, column, title)
 
 
 def plot_history(history: pd.DataFrame, column: str, ax=None):
-    """`column` against the learning step: one line per run (its own colour) for up to 8 runs;
-    beyond, every run thin and grey with the median over runs on top."""
+    """`column` against the learning step: one line per run (its own colour) for up to 8 runs,
+    with a band of ± 2 standard errors where the history has `<column>_se` (the tracked λ_max:
+    a change inside the band is not told from the estimate's noise); beyond 8 runs, every run
+    thin and grey with the median over runs on top."""
     ax = ax or plt.figure().gca()
     data = history.dropna(subset=[column])
     runs = sorted(data["run"].unique())
@@ -87,6 +89,10 @@ def plot_history(history: pd.DataFrame, column: str, ax=None):
         if colours:  # markers where the steps are few, so that lines are not read as dense data
             ax.plot(group["step"], group[column], lw=1, color=colours[i], label=f"run {run}",
                     marker="o" if sparse else None, ms=3)
+            if f"{column}_se" in group:
+                band = 2 * group[f"{column}_se"]
+                ax.fill_between(group["step"], group[column] - band, group[column] + band,
+                                color=colours[i], alpha=0.2, lw=0)
         else:
             ax.plot(group["step"], group[column], lw=0.5, color="0.65",
                     label=f"each of {len(runs)} runs" if run == runs[0] else None)
@@ -114,7 +120,8 @@ def plot_learning_curves(history: pd.DataFrame, title: str = ""):
                              constrained_layout=True, squeeze=False)
     for ax, (phase, column, name) in zip(axes.flat, panels, strict=False):
         plot_history(history[history["phase"] == phase], column, ax=ax)
-        ax.set_title(f"{name}: {label(column)}")
+        band = " (band ± 2 s.e.)" if f"{column}_se" in history else ""
+        ax.set_title(f"{name}: {label(column)}{band}")
     for ax in list(axes.flat)[len(panels):]:
         ax.set_visible(False)
     handles, labels = axes.flat[0].get_legend_handles_labels()

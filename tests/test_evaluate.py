@@ -172,6 +172,7 @@ def test_tracking_during_training(tmp_path):
     tracked = history[(history["phase"] == "gating") & history["block_kl_train"].notna()]
     assert sorted(tracked["step"].unique()) == [0, 2, 4]
     assert tracked["max_lyapunov"].notna().all()
+    assert (tracked["max_lyapunov_se"] > 0).all()  # two samples: an error per tracking point
     data = load_task(cfg)
     series = torch.as_tensor(data.series)
     targets = gate_estimates(saved.beta)
