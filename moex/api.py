@@ -19,8 +19,10 @@ from moex.config import Config, RunFolder
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
+from moex.model import gate_estimates
 from moex.pipeline import evaluation_generators, in_data_units, load_run
 from moex.run import Job, run_generators, train_jobs
+from moex.segment import METHODS, Segmentation, responsibilities, segmentation
 from moex.tasks import Dataset, TaskConfig, user_data
 from moex.tasks.scaling import fit_scale
 from moex.train import phase2_targets
@@ -93,8 +95,45 @@ class Fitted:
         result = evaluate(self.experts, self.beta, self.gating, self.dataset,
                           self.config.model.delay, cfg,
                           evaluation_generators(self.config.seed, len(self.gating["w_out"])),
-                          self.backend, self.config.train.gating.target_temperature)
+                          self.backend, self.config.train.gating.target_temperature,
+                          sigma_min=self.config.model.sigma_min,
+                          gate_prior_std=self.config.train.experts.gate_prior_std)
         return pd.DataFrame(result.rows)
+
+    def segment(self, series: np.ndarray | None = None, labels: np.ndarray | None = None,
+                method: str = "smooth", gate_prior_std: float = 0.0) -> Segmentation:
+        """Which expert explains which step of `series` ((S, T, D) or (T, D), in the data's own
+        units; None: the training series): on new data by `method` (`smooth`: phase 1's
+        estimate with the experts held fixed, ς = `gate_prior_std` or the run's own; `filter`:
+        causal, the gating network's opening as the prior; see `moex.segment`), on the training
+        series ĝ = softmax(β) of phase 1. Returns segments.csv's table (run, series, step, expert,
+        label, gate_k) and, with labels ((S, T) or (T,) integers, -1 unknown; the training
+        data's own for None), per-run scores: adjusted Rand index, normalised mutual
+        information, accuracy after the best one-to-one matching of experts to labels."""
+        delay = self.config.model.delay
+        if series is None:
+            check(self.beta is not None, "this task has no signal to segment")
+            gates = gate_estimates(self.beta).numpy()
+            labels = self.dataset.labels if labels is None else labels
+        else:
+            series = np.asarray(series, dtype=float)
+            series = series[None] if series.ndim == 2 else series
+            D = self.dataset.series.shape[-1]
+            check(series.ndim == 3 and series.shape[-1] == D and series.shape[1] >= delay + 2,
+                  f"series must be (S, T, {D}) or (T, {D}) with T >= {delay + 2}, got shape "
+                  f"{series.shape}")
+            check(method in METHODS, f"method={method!r}; choose one of {', '.join(METHODS)}")
+            gates = responsibilities(self.experts, self.gating,
+                                     torch.as_tensor(self.dataset.scale.to_model(series)),
+                                     delay, self.config.model.sigma_min, method,
+                                     gate_prior_std or self.config.train.experts.gate_prior_std
+                                     ).numpy()
+        if labels is not None:
+            labels = np.asarray(labels)
+            labels = labels[None] if labels.ndim == 1 else labels
+            check(labels.shape == gates.shape[1:2] + (gates.shape[2] + delay,),
+                  f"labels must be (S, T) like the series, got shape {labels.shape}")
+        return segmentation(gates, labels, delay)
 
     def generate(self, steps: int = 1000, num_samples: int = 1, noise_var: float = 0.0,
                  from_series: int = -1, seed: int = 0) -> dict[str, np.ndarray]:
@@ -135,7 +174,7 @@ def load(run_dir) -> Fitted:
 
 def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
         gating_steps: int = 10000, num_runs: int = 1, seed: int = 0, scale: str = "none",
-        config: Config | None = None) -> Fitted:
+        config: Config | None = None, labels: np.ndarray | None = None) -> Fitted:
     """Train R mixtures of RNN experts on `series` (both phases, paper Sec. 2.1).
 
     Args:
@@ -145,6 +184,8 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
         num_experts, expert_steps, gating_steps, num_runs, seed: the most used settings.
         config: a full `Config` for everything else (sizes, time constants, rates, backend,
             evaluation); the keyword settings above replace its values.
+        labels: (S, T) or (T,) integer label of every step (-1 unknown), if you have them:
+            `evaluate` and `segment` then score the segmentation against them.
 
     Returns:
         a `Fitted` with the parameters, the learning history, `evaluate` and `generate`.
@@ -163,7 +204,14 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
         gating=dataclasses.replace(cfg.train.gating, steps=gating_steps))
     check(series.shape[1] >= cfg.model.delay + 2,
           f"series have {series.shape[1]} steps; need at least {cfg.model.delay + 2}")
-    dataset = user_data(*fit_scale(series, scale, "series"))
+    if labels is not None:
+        labels = np.asarray(labels)
+        labels = labels[None] if labels.ndim == 1 else labels
+        check(labels.shape == series.shape[:2], f"labels must be (S, T) like the series "
+                                                f"{series.shape[:2]}, got {labels.shape}")
+        check(np.issubdtype(labels.dtype, np.integer) and labels.min() >= -1,
+              "labels must be integers >= 0 (-1: unknown)")
+    dataset = user_data(*fit_scale(series, scale, "series"), labels)
     backend = get_backend(cfg.backend, cfg.device)
     with provenance.kept("fit", cfg.backend, cfg.device, cfg.precision) as record:
         provenance.note(backend=backend.name)

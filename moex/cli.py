@@ -48,6 +48,7 @@ verbs:
   evaluate   recompute metrics.csv, samples.npz and figures of a run folder (run_dir=...)
   generate   closed-loop samples from random initial states (run_dir=... steps=... noise_var=...)
   import     networks trained by the authors' C tools (mregn) as a moex run folder (source=...)
+  segment    which expert explains which step of new data (run_dir=... task.path=...)
   report     tables and figures of any run and sweep folders (moex report DIR [DIR ...])
 
 examples:
@@ -58,6 +59,7 @@ examples:
   moex generate run_dir=outputs/lissajous2/2026-11-24_12-00-00 steps=10000 noise_var=0.001
   moex train -m experiment=paper_table2 hydra/launcher=joblib
   moex import source=[runs/net*] task=lissajous2 task.switch_prob=0.5
+  moex segment run_dir=outputs/csv/2026-11-24_12-00-00 task.path=new.csv task.labels=activity
   moex report outputs/multirun/2026-11-24_12-00-00
 """
 
@@ -332,9 +334,11 @@ VERBS = {
     "evaluate": ("evaluate", _job(pipeline.run_evaluate, "evaluate")),
     "generate": ("generate", _job(pipeline.run_generate, "generate")),
     "import": ("import", _job(pipeline.run_import, "import")),
+    "segment": ("segment", _job(pipeline.run_segment, "segment")),
 }
 VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
-               "generate": pipeline.load_run, "import": pipeline.check_import}
+               "generate": pipeline.load_run, "import": pipeline.check_import,
+               "segment": pipeline.load_run}
 
 
 def _latest_run(task: str) -> Path:

@@ -110,6 +110,37 @@ class GenerateConfig(RunFolder):
         check(self.noise_var >= 0, f"noise_var={self.noise_var} must be >= 0")
 
 
+@dataclass
+class NewData:
+    """The series `moex segment` reads (the csv task's keys of the same names)."""
+
+    path: str = ""  # a CSV/NPY file, glob or folder ("": the run's held-out series)
+    columns: list[str] = field(default_factory=list)  # [] : the columns the run trained on
+    labels: str = ""  # a column or files of per-step labels ("": the run's label column)
+    length: int = 0  # crop every series to this many steps (0: the files' own length)
+
+    def __post_init__(self):
+        check(self.length >= 0, f"task.length={self.length} must be >= 0")
+
+
+@dataclass
+class SegmentConfig(RunFolder):
+    """`moex segment`: which expert explains which step of new data."""
+
+    task: NewData = field(default_factory=NewData)
+    method: str = "smooth"  # smooth: phase 1's estimate, experts fixed | filter: causal
+    gate_prior_std: float = 0.0  # ς of `smooth` (0: the run's train.experts.gate_prior_std)
+    smooth_steps: int = 500  # optimiser steps of `smooth`
+
+    def __post_init__(self):
+        super().__post_init__()
+        check(self.method in ("smooth", "filter"), f"method={self.method!r}; choose smooth "
+                                                    f"or filter")
+        check(self.gate_prior_std >= 0, f"gate_prior_std={self.gate_prior_std} must be >= 0 "
+                                        f"(0: the run's own)")
+        check(self.smooth_steps >= 1, f"smooth_steps={self.smooth_steps} must be >= 1")
+
+
 MIN_VARIANCE = 0.001  # the C code's compile-time floor of every expert's variance
 
 
@@ -132,6 +163,7 @@ def register_configs() -> None:
     ConfigStore.instance().store(name="base_evaluate", node=EvaluateConfig)
     ConfigStore.instance().store(name="base_generate", node=GenerateConfig)
     ConfigStore.instance().store(name="base_import", node=ImportConfig)
+    ConfigStore.instance().store(name="base_segment", node=SegmentConfig)
 
 
 def config_from_dict(data: dict) -> Config:

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from moex import objectives
+from moex import objectives, segment
 from moex.closed_loop import (
     CHUNK,
     closed_loop_lyapunov,
@@ -199,7 +199,8 @@ def _switching_columns(symbols, winners, dataset: Dataset, cfg: EvalConfig) -> t
 
 def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfig,
              generator: Generators, backend: Backend | None = None,
-             target_temperature: float = 1.0, should_stop=never) -> Evaluation:
+             target_temperature: float = 1.0, should_stop=never,
+             sigma_min: float = 0.05, gate_prior_std: float = 10.0) -> Evaluation:
     """All metrics of R trained networks, one row per run, and arrays for the figures.
 
     Args:
@@ -210,6 +211,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         backend: where the closed loop runs; target_temperature: that of the phase-2 targets
             (E^g is measured against the targets the gating RNN was fitted to).
         should_stop: asked between chunks of the closed loop (`Interrupted` when True).
+        sigma_min, gate_prior_std: σ̄ and ς of the trained model (the held-out series'
+            segmentation, `moex.segment`).
     """
     backend = backend or get_backend()
     series = torch.as_tensor(dataset.series, dtype=gating["w_out"].dtype)
@@ -299,6 +302,10 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         row.update(noise_var=cfg.noise_var, num_samples=cfg.num_samples,
                    lyapunov_samples=len(lam), lyapunov_steps=cfg.lyapunov_steps)
         rows.append(row)
+    for row, more in zip(rows, segment.evaluation_scores(experts, beta, gating, dataset, delay,
+                                                         sigma_min, gate_prior_std),
+                         strict=True):
+        row.update(more)
     samples = {name: torch.cat([k[i] for k in kept], 1)[:, -cfg.plot_steps:].numpy()
                for i, name in enumerate(("outputs", "gates", "gating_u"))}
     samples.update(residence_hist=np.stack(hist), residence_censored_hist=np.stack(censored_hist),
@@ -336,7 +343,7 @@ def _histogram(lengths: np.ndarray, top: int) -> np.ndarray:
 
 def _true_symbols(dataset: Dataset) -> list[np.ndarray]:
     """The true symbol of every step of every training series ([] when unknown)."""
-    if dataset.labels.min() < 0:
+    if dataset.labels.min() < 0 or not len(dataset.symbol_of):  # a user's labels: no symbols
         return []
     return list(dataset.symbol_of[dataset.labels])
 

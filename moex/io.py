@@ -14,6 +14,8 @@ HISTORY = "history.csv"
 METRICS = "metrics.csv"
 SAMPLES = "samples.npz"
 FIGURES = "figures"
+SEGMENTS = "segments.csv"
+SEGMENT_SCORES = "segment_scores.csv"
 EVAL_SETTINGS = "eval_config.yaml"  # the evaluation settings `moex evaluate` used
 
 

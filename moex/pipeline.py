@@ -1,6 +1,7 @@
 """The glue, testable without Hydra: task → model → phase 1 → phase 2 → checkpoint → CSV → plots."""
 
 import dataclasses
+import functools
 import logging
 import signal
 import threading
@@ -11,7 +12,17 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import budget, checkpoint, importer, io, plotting, progress, provenance, run_page
+from moex import (
+    budget,
+    checkpoint,
+    importer,
+    io,
+    plotting,
+    progress,
+    provenance,
+    run_page,
+    segment,
+)
 from moex.closed_loop import generate, random_state, trained_state
 from moex.config import (
     Config,
@@ -19,6 +30,7 @@ from moex.config import (
     GenerateConfig,
     ImportConfig,
     RunFolder,
+    SegmentConfig,
     config_from_dict,
     paper_eval_sizes,
 )
@@ -26,9 +38,11 @@ from moex.errors import ConfigError, check, never
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
+from moex.metrics.segmentation import scores as segmentation_scores
 from moex.metrics.table import LOGGED, METRICS
+from moex.model import gate_estimates
 from moex.run import Job, run_generators, train_jobs
-from moex.tasks import Dataset, Scale, make_task, planned_shape, task_of_run
+from moex.tasks import Dataset, Scale, files, make_task, planned_shape, task_of_run
 from moex.train import ExpertPhaseConfig, phase2_targets
 
 log = logging.getLogger(__name__)
@@ -232,7 +246,8 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
         log.info("%s", line)  # (no silent pause: at the paper's scale this takes minutes)
     with np.errstate(invalid="ignore"), provenance.part("evaluation"):
         rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg.eval,
-                                 generator, backend, cfg.train.gating.target_temperature, stop)
+                                 generator, backend, cfg.train.gating.target_temperature, stop,
+                                 cfg.model.sigma_min, cfg.train.experts.gate_prior_std)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
     counts = metrics.select_dtypes("integer").columns  # stay integers beside a failed run's NaN
     metrics = metrics.astype({c: "Int64" for c in counts})
@@ -243,6 +258,10 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     io.save_arrays(out_dir / io.SAMPLES, samples)
     ok = metrics[~metrics["failed"]]
     _plot_samples(samples, dataset, cfg, out_dir, metrics, cfg.eval.noise_var)
+    if beta is not None and dataset.series.shape[-1] > 0:  # which expert holds which stretch
+        write_segments(out_dir, gate_estimates(beta).numpy(), dataset.labels, cfg,
+                       "training series, ĝ = softmax(β) of phase 1",
+                       table=cfg.task.name == "csv")
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
     for line in progress.packed(f"of {progress.counted(len(ok), 'run')}:",
                                 chaos_parts(ok, cfg.eval), sep=";"):
@@ -393,7 +412,7 @@ def load_run(tool: RunFolder) -> TrainedRun:
     provenance.note(backend=backend.name, device=cfg.device, precision=cfg.precision,
                     run_dir=str(tool.run_dir))
     dataset = held_out(cfg, task_of_run(cfg.task, cfg.seed, saved.series.numpy(), Scale(
-        **saved.scale_arrays()), min_length=cfg.model.delay + 2))
+        **saved.scale_arrays()), min_length=cfg.model.delay + 2, labels=saved.labels.numpy()))
     return TrainedRun(cfg, saved, dataset, backend)
 
 
@@ -410,6 +429,80 @@ def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFram
                            Path(out_dir), saved.failed, run.backend, stop)
     io.write_yaml(Path(out_dir) / io.EVAL_SETTINGS, dataclasses.asdict(run.cfg.eval))
     return metrics
+
+
+def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, cfg: Config,
+                   what: str, table: bool = True) -> segment.Segmentation:
+    """segments.csv (with `table`), segment_scores.csv where labels are known, and
+    figures/segments.png of the run with the best adjusted Rand index (else run 0)."""
+    result = segment.segmentation(gates, labels, cfg.model.delay)
+    if table:
+        io.write_csv(out_dir / io.SEGMENTS, result.table)
+    run = 0
+    if len(result.scores):
+        io.write_csv(out_dir / io.SEGMENT_SCORES, result.scores)
+        run = int(result.scores.loc[result.scores["segment_ari"].idxmax(), "run"])
+    truth = labels[:, cfg.model.delay:] if labels is not None else None
+    matched = (segmentation_scores(truth, gates[run].argmax(-1))
+               if truth is not None and (truth >= 0).any() else {})
+    scored = (f"; ARI {matched['segment_ari']:.3f}, accuracy {matched['segment_accuracy']:.3f}"
+              if matched else "")
+    fig = plotting.plot_segments(gates[run], labels, cfg.model.delay,
+                                 matched.get("label_of_expert"),
+                                 f"winning expert per step, run {run}: {what}{scored}")
+    plotting.save_figure(fig, out_dir / io.FIGURES / "segments.png", cfg.plot.format)
+    return result
+
+
+def run_segment(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
+    """Each expert's responsibility per step on new data (the filter of moex.segment) into
+    `out_dir`: segments.csv, segment_scores.csv where labels are given, figures/segments.png."""
+    run = load_run(tool)
+    cfg, saved, dataset = run.cfg, run.saved, run.dataset
+    check(dataset.series.shape[-1] > 0, f"task {cfg.task.name} has no signal to segment (its "
+                                        f"gates are its symbols)")
+    new = tool.task
+    if new.path:
+        read = functools.partial(files.load_series, new.path, new.length, cfg.model.delay + 2,
+                                 new.columns or cfg.task.columns)
+        try:  # the run's label column where the new files have it too
+            series, labels = read(new.labels or _label_column(cfg.task))
+        except ConfigError:
+            if new.labels or not _label_column(cfg.task):
+                raise
+            series, labels = read("")
+            log.info("no column %s in %s: the segmentation is not scored", cfg.task.labels,
+                     new.path)
+        check(series.shape[-1] == dataset.series.shape[-1],
+              f"task.path={new.path} has {series.shape[-1]} features; the run was trained on "
+              f"{dataset.series.shape[-1]}")
+        series, source = dataset.scale.to_model(series), new.path
+    else:
+        check(dataset.test is not None, f"run_dir={tool.run_dir} has no held-out series; give "
+                                        f"task.path=<new data>")
+        series, labels, source = dataset.test.series, dataset.test.labels, "held-out series"
+    log.info("segmenting %s of %s (%d series x %d steps) with %s by %s", source, tool.run_dir,
+             len(series), series.shape[1], progress.counted(cfg.num_runs, "run"), tool.method)
+    prior_std = tool.gate_prior_std or cfg.train.experts.gate_prior_std
+    gates = segment.responsibilities(saved.experts, saved.gating, torch.as_tensor(series),
+                                     cfg.model.delay, cfg.model.sigma_min, tool.method,
+                                     prior_std, tool.smooth_steps).numpy()
+    how = (f"smoothed (ς = {prior_std:g})" if tool.method == "smooth"
+           else "filtered with the gating network")
+    result = write_segments(Path(out_dir), gates, labels, cfg, f"{source}, {how}")
+    if len(result.scores):
+        for line in progress.packed("scores against the labels (median over runs):", [
+                f"{name} {result.scores[column].median():.3f}" for column, name in (
+                    ("segment_ari", "adjusted Rand index"),
+                    ("segment_nmi", "normalised mutual information"),
+                    ("segment_accuracy", "accuracy after matching"))]):
+            log.info("%s", line)
+    return result.table
+
+
+def _label_column(task) -> str:
+    """The training data's label column, reused for new data (a label file is not)."""
+    return task.labels if files.is_column_name(task.labels) else ""
 
 
 def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:

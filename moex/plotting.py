@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib import colors as mcolors  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from moex.io import atomic_write  # noqa: E402
@@ -509,4 +510,49 @@ def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=No
     ax.legend(handles, labels, fontsize=7, ncol=2 if len(labels) > 8 else 1, loc="center left",
               bbox_to_anchor=(1.01, 0.5),
               title=names_of.get(group, group) if runs[group].notna().any() else None)
+    return fig
+
+
+def plot_segments(gates: np.ndarray, labels: np.ndarray | None, delay: int,
+                  label_of_expert: np.ndarray | None = None, title: str = ""):
+    """One run's segmentation of up to 3 series: per series a band of the winning expert over
+    time (argmax of gates (S, N, K), at data steps n + τ) under a band of the true labels
+    (S, T) where known. An expert matched to a label shares its colour (the best one-to-one
+    matching); unmatched experts are grey."""
+    S = min(3, len(gates))
+    K = gates.shape[-1]
+    known = labels is not None and (labels >= 0).any()
+    L = int(labels.max()) + 1 if known else 0
+    colours = palette(max(L, K))
+    if known and label_of_expert is not None:
+        expert_colours = [colours[lab] if lab >= 0 else "0.6" for lab in label_of_expert]
+    else:
+        expert_colours = colours[:K]
+    bands = 2 if known else 1
+    fig, axes = plt.subplots(S * bands, 1, figsize=(9, 0.7 * S * bands + 1.2), sharex=True,
+                             constrained_layout=True, squeeze=False)
+    axes = axes[:, 0]
+    steps = np.arange(gates.shape[1]) + delay
+    for s in range(S):
+        rows = [("expert", gates[s].argmax(-1), expert_colours)]
+        if known:
+            rows.insert(0, ("label", labels[s, delay:], colours[:L] + ["white"]))
+        for i, (name, values, cols) in enumerate(rows):
+            ax = axes[s * bands + i]
+            cmap = mcolors.ListedColormap(cols)
+            shown = np.where(values < 0, len(cols) - 1, values)  # unknown labels blank
+            ax.imshow(shown[None], aspect="auto", cmap=cmap, vmin=-0.5,
+                      vmax=len(cols) - 0.5, interpolation="nearest",
+                      extent=(steps[0] - 0.5, steps[-1] + 0.5, 0, 1))
+            ax.set_yticks([])
+            ax.set_ylabel(f"series {s}\n{name}", rotation=0, ha="right", va="center",
+                          fontsize=8)
+    axes[-1].set_xlabel("time step")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=expert_colours[k]) for k in range(K)]
+    names = [f"expert {k}" + (f" = label {label_of_expert[k]}" if known and
+                              label_of_expert is not None and label_of_expert[k] >= 0 else "")
+             for k in range(K)]
+    fig.legend(handles, names, loc="outside lower center", ncol=min(K, 6), fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=9)
     return fig

@@ -41,6 +41,7 @@ class TaskConfig:
     primitives: list[Any] = field(default_factory=list)  # markov_primitives
     transition: list[Any] = field(default_factory=list)  # markov_primitives
     path: str = ""  # csv: file, glob or folder
+    labels: str = ""  # csv: a column of per-step integer labels, or files of them (scored)
     columns: list[str] = field(default_factory=list)  # csv: columns by header name (all if [])
     scale: str = "none"  # csv: none (data must lie in [-1, 1]) | auto (each feature linearly)
     data_seed: int = -1  # the data's own seed; -1: the run's `seed` (data and networks together)
@@ -192,15 +193,19 @@ def _reber(cfg, rng):
 
 
 def _csv(cfg, rng, min_length=3):
-    series, scale = fit_scale(files.load_series(cfg.path, cfg.length, min_length, cfg.columns),
-                              cfg.scale, f"task.path={cfg.path}")
-    return user_data(series, scale)
+    series, labels = files.load_series(cfg.path, cfg.length, min_length, cfg.columns,
+                                       cfg.labels)
+    series, scale = fit_scale(series, cfg.scale, f"task.path={cfg.path}")
+    return user_data(series, scale, labels)
 
 
-def user_data(series: np.ndarray, scale: Scale | None = None) -> Dataset:
-    """A `Dataset` of a user's series (S, T, D) in model units: no labels, no symbols."""
-    return Dataset(series, -np.ones(series.shape[:2], dtype=np.int64), symbol_names=[],
-                   symbol_of=np.zeros(0, dtype=np.int64), scale=scale or Scale())
+def user_data(series: np.ndarray, scale: Scale | None = None,
+              labels: np.ndarray | None = None) -> Dataset:
+    """A `Dataset` of a user's series (S, T, D) in model units, with their labels (S, T) where
+    the user has them (-1: unknown); no symbols."""
+    labels = -np.ones(series.shape[:2], dtype=np.int64) if labels is None else labels
+    return Dataset(series, labels, symbol_names=[], symbol_of=np.zeros(0, dtype=np.int64),
+                   scale=scale or Scale())
 
 
 TASKS = {
@@ -244,12 +249,12 @@ def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
 
 
 def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, scale: Scale,
-                min_length: int = 3) -> Dataset:
+                min_length: int = 3, labels: np.ndarray | None = None) -> Dataset:
     """The data a finished run was trained on: regenerated from its seed where the task is
     generated (held-out series included), the series (in model units) and scale stored in its
-    checkpoint where it came from files (they may have moved since)."""
+    checkpoint where it came from files (they may have moved since), with their labels."""
     if cfg.name == "csv":
-        return user_data(series, scale)
+        return user_data(series, scale, labels)
     return make_task(cfg, seed, min_length)
 
 

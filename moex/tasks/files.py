@@ -13,9 +13,11 @@ from moex.errors import ConfigError, check
 SEPARATOR = r"\s*,\s*|\s+"  # commas or spaces
 
 
-def _read_text(path: str, columns: list[str]) -> np.ndarray:
+def _read_text(path: str, columns: list[str], label: str = "") -> np.ndarray:
     """One (T, D) series from a CSV/TXT file: numbers separated by commas or spaces, `#`
-    comments, an optional header row of column names (required to pick `columns` by name)."""
+    comments, an optional header row of column names (required to pick `columns` by name).
+    `label` names a column of per-step labels: it is returned as the last column and never
+    read as a feature."""
     try:
         with open(path, encoding="utf-8-sig") as f:  # a byte-order mark is not data
             text = f.read()
@@ -34,6 +36,13 @@ def _read_text(path: str, columns: list[str]) -> np.ndarray:
                       f"{fields[ragged[0]] if ragged else 0} values, expected {fields[0]})")
     frame = pd.read_csv(io.StringIO("\n".join(lines)), sep=SEPARATOR, engine="python",
                         header=0 if header else None)
+    if label:
+        check(header and label in frame.columns,
+              f"task.labels={label} is neither a column of {path} (its header: "
+              f"{', '.join(map(str, frame.columns)) if header else 'none'}) nor a file")
+        features = list(columns) or [c for c in frame.columns if c != label]
+        check(label not in features, f"task.columns lists the label column {label}")
+        columns = [*features, label]
     if columns:
         check(header, f"task.columns={list(columns)} needs a header row naming the columns "
                       f"in {path}")
@@ -58,8 +67,10 @@ def _is_number(text: str) -> bool:
         return False
 
 
-def _read_one(path: str, columns: list[str]) -> list[np.ndarray]:
+def _read_one(path: str, columns: list[str], label: str = "") -> list[np.ndarray]:
     if path.endswith(".npy"):
+        check(not label, f"task.labels={label} names a CSV column; {path} is an NPY array "
+                         f"(give the labels as a file)")
         check(not columns, f"task.columns selects CSV columns by name; {path} is an NPY array")
         try:
             array = np.load(path, allow_pickle=False)
@@ -73,24 +84,83 @@ def _read_one(path: str, columns: list[str]) -> list[np.ndarray]:
                               f"give at least one feature and one step")
         array = array.astype(float)
         return list(array) if array.ndim == 3 else [array]
-    return [_read_text(path, columns)]
+    return [_read_text(path, columns, label)]
 
 
-def load_series(pattern: str, length: int, min_length: int,
-                columns: list[str] = ()) -> np.ndarray:
+def _paths(pattern: str) -> list[str]:
+    paths = sorted(glob.glob(os.path.join(pattern, "*")) if os.path.isdir(pattern)
+                   else glob.glob(pattern))
+    return [p for p in paths if p.endswith((".csv", ".txt", ".npy")) and not os.path.isdir(p)]
+
+
+def is_column_name(labels: str) -> bool:
+    """Whether `task.labels` reads as a column name rather than a file, folder or glob."""
+    return bool(labels) and not any(c in labels for c in "/*?[") and not labels.endswith(
+        (".csv", ".txt", ".npy"))
+
+
+def _integers(values: np.ndarray, where: str) -> np.ndarray:
+    """Labels as integers >= -1 (-1: unknown), or a one-line refusal."""
+    values = np.asarray(values, dtype=float)
+    bad = np.flatnonzero(~np.isfinite(values) | (values != np.round(values)) | (values < -1))
+    check(not len(bad), f"task.labels: {where} step {bad[0] if len(bad) else 0} has label "
+                        f"{values[bad[0]] if len(bad) else 0}; labels are integers >= 0 "
+                        f"(-1: unknown)")
+    return values.astype(np.int64)
+
+
+def load_labels(pattern: str, count: int) -> list[np.ndarray]:
+    """Per-step labels (T,) of `count` series from every file matching `pattern`, in the
+    series' order: a text file of one integer per row (an optional header) per series, or an
+    NPY array (T,) or (S, T)."""
+    paths = _paths(pattern)
+    check(len(paths) > 0, f"task.labels={pattern} matches no .csv, .txt or .npy file (nor "
+                          f"names a column of the series)")
+    labels = []
+    for path in paths:
+        if path.endswith(".npy"):
+            array = np.load(path, allow_pickle=False)
+            check(array.ndim in (1, 2), f"task.labels: {path} must hold a (T,) or (S, T) array, "
+                                        f"got shape {array.shape}")
+            labels += list(array) if array.ndim == 2 else [array]
+        else:
+            table = _read_text(path, [])
+            check(table.shape[1] == 1, f"task.labels: {path} has {table.shape[1]} columns; "
+                                       f"give one label per row")
+            labels.append(table[:, 0])
+    check(len(labels) == count, f"task.labels={pattern} holds labels for {len(labels)} series; "
+                                f"the data have {count}")
+    return [_integers(v, f"series {i}") for i, v in enumerate(labels)]
+
+
+def load_series(pattern: str, length: int, min_length: int, columns: list[str] = (),
+                labels: str = "") -> tuple[np.ndarray, np.ndarray]:
     """Series (S, T, D) from every file matching `pattern` (a file, a glob or a folder).
 
     Each CSV file (rows = time steps, columns = features, an optional header row) is one series;
     `columns` picks and orders its columns by header name. An NPY file holds one (T, D) series
     or a stack (S, T, D). `length` > 0 crops every series to its first `length` steps; otherwise
     all series must have equal length.
+
+    `labels`: a column of the CSV files, or files (see `load_labels`), of per-step integer
+    labels (-1 unknown). Returns the series and their labels (S, T) (all -1 without labels).
     """
     check(bool(pattern), "task.path is empty: name a CSV/NPY file, a glob or a folder")
-    paths = sorted(glob.glob(os.path.join(pattern, "*")) if os.path.isdir(pattern)
-                   else glob.glob(pattern))
-    paths = [p for p in paths if p.endswith((".csv", ".txt", ".npy")) and not os.path.isdir(p)]
+    paths = _paths(pattern)
     check(len(paths) > 0, f"task.path={pattern} matches no .csv, .txt or .npy file")
-    sources = [(p, i, s) for p in paths for i, s in enumerate(_read_one(p, list(columns)))]
+    column = labels if is_column_name(labels) and not _paths(labels) else ""
+    sources = [(p, i, s) for p in paths
+               for i, s in enumerate(_read_one(p, list(columns), column))]
+    if column:  # the label column is the last one read
+        given = [_integers(s[:, -1], p) for p, _, s in sources]
+        sources = [(p, i, s[:, :-1]) for p, i, s in sources]
+    elif labels:
+        given = load_labels(labels, len(sources))
+    else:
+        given = [np.full(len(s), -1) for _, _, s in sources]
+    for (p, i, s), lab in zip(sources, given, strict=True):
+        check(len(lab) >= len(s), f"task.labels: series {i} of {p} has {len(s)} steps but "
+                                  f"{len(lab)} labels")
     for p, i, s in sources:  # every series of a stack, named by its index
         where = f"{p} (series {i})" if p.endswith(".npy") else p
         bad = np.flatnonzero(~np.isfinite(s).all(1))
@@ -99,14 +169,15 @@ def load_series(pattern: str, length: int, min_length: int,
         check(s.shape[1] == sources[0][2].shape[1],
               f"task.path: {where} has {s.shape[1]} columns, expected {sources[0][2].shape[1]}")
     series = [s for _, _, s in sources]
+    given = [lab[:len(s)] for lab, s in zip(given, series, strict=True)]
     lengths = {len(s) for s in series}
     if length > 0:
         check(min(lengths) >= length, f"task.length={length} exceeds the shortest series "
                                       f"({min(lengths)} steps)")
-        series = [s[:length] for s in series]
+        series, given = [s[:length] for s in series], [g[:length] for g in given]
     else:
         check(len(lengths) == 1, f"series lengths differ ({sorted(lengths)}); set task.length "
                                  f"to crop them to a common length")
     check(len(series[0]) >= min_length, f"task.path: series have {len(series[0])} steps, "
                                         f"need at least {min_length} (model.delay + 2)")
-    return np.stack(series)
+    return np.stack(series), np.stack(given)

@@ -27,6 +27,10 @@ class Scale:
         """Model outputs (..., D) in the data's units."""
         return values if self.offset is None else values * self.factor + self.offset
 
+    def to_model(self, values: np.ndarray) -> np.ndarray:
+        """Data (..., D) in the model's units (new data of a trained run)."""
+        return values if self.offset is None else (values - self.offset) / self.factor
+
     def as_dict(self) -> dict:
         return {} if self.offset is None else {"offset": self.offset, "factor": self.factor}
 

@@ -1,0 +1,164 @@
+"""Which expert explains which stretch of a recording: responsibilities on data the model has
+not seen, the table of them (segments.csv) and their scores against labels.
+
+On the training data the segmentation is the phase-1 estimate ĝ_n = softmax(β_n) (Eq. 9). New
+data are segmented from each expert's one-step prediction y^k_n (Eqs. 1-3, teacher-forced on
+the data) in one of two ways:
+
+- `smooth` (the default): the training data's own estimate. β of the new series maximises
+  Σ_n ln Σ_k softmax(β_n)_k N(y_{n+τ}; y^k_n, σ_k² I) + ln φ(β) (Eqs. 10-13) with the trained
+  experts held fixed (Adam, a fixed number of steps from β = 0), and ĝ_n = softmax(β_n). It
+  uses the whole series: the Brownian prior φ (scale ς) ties each step to its neighbours.
+- `filter`: causal, with the gating network's opening g_n (Eqs. 5-8) run on the data as the
+  prior of the mixture's posterior,
+
+      r^k_n = g^k_n N(y_{n+τ}; y^k_n, σ_k² I) / Σ_j g^j_n N(y_{n+τ}; y^j_n, σ_j² I),
+
+  where r_n takes the place of ĝ_n in the gating network's feedback (it is fed r_{n-τ} and
+  x_{n-τ} as it was fed ĝ_{n-τ} and x_{n-τ} in phase 2); g_n = 1/K for n < τ. Usable online;
+  it follows a switch only once the data tell the experts apart, so it lags where primitives
+  meet.
+
+Both networks start from the mean of their trained initial states over the training series, so
+the first steps are a transient.
+"""
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import pandas as pd
+import torch
+
+from moex.metrics.segmentation import scores
+from moex.model import expert_forward, expert_variances, gate_estimates, leaky_scan
+from moex.objectives import gate_prior_log_density
+
+
+def _from_mean_state(params: dict[str, torch.Tensor], num_series: int) -> dict:
+    """The parameters with u0 (R, S, ...) replaced by its mean over the S training series,
+    repeated for `num_series` new ones."""
+    u0 = params["u0"].mean(1, keepdim=True)
+    return {**params, "u0": u0.expand(u0.shape[0], num_series, *u0.shape[2:]).contiguous()}
+
+
+def log_likelihoods(experts, series: torch.Tensor, delay: int,
+                    sigma_min: float) -> torch.Tensor:
+    """ln N(y_{n+τ}; y^k_n, σ_k² I) of every expert (R, S, T - τ, K) on series (S, T, D)."""
+    experts = _from_mean_state(experts, series.shape[0])
+    outputs, _ = expert_forward(experts, series[:, :-delay])  # (R, S, N, K, D)
+    var = expert_variances(experts, sigma_min)[:, None, None]  # (R, 1, 1, K)
+    D = series.shape[-1]
+    sq_err = (outputs - series[:, delay:, None]).square().sum(-1)
+    return -0.5 * D * torch.log(2 * math.pi * var) - sq_err / (2 * var)
+
+
+METHODS = ("smooth", "filter")
+
+
+def responsibilities(experts, gating, series: torch.Tensor, delay: int, sigma_min: float,
+                     method: str = "smooth", prior_std: float = 10.0,
+                     steps: int = 500) -> torch.Tensor:
+    """Each expert's responsibility (R, S, T - τ, K) for the steps of series (S, T, D) in
+    model units, by `method` (the module's docstring): `prior_std` is ς and `steps` the
+    optimiser's steps of `smooth`."""
+    with torch.no_grad():
+        log_p = log_likelihoods(experts, series.to(experts["w_in"].dtype), delay, sigma_min)
+    if method == "smooth":
+        return smoothed(log_p, prior_std, steps)
+    with torch.no_grad():
+        R, S, N, K = log_p.shape
+        gating = _from_mean_state(gating, S)
+        eps, bias = 1 / gating["tau"][:, None], gating["b_c"][:, None]
+        inputs = series.to(log_p.dtype).expand(R, *series.shape)
+        u, log_g = gating["u0"], torch.full((R, S, K), -math.log(K), dtype=log_p.dtype)
+        out = torch.empty_like(log_p)
+        for n in range(N):
+            if n >= delay:  # the gating network fed r_{n-τ} and x_{n-τ} (Eqs. 5-8)
+                feed = torch.cat([out[:, :, n - delay], inputs[:, :, n - delay]], -1)
+                drive = torch.einsum("rhi,rsi->rsh", gating["w_in"], feed)[:, None]
+                u, c = leaky_scan(drive, gating["w_rec"], eps, bias, u)
+                u, c = u[:, 0], c[:, 0]
+                log_g = torch.log_softmax(torch.einsum("rkh,rsh->rsk", gating["w_out"], c)
+                                          + gating["b_o"][:, None], -1)
+            out[:, :, n] = torch.softmax(log_g + log_p[:, :, n], -1)
+        return out
+
+
+def smoothed(log_p: torch.Tensor, prior_std: float, steps: int = 500,
+             rate: float = 0.1) -> torch.Tensor:
+    """ĝ (R, S, N, K) of the `smooth` method from the experts' log-likelihoods (R, S, N, K)."""
+    beta = torch.zeros_like(log_p, requires_grad=True)
+    optimiser = torch.optim.Adam([beta], lr=rate)
+    for _ in range(steps):
+        optimiser.zero_grad()
+        objective = (torch.logsumexp(torch.log_softmax(beta, -1) + log_p, -1).sum()
+                     + gate_prior_log_density(beta, prior_std).sum())
+        (-objective).backward()
+        optimiser.step()
+    return torch.softmax(beta.detach(), -1)
+
+
+def table(gates: np.ndarray, labels: np.ndarray | None, delay: int) -> pd.DataFrame:
+    """segments.csv: one row per run, series and step (the data step the gates explain, n + τ),
+    the winning expert, every expert's responsibility (gate_k) and the label where known."""
+    R, S, N, K = gates.shape
+    run, series, step = np.meshgrid(np.arange(R), np.arange(S), np.arange(N) + delay,
+                                    indexing="ij")
+    frame = pd.DataFrame({"run": run.ravel(), "series": series.ravel(), "step": step.ravel(),
+                          "expert": gates.argmax(-1).ravel()})
+    if labels is not None and (labels >= 0).any():
+        frame["label"] = np.broadcast_to(labels[None, :, delay:], (R, S, N)).ravel()
+    for k in range(K):
+        frame[f"gate_{k}"] = gates[..., k].ravel()
+    return frame
+
+
+def run_scores(gates: np.ndarray, labels: np.ndarray, delay: int,
+               suffix: str = "") -> list[dict]:
+    """Per run: ARI, NMI and matched accuracy of the winning expert against the labels of the
+    steps it explains (labels (S, T), -1 unknown); [] where no step is labelled."""
+    truth = labels[:, delay:]
+    if not (truth >= 0).any():
+        return [{} for _ in gates]
+    rows = []
+    for run_gates in gates:
+        found = scores(truth, run_gates.argmax(-1))
+        found.pop("label_of_expert")
+        rows.append({f"{k}{suffix}": float(v) for k, v in found.items()})
+    return rows
+
+
+def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: float,
+                      prior_std: float) -> list[dict]:
+    """Per run, where the data have labels: the segmentation of the training series by ĝ
+    (segment_ari, segment_nmi, segment_accuracy) and of the held-out series by the `smooth`
+    method (the same with _test)."""
+    R = len(gating["w_out"])
+    if beta is None or (dataset.labels < 0).all():
+        return [{} for _ in range(R)]
+    rows = run_scores(gate_estimates(beta).numpy(), dataset.labels, delay)
+    test = dataset.test
+    if test is not None and (test.labels >= 0).any():
+        gates = responsibilities(experts, gating, torch.as_tensor(test.series), delay, sigma_min,
+                                 prior_std=prior_std)
+        for row, more in zip(rows, run_scores(gates.numpy(), test.labels, delay, "_test"),
+                             strict=True):
+            row.update(more)
+    return rows
+
+
+class Segmentation(NamedTuple):
+    """segments.csv's table and, where labels are known, one row of scores per run (else an
+    empty frame)."""
+
+    table: pd.DataFrame
+    scores: pd.DataFrame
+
+
+def segmentation(gates: np.ndarray, labels: np.ndarray | None, delay: int) -> Segmentation:
+    """The table and scores of responsibilities (R, S, N, K) against labels (S, T) or None."""
+    known = labels is not None and (labels >= 0).any()
+    scores_ = pd.DataFrame([{"run": r, **row} for r, row in
+                            enumerate(run_scores(gates, labels, delay))] if known else [])
+    return Segmentation(table(gates, labels, delay), scores_)
