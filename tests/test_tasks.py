@@ -147,3 +147,18 @@ def test_data_seed_sets_the_data_apart_from_the_networks():
     np.testing.assert_array_equal(make_task(fixed, 0).series, own)  # seed no longer matters
     np.testing.assert_array_equal(make_task(fixed, 7).series, own)
     assert not np.array_equal(make_task(base, 0).series, own)
+
+
+def test_a_csv_reads_back_exactly_and_a_word_in_it_is_refused(tmp_path):
+    """Every written digit is kept (the nearest double, whatever pandas parses with: pandas 3.0
+    lost the last bit of some); a cell that is not a number names its row."""
+    from moex.tasks import files
+
+    values = np.random.default_rng(1).uniform(-0.5, 0.5, (50, 2))
+    np.savetxt(tmp_path / "a.csv", values, delimiter=",", fmt="%.17g", header="x,y",
+               comments="")
+    series, _ = files.load_series(str(tmp_path / "a.csv"), 0, 3)
+    np.testing.assert_array_equal(series[0], values)
+    (tmp_path / "b.csv").write_text("x,y\n0.1,0.2\n0.3,abc\n0.5,0.6\n")
+    with pytest.raises(ConfigError, match=r"b.csv data row 2 is not numeric \(0.3, abc\)"):
+        files.load_series(str(tmp_path / "b.csv"), 0, 3)

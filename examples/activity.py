@@ -1,0 +1,159 @@
+"""A real recording, segmented by moex and, on the same arrays, by a Gaussian HMM and k-means.
+
+The data: BasicMotions (Clements, UEA multivariate archive), shipped inside sktime: a smart
+watch's 3-axis accelerometer and 3-axis gyroscope (6 channels, 10 Hz, 10 s per exemplar) while
+its wearer stands, walks, runs or plays badminton; 40 exemplars for training and 40 for
+testing, 10 per activity each. Exemplars are joined into series by a Markov chain over the
+activities (stay with probability 0.5, else one of the other three): 6 training series of 10
+exemplars (1000 steps) from the training exemplars, 4 held-out series from the test exemplars.
+Each channel is standardised with the training series' mean and SD.
+
+Then, with the CLI: `moex train task=csv task.labels=<file> task.scale=auto` (4 experts, 3 runs)
+and `moex segment` on the held-out series; beside it hmmlearn's GaussianHMM (4 states, full
+covariances, Viterbi path; 3 seeds) and scikit-learn's KMeans (4 clusters on the steps'
+6-vectors; 3 seeds), fitted to the training series and applied to both. Every method is scored
+by moex.metrics.segmentation: adjusted Rand index, normalised mutual information, accuracy after
+the best one-to-one matching.
+
+    pip install -e ".[compare]"      # hmmlearn, scikit-learn, sktime (the data)
+    python examples/activity.py OUT  # writes OUT/scores.csv, OUT/summary.md, the run folders
+
+Re-running the same command keeps finished work (the trained run, the segmentation).
+"""
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from moex.metrics.segmentation import scores
+
+STAY = 0.5  # the Markov chain's probability of repeating an activity
+SEEDS = (0, 1, 2)
+MOEX = [sys.executable, "-c", "from moex.launch import main; main()"]
+
+
+def chain(exemplars: dict[int, np.ndarray], count: int, per_series: int,
+          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """`count` series of `per_series` exemplars (T, D each) joined along time, the activity
+    drawn by the Markov chain (stay STAY, else uniform over the others); each exemplar is drawn
+    at random from its activity. Returns series (count, T, D) and labels (count, T)."""
+    classes = sorted(exemplars)
+    series, labels = [], []
+    for _ in range(count):
+        c, parts, tags = rng.choice(classes), [], []
+        for _ in range(per_series):
+            pick = exemplars[c][rng.integers(len(exemplars[c]))]
+            parts.append(pick)
+            tags.append(np.full(len(pick), c))
+            if rng.random() >= STAY:
+                c = rng.choice([o for o in classes if o != c])
+        series.append(np.concatenate(parts))
+        labels.append(np.concatenate(tags))
+    return np.stack(series), np.stack(labels)
+
+
+def recording(rng: np.random.Generator):
+    """Training and held-out series with their labels, and the activities' names."""
+    from sktime.datasets import load_basic_motions
+
+    split = {}
+    for name in ("train", "test"):
+        X, y = load_basic_motions(split=name, return_type="numpy3D")
+        split[name] = (X.transpose(0, 2, 1), y)  # (exemplars, T, D)
+    names = sorted(set(split["train"][1]))
+    exemplars = {name: {i: X[y == n] for i, n in enumerate(names)}
+                 for name, (X, y) in split.items()}
+    train, train_labels = chain(exemplars["train"], 6, 10, rng)
+    test, test_labels = chain(exemplars["test"], 4, 10, rng)
+    mean, sd = train.mean((0, 1)), train.std((0, 1))
+    return (train - mean) / sd, train_labels, (test - mean) / sd, test_labels, names
+
+
+def baselines(train, train_labels, test, test_labels) -> list[dict]:
+    """The HMM's and k-means' scores on both sets, one row per method, data and seed."""
+    from hmmlearn.hmm import GaussianHMM
+    from sklearn.cluster import KMeans
+
+    rows = []
+    K = len(np.unique(train_labels))
+    for seed in SEEDS:
+        hmm = GaussianHMM(K, covariance_type="full", n_iter=200, random_state=seed)
+        hmm.fit(train.reshape(-1, train.shape[-1]), [train.shape[1]] * len(train))
+        kmeans = KMeans(K, n_init=10, random_state=seed).fit(train.reshape(-1, train.shape[-1]))
+        for method, model in (("Gaussian HMM", hmm), ("k-means", kmeans)):
+            for data, x, y in (("train", train, train_labels), ("test", test, test_labels)):
+                found = np.stack([model.predict(s) for s in x])
+                rows.append({"method": method, "data": data, "run": seed,
+                             **_scores(y, found)})
+    return rows
+
+
+def _scores(truth, found) -> dict:
+    got = scores(truth, found)
+    return {k: float(v) for k, v in got.items() if k != "label_of_expert"}
+
+
+def moex_rows(out: Path, train, train_labels, test, test_labels, steps) -> list[dict]:
+    """moex trained and segmenting with the CLI; its scores on both sets, one row per run."""
+    for name, array in (("train", train), ("train_labels", train_labels), ("test", test),
+                        ("test_labels", test_labels)):
+        np.save(out / f"{name}.npy", array)
+    run = out / "run"
+    if not (run / "metrics.csv").is_file():
+        subprocess.run(MOEX + ["train", "task=csv", f"task.path={out}/train.npy",
+                               f"task.labels={out}/train_labels.npy", "task.scale=auto",
+                               "model.num_experts=4", f"num_runs={len(SEEDS)}", "eval=quick",
+                               f"train.experts.steps={steps[0]}",
+                               f"train.gating.steps={steps[1]}", f"hydra.run.dir={run}"],
+                       check=True)
+    segmented = out / "segment"
+    if not (segmented / "segment_scores.csv").is_file():
+        subprocess.run(MOEX + ["segment", f"run_dir={run}", f"task.path={out}/test.npy",
+                               f"task.labels={out}/test_labels.npy", f"out_dir={segmented}"],
+                       check=True)
+    columns = ["segment_ari", "segment_nmi", "segment_accuracy"]
+    trained = pd.read_csv(run / "metrics.csv")[["run", *columns]]
+    tested = pd.read_csv(segmented / "segment_scores.csv")[["run", *columns]]
+    return [{"method": "moex", "data": data, **row}
+            for data, frame in (("train", trained), ("test", tested))
+            for row in frame.to_dict("records")]
+
+
+NAMES = {"segment_ari": "adjusted Rand index", "segment_nmi": "normalised mutual information",
+         "segment_accuracy": "accuracy after matching"}
+
+
+def summary(frame: pd.DataFrame) -> str:
+    """The page's table: median (smallest-largest) over runs or seeds, per method and data."""
+    lines = ["| method | data | runs | " + " | ".join(NAMES.values()) + " |",
+             "|---|---|---|" + "---|" * len(NAMES)]
+    for (method, data), part in frame.groupby(["method", "data"], sort=False):
+        cells = [f"{part[c].median():.2f} ({part[c].min():.2f}-{part[c].max():.2f})"
+                 for c in NAMES]
+        lines.append(f"| {method} | {data} | {len(part)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--steps", type=int, nargs=2, default=(5000, 2000),
+                        metavar=("PHASE1", "PHASE2"))
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    train, train_labels, test, test_labels, names = recording(np.random.default_rng(0))
+    print(f"activities {', '.join(names)}; training {train.shape}, held-out {test.shape}")
+    rows = moex_rows(args.out, train, train_labels, test, test_labels, args.steps)
+    rows += baselines(train, train_labels, test, test_labels)
+    frame = pd.DataFrame(rows)
+    frame.to_csv(args.out / "scores.csv", index=False)
+    (args.out / "summary.md").write_text(summary(frame) + "\n")
+    print(summary(frame))
+
+
+if __name__ == "__main__":
+    main()
