@@ -24,7 +24,7 @@ from moex.pipeline import evaluation_generators, in_data_units, load_run
 from moex.run import Job, run_generators, train_jobs
 from moex.segment import METHODS, Segmentation, responsibilities, segmentation
 from moex.tasks import Dataset, TaskConfig, user_data
-from moex.tasks.scaling import fit_scale
+from moex.tasks.scaling import fit_scale, noise_floor
 from moex.train import phase2_targets
 
 
@@ -212,6 +212,8 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
         check(np.issubdtype(labels.dtype, np.integer) and labels.min() >= -1,
               "labels must be integers >= 0 (-1: unknown)")
     dataset = user_data(*fit_scale(series, scale, "series"), labels)
+    if cfg.model.sigma_min == "auto":
+        cfg.model = dataclasses.replace(cfg.model, sigma_min=noise_floor(dataset.series))
     backend = get_backend(cfg.backend, cfg.device)
     with provenance.kept("fit", cfg.backend, cfg.device, cfg.precision) as record:
         provenance.note(backend=backend.name)

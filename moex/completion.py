@@ -10,9 +10,10 @@ import os
 import sys
 from pathlib import Path
 
-VERBS = ("train", "evaluate", "generate", "import", "report")
+VERBS = ("train", "evaluate", "generate", "import", "segment", "report")
 KEYS = Path(__file__).with_name("completion_keys.json")
-CONFIGS = {"train": "config", "evaluate": "evaluate", "generate": "generate", "import": "import"}
+CONFIGS = {"train": "config", "evaluate": "evaluate", "generate": "generate", "import": "import",
+           "segment": "segment"}
 
 
 def candidates(line: str) -> list[str]:

@@ -24,11 +24,11 @@ same functions and are tested against these.
 """
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 
-from moex.errors import check, check_positive, check_range
+from moex.errors import check, check_range
 
 INIT_SCHEMES = ("paper", "mregn")
 
@@ -57,7 +57,8 @@ class ModelConfig:
 
     num_experts: int = 2  # K (the paper's N)
     delay: int = 1  # τ, feedback delay of Eq. 5 and of the closed loop
-    sigma_min: float = 0.05  # σ̄, the floor of every expert's σ (v = e^{2s} + σ̄², as in the C code)
+    sigma_min: Any = 0.05  # σ̄, the floor of every expert's σ (v = e^{2s} + σ̄², as in the C code);
+    # "auto": from the data's one-step variability when the data are read (tasks.noise_floor)
     init: str = "paper"
     learn_time_constants: bool = False
     experts: ExpertsConfig = field(default_factory=ExpertsConfig)
@@ -66,7 +67,12 @@ class ModelConfig:
     def __post_init__(self):
         check(self.num_experts >= 1, f"model.num_experts={self.num_experts} must be >= 1")
         check(self.delay >= 1, f"model.delay={self.delay} must be >= 1 (τ >= 1)")
-        check_positive("model.sigma_min", self.sigma_min)
+        if self.sigma_min != "auto":
+            number = isinstance(self.sigma_min, int | float)
+            check(number and self.sigma_min > 0, f"model.sigma_min="
+                  f"{float(self.sigma_min) if number else self.sigma_min} must be positive, "
+                  f"or auto")
+            self.sigma_min = float(self.sigma_min)
         check(self.init in INIT_SCHEMES, f"model.init={self.init!r}; choose paper or mregn")
         for key, sub in (("model.experts", self.experts), ("model.gating", self.gating)):
             check(sub.context_size >= 1, f"{key}.context_size={sub.context_size} must be >= 1")

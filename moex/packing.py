@@ -46,10 +46,11 @@ class Planned:
 def prepare(cfg: Config, out_dir: Path) -> Planned:
     """A job ready to pack, or one left to run alone (its own run reports any error)."""
     try:
+        dataset = load_task(cfg)  # (first: it settles the data's defaults, sigma_min=auto)
         saved = open_checkpoint(cfg, out_dir)
         if saved is not None and saved.phase == "done":
             return Planned(cfg, out_dir)
-        return Planned(cfg, out_dir, Job(cfg, load_task(cfg), out_dir, saved))
+        return Planned(cfg, out_dir, Job(cfg, dataset, out_dir, saved))
     except ConfigError:
         return Planned(cfg, out_dir)
 

@@ -43,6 +43,7 @@ from moex.metrics.table import LOGGED, METRICS
 from moex.model import gate_estimates
 from moex.run import Job, run_generators, train_jobs
 from moex.tasks import Dataset, Scale, files, make_task, planned_shape, task_of_run
+from moex.tasks.scaling import WINDOW, noise_floor
 from moex.train import ExpertPhaseConfig, phase2_targets
 
 log = logging.getLogger(__name__)
@@ -98,7 +99,8 @@ def held_out(cfg: Config, dataset: Dataset) -> Dataset:
 
 def load_task(cfg: Config) -> Dataset:
     """The task's data, checked against the model config and the memory a training on it needs
-    (a `ConfigError` if they disagree, before generating data that could not be trained on)."""
+    (a `ConfigError` if they disagree, before generating data that could not be trained on).
+    `model.sigma_min=auto` is replaced in `cfg` by the value the data give."""
     check(cfg.plot.run < cfg.num_runs,
           f"plot.run={cfg.plot.run} is outside [-1, {cfg.num_runs - 1}] (num_runs={cfg.num_runs})")
     shape = planned_shape(cfg.task)
@@ -108,6 +110,10 @@ def load_task(cfg: Config) -> Dataset:
     if shape is None:
         budget.check_train(cfg, *dataset.series.shape)
     K, names = cfg.model.num_experts, dataset.symbol_names
+    if cfg.model.sigma_min == "auto":  # settled from the data, before anything trains on it
+        cfg.model.sigma_min = noise_floor(dataset.series)
+        log.info("model.sigma_min=auto: σ̄ = %.4g (half the 10th percentile of the one-step "
+                 "change's RMS over %d-step windows)", cfg.model.sigma_min, WINDOW)
     if dataset.gate_targets is not None:  # symbolic: one gate per symbol
         check(K == len(names), f"model.num_experts={K} must equal the {len(names)} symbols of "
                                f"task {cfg.task.name} ({', '.join(names)})")
@@ -192,6 +198,7 @@ def run_train(cfg: Config, out_dir: Path,
         the final `Checkpoint`.
     """
     out_dir, stop = Path(out_dir), stop or StopRequest()
+    dataset = load_task(cfg)  # (first: it settles the data's defaults the checkpoint holds)
     saved = open_checkpoint(cfg, out_dir)
     if saved is not None and saved.phase != "done":
         step = (saved.train_state or {}).get("step")
@@ -199,7 +206,6 @@ def run_train(cfg: Config, out_dir: Path,
                  step if step is not None else "0 (its start)")
     backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name)
-    dataset = load_task(cfg)
     _warn_ignored(cfg, dataset)
     if saved is None or saved.phase != "done":
         [saved] = train_jobs([Job(cfg, dataset, out_dir, saved)], stop, backend)

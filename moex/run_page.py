@@ -61,7 +61,8 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
     lines = [f"# {title}", "",
              f"Task `{task.name}`, {cfg.num_runs} network(s) from seed {cfg.seed}; "
              f"{model.num_experts} experts of M = {model.experts.context_size}, gating RNN of "
-             f"NC = {model.gating.context_size}; {trained_steps(out_dir, cfg)}; "
+             f"NC = {model.gating.context_size}, σ̄ = {model.sigma_min:.3g} (the floor of the "
+             f"experts' σ); {trained_steps(out_dir, cfg)}; "
              f"{cfg.precision}, backend {cfg.backend} on {cfg.device}.", ""]
     if metrics is not None:
         ev = cfg.eval

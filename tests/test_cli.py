@@ -9,6 +9,8 @@ import pandas as pd
 import pytest
 import torch
 
+from moex.tasks.scaling import noise_floor
+
 MOEX = [sys.executable, "-c", "from moex.launch import main; main()"]  # the `moex` command
 TINY = ["task.num_series=2", "task.length=40", "task.num_test_series=1",
         "model.experts.context_size=4", "model.gating.context_size=5",
@@ -305,8 +307,18 @@ def test_csv_with_a_header_and_columns_by_name(tmp_path):
                     "train.experts.steps=3", "train.gating.steps=2", "eval=quick",
                     f"hydra.run.dir={run_dir}"], cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    series = torch.load(run_dir / "checkpoint.pt", weights_only=True)["series"]
-    np.testing.assert_array_equal(series[0].numpy(), frame[["y", "x"]].to_numpy())
+    saved = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    np.testing.assert_array_equal(saved["series"][0].numpy(), frame[["y", "x"]].to_numpy())
+    # a csv task's σ̄ comes from the data (model.sigma_min=auto), said in the log, kept as a
+    # number, and the same command continues the folder
+    floor = noise_floor(frame[["y", "x"]].to_numpy()[None])
+    assert saved["config"]["model"]["sigma_min"] == pytest.approx(floor)
+    assert f"model.sigma_min=auto: σ̄ = {floor:.4g}" in result.stdout + result.stderr
+    assert f"σ̄ = {floor:.3g}" in (run_dir / "report.md").read_text()
+    again = _moex(["train", "task=csv", f"task.path={tmp_path}/mine.csv", "task.columns=[y,x]",
+                   "train.experts.steps=3", "train.gating.steps=2", "eval=quick",
+                   f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
 
 
 def test_a_task_of_your_own_from_a_config_dir(tmp_path):

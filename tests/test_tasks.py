@@ -162,3 +162,17 @@ def test_a_csv_reads_back_exactly_and_a_word_in_it_is_refused(tmp_path):
     (tmp_path / "b.csv").write_text("x,y\n0.1,0.2\n0.3,abc\n0.5,0.6\n")
     with pytest.raises(ConfigError, match=r"b.csv data row 2 is not numeric \(0.3, abc\)"):
         files.load_series(str(tmp_path / "b.csv"), 0, 3)
+
+
+def test_the_noise_floor_is_half_the_quietest_windows_one_step_change():
+    """White noise of SD s changes by s√2 per step: the floor is about s/√2; with a quiet and a
+    loud regime it follows the quiet one; a constant series gets the smallest floor."""
+    from moex.tasks.scaling import FLOOR, noise_floor
+
+    rng = np.random.default_rng(0)
+    white = rng.normal(0, 0.1, (4, 2000, 3))
+    assert noise_floor(white) == pytest.approx(0.1 / np.sqrt(2), rel=0.1)
+    quiet = np.arange(2000) // 200 % 2 == 0  # alternating regimes of 200 steps
+    mixed = rng.normal(0, 1, (2, 2000, 2)) * np.where(quiet, 0.01, 0.2)[None, :, None]
+    assert noise_floor(mixed) == pytest.approx(0.01 / np.sqrt(2), rel=0.2)
+    assert noise_floor(np.zeros((1, 300, 2))) == FLOOR

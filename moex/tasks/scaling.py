@@ -55,3 +55,19 @@ def fit_scale(series: np.ndarray, mode: str, source: str) -> tuple[np.ndarray, S
     half = (high - low) / 2
     factor = np.where(half > 0, half / LIMIT, 1.0)
     return (series - offset) / factor, Scale(offset, factor)
+
+
+WINDOW = 50  # steps per window of `noise_floor`
+FLOOR = 1e-3  # the smallest σ̄ `noise_floor` gives
+
+
+def noise_floor(series: np.ndarray) -> float:
+    """σ̄ for `model.sigma_min=auto`: half the 10th percentile, over windows of WINDOW steps of
+    every series (S, T, D), of the one-step change's RMS per feature, at least FLOOR. An expert
+    can then fit the quietest regime's own variability instead of a floor above it (with the
+    paper's σ̄ = 0.05, regimes whose steps change by less are told apart by nothing)."""
+    change = np.diff(series, axis=1)
+    T = change.shape[1]
+    windows = [np.sqrt(np.mean(change[s, w:w + WINDOW] ** 2))
+               for s in range(len(change)) for w in range(0, max(T - WINDOW, 0) + 1, WINDOW)]
+    return max(0.5 * float(np.percentile(windows, 10)), FLOOR)
