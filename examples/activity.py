@@ -8,12 +8,13 @@ activities (stay with probability 0.5, else one of the other three): 6 training 
 exemplars (1000 steps) from the training exemplars, 4 held-out series from the test exemplars.
 Each channel is standardised with the training series' mean and SD.
 
-Then, with the CLI: `moex train task=csv task.labels=<file> task.scale=auto` (4 experts, 3 runs)
-and `moex segment` on the held-out series; beside it hmmlearn's GaussianHMM (4 states, full
-covariances, Viterbi path; 3 seeds) and scikit-learn's KMeans (4 clusters on the steps'
-6-vectors; 3 seeds), fitted to the training series and applied to both. Every method is scored
-by moex.metrics.segmentation: adjusted Rand index, normalised mutual information, accuracy after
-the best one-to-one matching.
+Then, with the CLI: `moex train task=csv task.labels=<file> task.scale=auto` (4 experts, 3 runs,
+σ̄ from the data as the csv task does by default; once with the paper's β prior ς = 10 and once
+with ς = 1) and `moex segment` on the held-out series; beside it hmmlearn's GaussianHMM (4
+states, Viterbi path, 3 seeds; full covariances, and one variance per state as moex's σ_k² I)
+and scikit-learn's KMeans (4 clusters on the steps' 6-vectors; 3 seeds), fitted to the
+training series and applied to both. Every method is scored by moex.metrics.segmentation:
+adjusted Rand index, normalised mutual information, accuracy after the best one-to-one matching.
 
     pip install -e ".[compare]"      # hmmlearn, scikit-learn, sktime (the data)
     python examples/activity.py OUT  # writes OUT/scores.csv, OUT/summary.md, the run folders
@@ -30,8 +31,17 @@ import numpy as np
 import pandas as pd
 
 from moex.metrics.segmentation import scores
+from moex.tasks.scaling import fit_scale
 
 STAY = 0.5  # the Markov chain's probability of repeating an activity
+VARIANTS = {  # moex's rows: the csv task's defaults (σ̄ from the data), and a tighter β prior
+    "moex": [],
+    "moex, ς = 1": ["train.experts.gate_prior_std=1"],
+}
+ABLATION = {  # --ablation: the paper's σ̄ = 0.05 instead of the data's, each ς (one factor each)
+    "moex, σ̄ = 0.05": ["model.sigma_min=0.05"],
+    "moex, σ̄ = 0.05, ς = 1": ["model.sigma_min=0.05", "train.experts.gate_prior_std=1"],
+}
 SEEDS = (0, 1, 2)
 MOEX = [sys.executable, "-c", "from moex.launch import main; main()"]
 
@@ -80,11 +90,14 @@ def baselines(train, train_labels, test, test_labels) -> list[dict]:
 
     rows = []
     K = len(np.unique(train_labels))
+    steps = train.reshape(-1, train.shape[-1])
     for seed in SEEDS:
-        hmm = GaussianHMM(K, covariance_type="full", n_iter=200, random_state=seed)
-        hmm.fit(train.reshape(-1, train.shape[-1]), [train.shape[1]] * len(train))
-        kmeans = KMeans(K, n_init=10, random_state=seed).fit(train.reshape(-1, train.shape[-1]))
-        for method, model in (("Gaussian HMM", hmm), ("k-means", kmeans)):
+        hmm, spherical = (GaussianHMM(K, covariance_type=kind, n_iter=200, random_state=seed)
+                          .fit(steps, [train.shape[1]] * len(train))
+                          for kind in ("full", "spherical"))
+        kmeans = KMeans(K, n_init=10, random_state=seed).fit(steps)
+        for method, model in (("Gaussian HMM", hmm), ("Gaussian HMM, spherical", spherical),
+                              ("k-means", kmeans)):
             for data, x, y in (("train", train, train_labels), ("test", test, test_labels)):
                 found = np.stack([model.predict(s) for s in x])
                 rows.append({"method": method, "data": data, "run": seed,
@@ -97,30 +110,34 @@ def _scores(truth, found) -> dict:
     return {k: float(v) for k, v in got.items() if k != "label_of_expert"}
 
 
-def moex_rows(out: Path, train, train_labels, test, test_labels, steps) -> list[dict]:
-    """moex trained and segmenting with the CLI; its scores on both sets, one row per run."""
+def moex_rows(out: Path, train, train_labels, test, test_labels, steps,
+              variants: dict) -> list[dict]:
+    """moex trained and segmenting with the CLI, once per entry of `variants`; its scores on
+    both sets, one row per run."""
     for name, array in (("train", train), ("train_labels", train_labels), ("test", test),
                         ("test_labels", test_labels)):
         np.save(out / f"{name}.npy", array)
-    run = out / "run"
-    if not (run / "metrics.csv").is_file():
-        subprocess.run(MOEX + ["train", "task=csv", f"task.path={out}/train.npy",
-                               f"task.labels={out}/train_labels.npy", "task.scale=auto",
-                               "model.num_experts=4", f"num_runs={len(SEEDS)}", "eval=quick",
-                               f"train.experts.steps={steps[0]}",
-                               f"train.gating.steps={steps[1]}", f"hydra.run.dir={run}"],
-                       check=True)
-    segmented = out / "segment"
-    if not (segmented / "segment_scores.csv").is_file():
-        subprocess.run(MOEX + ["segment", f"run_dir={run}", f"task.path={out}/test.npy",
-                               f"task.labels={out}/test_labels.npy", f"out_dir={segmented}"],
-                       check=True)
-    columns = ["segment_ari", "segment_nmi", "segment_accuracy"]
-    trained = pd.read_csv(run / "metrics.csv")[["run", *columns]]
-    tested = pd.read_csv(segmented / "segment_scores.csv")[["run", *columns]]
-    return [{"method": "moex", "data": data, **row}
-            for data, frame in (("train", trained), ("test", tested))
-            for row in frame.to_dict("records")]
+    rows = []
+    for i, (method, keys) in enumerate(variants.items()):
+        run, segmented = out / f"run{i}", out / f"run{i}" / "segment"
+        if not (run / "metrics.csv").is_file():
+            subprocess.run(MOEX + ["train", "task=csv", f"task.path={out}/train.npy",
+                                   f"task.labels={out}/train_labels.npy", "task.scale=auto",
+                                   "model.num_experts=4", f"num_runs={len(SEEDS)}",
+                                   "eval=quick", f"train.experts.steps={steps[0]}",
+                                   f"train.gating.steps={steps[1]}", *keys,
+                                   f"hydra.run.dir={run}"], check=True)
+        if not (segmented / "segment_scores.csv").is_file():
+            subprocess.run(MOEX + ["segment", f"run_dir={run}", f"task.path={out}/test.npy",
+                                   f"task.labels={out}/test_labels.npy",
+                                   f"out_dir={segmented}"], check=True)
+        columns = ["segment_ari", "segment_nmi", "segment_accuracy"]
+        trained = pd.read_csv(run / "metrics.csv")[["run", *columns]]
+        tested = pd.read_csv(segmented / "segment_scores.csv")[["run", *columns]]
+        rows += [{"method": method, "data": data, **row}
+                 for data, frame in (("train", trained), ("test", tested))
+                 for row in frame.to_dict("records")]
+    return rows
 
 
 NAMES = {"segment_ari": "adjusted Rand index", "segment_nmi": "normalised mutual information",
@@ -138,21 +155,39 @@ def summary(frame: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def activities(train, train_labels, names) -> str:
+    """Per activity, in the units moex trains in (task.scale=auto): the RMS of the one-step
+    change x_{n+1} - x_n, and the SD of x (both per feature, averaged): what a one-step
+    predictor with the floor σ̄ can tell apart."""
+    x, _ = fit_scale(train, "auto", "train")
+    change, now = np.diff(x, axis=1), train_labels[:, 1:]
+    lines = ["| activity | steps | one-step change, RMS | SD of x |", "|---|---|---|---|"]
+    for c, name in enumerate(names):
+        lines.append(f"| {name} | {int((train_labels == c).sum())} | "
+                     f"{np.sqrt(np.mean(change[now == c] ** 2)):.3f} | "
+                     f"{x[train_labels == c].std(0).mean():.3f} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("out", type=Path)
     parser.add_argument("--steps", type=int, nargs=2, default=(5000, 2000),
                         metavar=("PHASE1", "PHASE2"))
+    parser.add_argument("--ablation", action="store_true",
+                        help="also train with the paper's sigma_min = 0.05 (two more rows)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     train, train_labels, test, test_labels, names = recording(np.random.default_rng(0))
     print(f"activities {', '.join(names)}; training {train.shape}, held-out {test.shape}")
-    rows = moex_rows(args.out, train, train_labels, test, test_labels, args.steps)
+    variants = {**VARIANTS, **(ABLATION if args.ablation else {})}
+    rows = moex_rows(args.out, train, train_labels, test, test_labels, args.steps, variants)
     rows += baselines(train, train_labels, test, test_labels)
     frame = pd.DataFrame(rows)
     frame.to_csv(args.out / "scores.csv", index=False)
-    (args.out / "summary.md").write_text(summary(frame) + "\n")
-    print(summary(frame))
+    text = f"{summary(frame)}\n\n{activities(train, train_labels, names)}\n"
+    (args.out / "summary.md").write_text(text)
+    print(text)
 
 
 if __name__ == "__main__":
