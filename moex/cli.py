@@ -338,7 +338,7 @@ VERBS = {
 }
 VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
                "generate": pipeline.load_run, "import": pipeline.check_import,
-               "segment": pipeline.load_run}
+               "segment": pipeline.segment_input}
 
 
 def _latest_run(task: str) -> Path:

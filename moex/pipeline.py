@@ -267,7 +267,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     if beta is not None and dataset.series.shape[-1] > 0:  # which expert holds which stretch
         write_segments(out_dir, gate_estimates(beta).numpy(), dataset.labels, cfg,
                        "training series, ĝ = softmax(β) of phase 1",
-                       table=cfg.task.name == "csv")
+                       table=cfg.task.name == "csv", scores=False)
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
     for line in progress.packed(f"of {progress.counted(len(ok), 'run')}:",
                                 chaos_parts(ok, cfg.eval), sep=";"):
@@ -438,15 +438,18 @@ def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFram
 
 
 def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, cfg: Config,
-                   what: str, table: bool = True) -> segment.Segmentation:
-    """segments.csv (with `table`), segment_scores.csv where labels are known, and
-    figures/segments.png of the run with the best adjusted Rand index (else run 0)."""
+                   what: str, table: bool = True,
+                   scores: bool = True) -> segment.Segmentation:
+    """figures/segments.png of the run with the best adjusted Rand index (else run 0), with
+    `table` segments.csv, with `scores` and labels segment_scores.csv (a training run has its
+    scores in metrics.csv)."""
     result = segment.segmentation(gates, labels, cfg.model.delay)
     if table:
         io.write_csv(out_dir / io.SEGMENTS, result.table)
     run = 0
     if len(result.scores):
-        io.write_csv(out_dir / io.SEGMENT_SCORES, result.scores)
+        if scores:
+            io.write_csv(out_dir / io.SEGMENT_SCORES, result.scores)
         run = int(result.scores.loc[result.scores["segment_ari"].idxmax(), "run"])
     truth = labels[:, cfg.model.delay:] if labels is not None else None
     matched = (segmentation_scores(truth, gates[run].argmax(-1))
@@ -460,33 +463,38 @@ def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, 
     return result
 
 
-def run_segment(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
-    """Each expert's responsibility per step on new data (the filter of moex.segment) into
-    `out_dir`: segments.csv, segment_scores.csv where labels are given, figures/segments.png."""
+def segment_input(tool: SegmentConfig) -> tuple[TrainedRun, np.ndarray, np.ndarray, str]:
+    """The run, the series to segment in model units (S, T, D), their labels (S, T) and where
+    they come from; every refusal of `moex segment` (also run before its folder is made)."""
     run = load_run(tool)
-    cfg, saved, dataset = run.cfg, run.saved, run.dataset
+    cfg, dataset = run.cfg, run.dataset
     check(dataset.series.shape[-1] > 0, f"task {cfg.task.name} has no signal to segment (its "
                                         f"gates are its symbols)")
     new = tool.task
-    if new.path:
-        read = functools.partial(files.load_series, new.path, new.length, cfg.model.delay + 2,
-                                 new.columns or cfg.task.columns)
-        try:  # the run's label column where the new files have it too
-            series, labels = read(new.labels or _label_column(cfg.task))
-        except ConfigError:
-            if new.labels or not _label_column(cfg.task):
-                raise
-            series, labels = read("")
-            log.info("no column %s in %s: the segmentation is not scored", cfg.task.labels,
-                     new.path)
-        check(series.shape[-1] == dataset.series.shape[-1],
-              f"task.path={new.path} has {series.shape[-1]} features; the run was trained on "
-              f"{dataset.series.shape[-1]}")
-        series, source = dataset.scale.to_model(series), new.path
-    else:
+    if not new.path:
         check(dataset.test is not None, f"run_dir={tool.run_dir} has no held-out series; give "
                                         f"task.path=<new data>")
-        series, labels, source = dataset.test.series, dataset.test.labels, "held-out series"
+        return run, dataset.test.series, dataset.test.labels, "held-out series"
+    read = functools.partial(files.load_series, new.path, new.length, cfg.model.delay + 2,
+                             new.columns or cfg.task.columns)
+    try:  # the run's label column where the new files have it too
+        series, labels = read(new.labels or _label_column(cfg.task))
+    except ConfigError:
+        if new.labels or not _label_column(cfg.task):
+            raise
+        series, labels = read("")
+        log.info("no column %s in %s: the segmentation is not scored", cfg.task.labels, new.path)
+    check(series.shape[-1] == dataset.series.shape[-1],
+          f"task.path={new.path} has {series.shape[-1]} features; the run was trained on "
+          f"{dataset.series.shape[-1]}")
+    return run, dataset.scale.to_model(series), labels, new.path
+
+
+def run_segment(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
+    """Each expert's responsibility per step on new data (`moex.segment`) into `out_dir`:
+    segments.csv, segment_scores.csv where labels are given, figures/segments.png."""
+    run, series, labels, source = segment_input(tool)
+    cfg, saved = run.cfg, run.saved
     log.info("segmenting %s of %s (%d series x %d steps) with %s by %s", source, tool.run_dir,
              len(series), series.shape[1], progress.counted(cfg.num_runs, "run"), tool.method)
     prior_std = tool.gate_prior_std or cfg.train.experts.gate_prior_std
