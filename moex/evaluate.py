@@ -302,9 +302,9 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         row.update(noise_var=cfg.noise_var, num_samples=cfg.num_samples,
                    lyapunov_samples=len(lam), lyapunov_steps=cfg.lyapunov_steps)
         rows.append(row)
-    for row, more in zip(rows, segment.evaluation_scores(experts, beta, gating, dataset, delay,
-                                                         sigma_min, gate_prior_std),
-                         strict=True):
+    for row, more in zip(rows, segment.evaluation_scores(
+            experts, beta, gating, dataset, delay, sigma_min, gate_prior_std, gate_winners,
+            cfg.block_kl), strict=True):
         row.update(more)
     samples = {name: torch.cat([k[i] for k in kept], 1)[:, -cfg.plot_steps:].numpy()
                for i, name in enumerate(("outputs", "gates", "gating_u"))}

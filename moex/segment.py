@@ -30,6 +30,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from moex.metrics import switching
 from moex.metrics.segmentation import scores
 from moex.model import expert_forward, expert_variances, gate_estimates, leaky_scan
 from moex.objectives import gate_prior_log_density
@@ -130,14 +131,17 @@ def run_scores(gates: np.ndarray, labels: np.ndarray, delay: int,
 
 
 def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: float,
-                      prior_std: float) -> list[dict]:
+                      prior_std: float, closed_winners: np.ndarray | None = None,
+                      block_kl=None) -> list[dict]:
     """Per run, where the data have labels: the segmentation of the training series by ĝ
-    (segment_ari, segment_nmi, segment_accuracy) and of the held-out series by the `smooth`
-    method (the same with _test)."""
+    (segment_ari, segment_nmi, segment_accuracy), of the held-out series by the `smooth`
+    method (the same with _test) and, given the closed loop's winning experts (R, N, steps)
+    and the evaluation's block KL, the closed loop read as labels (`closed_loop_labels`)."""
     R = len(gating["w_out"])
     if beta is None or (dataset.labels < 0).all():
         return [{} for _ in range(R)]
-    rows = run_scores(gate_estimates(beta).numpy(), dataset.labels, delay)
+    ghat = gate_estimates(beta).numpy()
+    rows = run_scores(ghat, dataset.labels, delay)
     test = dataset.test
     if test is not None and (test.labels >= 0).any():
         gates = responsibilities(experts, gating, torch.as_tensor(test.series), delay, sigma_min,
@@ -145,7 +149,39 @@ def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: flo
         for row, more in zip(rows, run_scores(gates.numpy(), test.labels, delay, "_test"),
                              strict=True):
             row.update(more)
+    if closed_winners is not None:
+        truth = dataset.labels[:, delay:]
+        for r, row in enumerate(rows):
+            matching = scores(truth, ghat[r].argmax(-1))["label_of_expert"]
+            row.update(closed_loop_labels(closed_winners[r], dataset.labels, matching,
+                                          block_kl))
     return rows
+
+
+def _known_stretches(labels: np.ndarray) -> list[np.ndarray]:
+    """The stretches of each series (S, T) between unknown (-1) steps."""
+    out = []
+    for series in labels:
+        parts = (part[part >= 0] for part in np.split(series, np.flatnonzero(series < 0)))
+        out += [part for part in parts if len(part)]
+    return out
+
+
+def closed_loop_labels(winners: np.ndarray, labels: np.ndarray, label_of_expert: np.ndarray,
+                       block_kl) -> dict:
+    """The closed loop's winning experts (N, steps) read as labels through the training data's
+    matching of experts to labels (an unmatched expert a label of its own): the block KL of the
+    data's label sequence (S, T) against them (data first, Eq. 21 on per-step labels), and the
+    mean stay on one label in steps, the closed loop's beside the data's (every stay counted,
+    those cut by a sequence's end at their observed length)."""
+    unmatched = int(labels.max()) + 1
+    read = np.where(label_of_expert >= 0, label_of_expert, unmatched)[winners]
+    data = _known_stretches(labels)
+    stays = [switching.rle(s)[1] for s in data]
+    loop_stays = [switching.rle(s)[1] for s in read]
+    return {"label_block_kl": block_kl(data, list(read)),
+            "label_mean_stay": float(np.concatenate(loop_stays).mean()),
+            "data_label_mean_stay": float(np.concatenate(stays).mean())}
 
 
 class Segmentation(NamedTuple):

@@ -204,3 +204,21 @@ def test_moex_segment_scores_new_recordings_and_refuses_bad_ones(tmp_path):
         refused.stderr and len(refused.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "no").exists()
     assert math.isfinite(float(pd.read_csv(out / "segment_scores.csv")["segment_ari"].iloc[0]))
+
+
+def test_a_closed_loop_that_replays_the_data_reads_as_its_labels():
+    """Through the matching, a closed loop whose winning experts are the data's labels renamed
+    has block KL 0 against them and the same stays; unknown steps split the data's stretches."""
+    from moex.metrics.symbols import block_kl
+
+    rng = np.random.default_rng(5)
+    labels = np.repeat(rng.integers(0, 3, (2, 40)), rng.integers(1, 6, 40), axis=1)
+    renamed = (labels + 1) % 3
+    got = segment.closed_loop_labels(renamed, labels, np.array([2, 0, 1]),
+                                     lambda d, m: block_kl(d, m, 5))
+    assert got["label_block_kl"] == pytest.approx(0, abs=1e-12)
+    assert got["label_mean_stay"] == pytest.approx(got["data_label_mean_stay"])
+    holes = labels.copy()
+    holes[:, ::7] = -1
+    assert all((part >= 0).all() for part in segment._known_stretches(holes))
+    assert sum(map(len, segment._known_stretches(holes))) == (holes >= 0).sum()

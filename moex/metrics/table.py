@@ -73,6 +73,13 @@ METRICS = {m.name: m for m in [
            "the same, normalised mutual information"),
     Metric("segment_accuracy_test", "accuracy after matching, test data", "accuracy test",
            "the same, accuracy after matching", reported=True),
+    Metric("label_block_kl", "block KL of the labels", "label block KL",
+           "the data's labels against the closed loop's winning experts read as labels through "
+           "the training data's matching (Eq. 21 on per-step labels)", reported=True),
+    Metric("label_mean_stay", "mean stay on a label (steps)", "label stay",
+           "the closed loop's, its experts read as labels", reported=True),
+    Metric("data_label_mean_stay", "mean stay on a label in the data (steps)", "data label stay",
+           "the same in the training data", reported=True),
     Metric("log_likelihood", r"$\ln p(Y \mid X, \theta)$", "ln L",
            "phase-1 log-likelihood (Eqs. 10-12)"),
     Metric("kl", r"$D_{\mathrm{KL}}(\hat g \,\|\, g)$", "KL", "phase-2 KL summed over the data"),
