@@ -169,18 +169,24 @@ METRICS = {"E_g": "E^g", "block_kl_train": "KL train", "block_kl_test": "KL test
 PAPER_N = {"Table 1": 50, "Table 2": 30}  # networks behind each of the paper's means
 
 
-CONTROL = {"reber_nc20": ("Table 1", 20), "reber_nc30": ("Table 1", 30),
-           "table2_p05": ("Table 2", "P = 0.5"), "table2_p025": ("Table 2", "P = 0.25")}
+CONTROL = {  # the control closest to the paper's settings per row, and what it is
+    "reber_nc20_no_attraction": ("Table 1", 20, "no u₀ attraction"),
+    "reber_nc30": ("Table 1", 30, "default build"),
+    "table2_p05_paper": ("Table 2", "P = 0.5", "paper's settings"),
+    "table2_p025_paper": ("Table 2", "P = 0.25", "paper's settings"),
+}
 
 
 def _control(table, setting, metric) -> str:
-    """The authors' code trained on moex's data and scored by moex (docs/mregn_control.md)."""
+    """The authors' code trained on moex's data and scored by moex (docs/mregn_control.md): the
+    design of CONTROL for the row, named."""
     summary = pd.read_csv(DOCS / "mregn_control_summary.csv")
     for row in summary.itertuples():
-        if CONTROL.get(row.design) == (table, setting) and row.metric == metric:
+        if CONTROL.get(row.design, ())[:2] == (table, setting) and row.metric == metric:
+            tag = CONTROL[row.design][2]
             if metric == "positive_percent":
-                return f"{row.control:.0f} % ({row.control_n})"
-            return f"{row.control:.4g} ± {row.control_sd:.2g} ({row.control_n})"
+                return f"{row.control:.0f} % ({row.control_n}; {tag})"
+            return f"{row.control:.4g} ± {row.control_sd:.2g} ({row.control_n}; {tag})"
     return "—"
 
 

@@ -370,7 +370,7 @@ def test_the_controls_prose_numbers_are_the_csvs():
         runs = nets[nets.design == design]
         count = runs.chaos.value_counts()
         positive = int((runs.max_lyapunov > 0).sum())
-        assert f"{len(runs)} networks per P so far" in page
+        assert f"{len(runs)} networks per P" in page
         if p == "0.5":
             strict = int((runs.switch_prob >= 0.99).sum())
             high = wilson_interval(int(count.get("chaotic", 0)), len(runs))[1]
