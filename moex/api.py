@@ -20,11 +20,11 @@ from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.model import gate_estimates
-from moex.pipeline import evaluation_generators, in_data_units, load_run
+from moex.pipeline import evaluation_generators, in_data_units, load_run, settled
 from moex.run import Job, run_generators, train_jobs
 from moex.segment import METHODS, Segmentation, responsibilities, segmentation
 from moex.tasks import Dataset, TaskConfig, user_data
-from moex.tasks.scaling import fit_scale, noise_floor
+from moex.tasks.scaling import fit_scale
 from moex.train import phase2_targets
 
 
@@ -129,10 +129,7 @@ class Fitted:
                                      gate_prior_std or self.config.train.experts.gate_prior_std
                                      ).numpy()
         if labels is not None:
-            labels = np.asarray(labels)
-            labels = labels[None] if labels.ndim == 1 else labels
-            check(labels.shape == gates.shape[1:2] + (gates.shape[2] + delay,),
-                  f"labels must be (S, T) like the series, got shape {labels.shape}")
+            labels = _labels(labels, (gates.shape[1], gates.shape[2] + delay))
         return segmentation(gates, labels, delay)
 
     def generate(self, steps: int = 1000, num_samples: int = 1, noise_var: float = 0.0,
@@ -157,6 +154,15 @@ class Fitted:
             out = run_closed_loop(self.experts, self.gating, state, steps, noise_var**0.5,
                                   generator, self.backend)
         return in_data_units({name: value.numpy() for name, value in out.items()}, self.dataset)
+
+
+def _labels(labels, shape: tuple[int, int]) -> np.ndarray:
+    """Per-step labels as (S, T), a (T,) array taken as one series; refused unless `shape`."""
+    labels = np.asarray(labels)
+    labels = labels[None] if labels.ndim == 1 else labels
+    check(labels.shape == tuple(shape), f"labels must be (S, T) like the series {tuple(shape)}, "
+                                        f"got {labels.shape}")
+    return labels
 
 
 def load(run_dir) -> Fitted:
@@ -205,15 +211,11 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
     check(series.shape[1] >= cfg.model.delay + 2,
           f"series have {series.shape[1]} steps; need at least {cfg.model.delay + 2}")
     if labels is not None:
-        labels = np.asarray(labels)
-        labels = labels[None] if labels.ndim == 1 else labels
-        check(labels.shape == series.shape[:2], f"labels must be (S, T) like the series "
-                                                f"{series.shape[:2]}, got {labels.shape}")
+        labels = _labels(labels, series.shape[:2])
         check(np.issubdtype(labels.dtype, np.integer) and labels.min() >= -1,
               "labels must be integers >= 0 (-1: unknown)")
     dataset = user_data(*fit_scale(series, scale, "series"), labels)
-    if cfg.model.sigma_min == "auto":
-        cfg.model = dataclasses.replace(cfg.model, sigma_min=noise_floor(dataset.series))
+    cfg.model = settled(cfg.model, dataset.series)
     backend = get_backend(cfg.backend, cfg.device)
     with provenance.kept("fit", cfg.backend, cfg.device, cfg.precision) as record:
         provenance.note(backend=backend.name)

@@ -24,11 +24,18 @@ def mixture_log_likelihood(outputs: torch.Tensor, targets: torch.Tensor,
     Returns:
         (R,) log-likelihood summed over series and steps.
     """
+    log_p = expert_log_densities(outputs, targets, variances)
+    return torch.logsumexp(log_gate_estimates + log_p, dim=-1).sum((1, 2))
+
+
+def expert_log_densities(outputs: torch.Tensor, targets: torch.Tensor,
+                         variances: torch.Tensor) -> torch.Tensor:
+    """ln N(y_n; y^k_n, σ_k² I) of every expert (Eq. 11), (R, S, T, K); arguments as for
+    `mixture_log_likelihood`."""
     D = outputs.shape[-1]
     sq_err = (outputs - targets[..., None, :]).square().sum(-1)  # (R, S, T, K)
     var = variances[:, None, None]
-    log_p = -0.5 * D * torch.log(2 * math.pi * var) - sq_err / (2 * var)
-    return torch.logsumexp(log_gate_estimates + log_p, dim=-1).sum((1, 2))
+    return -0.5 * D * torch.log(2 * math.pi * var) - sq_err / (2 * var)
 
 
 def gate_prior_log_density(beta: torch.Tensor, prior_std: float) -> torch.Tensor:

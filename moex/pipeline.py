@@ -38,9 +38,8 @@ from moex.errors import ConfigError, check, never
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
-from moex.metrics.segmentation import scores as segmentation_scores
 from moex.metrics.table import LOGGED, METRICS
-from moex.model import gate_estimates
+from moex.model import ModelConfig, gate_estimates
 from moex.run import Job, run_generators, train_jobs
 from moex.tasks import Dataset, Scale, files, make_task, planned_shape, task_of_run
 from moex.tasks.scaling import WINDOW, noise_floor
@@ -110,10 +109,7 @@ def load_task(cfg: Config) -> Dataset:
     if shape is None:
         budget.check_train(cfg, *dataset.series.shape)
     K, names = cfg.model.num_experts, dataset.symbol_names
-    if cfg.model.sigma_min == "auto":  # settled from the data, before anything trains on it
-        cfg.model.sigma_min = noise_floor(dataset.series)
-        log.info("model.sigma_min=auto: σ̄ = %.4g (half the 10th percentile of the one-step "
-                 "change's RMS over %d-step windows)", cfg.model.sigma_min, WINDOW)
+    cfg.model = settled(cfg.model, dataset.series)  # before anything trains on the data
     if dataset.gate_targets is not None:  # symbolic: one gate per symbol
         check(K == len(names), f"model.num_experts={K} must equal the {len(names)} symbols of "
                                f"task {cfg.task.name} ({', '.join(names)})")
@@ -122,6 +118,17 @@ def load_task(cfg: Config) -> Dataset:
                                f"primitives of task {cfg.task.name} ({', '.join(names)}); use "
                                f"model.num_experts={len(names)} or more")
     return held_out(cfg, dataset)
+
+
+def settled(model: ModelConfig, series: np.ndarray) -> ModelConfig:
+    """`model` with `sigma_min=auto` replaced by the value the series (S, T, D) give, said in
+    the log; `model` itself otherwise."""
+    if model.sigma_min != "auto":
+        return model
+    model = dataclasses.replace(model, sigma_min=noise_floor(series))
+    log.info("model.sigma_min=auto: σ̄ = %.4g (half the 10th percentile of the one-step "
+             "change's RMS over %d-step windows)", model.sigma_min, WINDOW)
+    return model
 
 
 class StopRequest:
@@ -446,18 +453,14 @@ def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, 
     result = segment.segmentation(gates, labels, cfg.model.delay)
     if table:
         io.write_csv(out_dir / io.SEGMENTS, result.table)
-    run = 0
+    run, matching, scored = 0, None, ""
     if len(result.scores):
         if scores:
             io.write_csv(out_dir / io.SEGMENT_SCORES, result.scores)
-        run = int(result.scores.loc[result.scores["segment_ari"].idxmax(), "run"])
-    truth = labels[:, cfg.model.delay:] if labels is not None else None
-    matched = (segmentation_scores(truth, gates[run].argmax(-1))
-               if truth is not None and (truth >= 0).any() else {})
-    scored = (f"; ARI {matched['segment_ari']:.3f}, accuracy {matched['segment_accuracy']:.3f}"
-              if matched else "")
-    fig = plotting.plot_segments(gates[run], labels, cfg.model.delay,
-                                 matched.get("label_of_expert"),
+        best = result.scores.loc[result.scores["segment_ari"].idxmax()]
+        run, matching = int(best["run"]), result.label_of_expert[int(best["run"])]
+        scored = f"; ARI {best['segment_ari']:.3f}, accuracy {best['segment_accuracy']:.3f}"
+    fig = plotting.plot_segments(gates[run], labels, cfg.model.delay, matching,
                                  f"winning expert per step, run {run}: {what}{scored}")
     plotting.save_figure(fig, out_dir / io.FIGURES / "segments.png", cfg.plot.format)
     return result

@@ -33,7 +33,7 @@ import torch
 from moex.metrics import switching
 from moex.metrics.segmentation import scores
 from moex.model import expert_forward, expert_variances, gate_estimates, leaky_scan
-from moex.objectives import gate_prior_log_density
+from moex.objectives import expert_log_densities, gate_prior_log_density
 
 
 def _from_mean_state(params: dict[str, torch.Tensor], num_series: int) -> dict:
@@ -48,10 +48,8 @@ def log_likelihoods(experts, series: torch.Tensor, delay: int,
     """ln N(y_{n+τ}; y^k_n, σ_k² I) of every expert (R, S, T - τ, K) on series (S, T, D)."""
     experts = _from_mean_state(experts, series.shape[0])
     outputs, _ = expert_forward(experts, series[:, :-delay])  # (R, S, N, K, D)
-    var = expert_variances(experts, sigma_min)[:, None, None]  # (R, 1, 1, K)
-    D = series.shape[-1]
-    sq_err = (outputs - series[:, delay:, None]).square().sum(-1)
-    return -0.5 * D * torch.log(2 * math.pi * var) - sq_err / (2 * var)
+    return expert_log_densities(outputs, series[:, delay:],
+                                expert_variances(experts, sigma_min))
 
 
 METHODS = ("smooth", "filter")
@@ -115,19 +113,27 @@ def table(gates: np.ndarray, labels: np.ndarray | None, delay: int) -> pd.DataFr
     return frame
 
 
+def _scored(gates: np.ndarray, labels: np.ndarray, delay: int) -> list[dict]:
+    """Per run: `moex.metrics.segmentation.scores` of the winning expert against the labels of
+    the steps it explains (labels (S, T), -1 unknown), the matching included; [] where no step
+    is labelled."""
+    truth = labels[:, delay:]
+    if not (truth >= 0).any():
+        return []
+    return [scores(truth, run_gates.argmax(-1)) for run_gates in gates]
+
+
+def _numbers(run: dict, suffix: str = "") -> dict:
+    """A run's scores as metrics.csv columns (the matching left out)."""
+    return {f"{k}{suffix}": float(v) for k, v in run.items() if k != "label_of_expert"}
+
+
 def run_scores(gates: np.ndarray, labels: np.ndarray, delay: int,
                suffix: str = "") -> list[dict]:
     """Per run: ARI, NMI and matched accuracy of the winning expert against the labels of the
-    steps it explains (labels (S, T), -1 unknown); [] where no step is labelled."""
-    truth = labels[:, delay:]
-    if not (truth >= 0).any():
-        return [{} for _ in gates]
-    rows = []
-    for run_gates in gates:
-        found = scores(truth, run_gates.argmax(-1))
-        found.pop("label_of_expert")
-        rows.append({f"{k}{suffix}": float(v) for k, v in found.items()})
-    return rows
+    steps it explains (labels (S, T), -1 unknown); an empty dict per run where no step is
+    labelled."""
+    return [_numbers(run, suffix) for run in _scored(gates, labels, delay) or [{} for _ in gates]]
 
 
 def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: float,
@@ -140,8 +146,8 @@ def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: flo
     R = len(gating["w_out"])
     if beta is None or (dataset.labels < 0).all():
         return [{} for _ in range(R)]
-    ghat = gate_estimates(beta).numpy()
-    rows = run_scores(ghat, dataset.labels, delay)
+    found = _scored(gate_estimates(beta).numpy(), dataset.labels, delay)
+    rows = [_numbers(run) for run in found]
     test = dataset.test
     if test is not None and (test.labels >= 0).any():
         gates = responsibilities(experts, gating, torch.as_tensor(test.series), delay, sigma_min,
@@ -150,11 +156,9 @@ def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: flo
                              strict=True):
             row.update(more)
     if closed_winners is not None:
-        truth = dataset.labels[:, delay:]
-        for r, row in enumerate(rows):
-            matching = scores(truth, ghat[r].argmax(-1))["label_of_expert"]
-            row.update(closed_loop_labels(closed_winners[r], dataset.labels, matching,
-                                          block_kl))
+        for r, (row, run) in enumerate(zip(rows, found, strict=True)):
+            row.update(closed_loop_labels(closed_winners[r], dataset.labels,
+                                          run["label_of_expert"], block_kl))
     return rows
 
 
@@ -185,16 +189,18 @@ def closed_loop_labels(winners: np.ndarray, labels: np.ndarray, label_of_expert:
 
 
 class Segmentation(NamedTuple):
-    """segments.csv's table and, where labels are known, one row of scores per run (else an
-    empty frame)."""
+    """segments.csv's table and, where labels are known, one row of scores per run and each
+    run's matching of experts to labels (the label of expert k, -1 unmatched); else an empty
+    frame and an empty list."""
 
     table: pd.DataFrame
     scores: pd.DataFrame
+    label_of_expert: list[np.ndarray]
 
 
 def segmentation(gates: np.ndarray, labels: np.ndarray | None, delay: int) -> Segmentation:
     """The table and scores of responsibilities (R, S, N, K) against labels (S, T) or None."""
-    known = labels is not None and (labels >= 0).any()
-    scores_ = pd.DataFrame([{"run": r, **row} for r, row in
-                            enumerate(run_scores(gates, labels, delay))] if known else [])
-    return Segmentation(table(gates, labels, delay), scores_)
+    found = _scored(gates, labels, delay) if labels is not None else []
+    scores_ = pd.DataFrame([{"run": r, **_numbers(run)} for r, run in enumerate(found)])
+    return Segmentation(table(gates, labels, delay), scores_,
+                        [run["label_of_expert"] for run in found])
