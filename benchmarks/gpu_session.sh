@@ -6,7 +6,8 @@
 # that matter; the second (--only 1,3) the compiled tests and the sweeps:
 #   0. pre-flight: imports, versions, the GPU's name, every backend's availability;
 #   1. the gpu-parametrised tests compiled on CUDA (law tests, float32, closed loop, symbols,
-#      trajectories: every test id that holds "gpu", the CPU-only smoke and AOT tests left out);
+#      trajectories: every test id that holds "gpu", the CPU-only smoke and AOT tests left out),
+#      in half as many pytest-xdist workers as the machine has cores;
 #   2. ms per network-epoch of both phases, backend=gpu, 90 networks (a Table 2 batch) and 900,
 #      float64 and float32, beside backend=cpu on all cores, with each kernel's registers/spills
 #      as compiled (to set beside benchmarks/gpu_aot.py's prediction, BENCHMARKS.md);
@@ -56,13 +57,14 @@ if [ $smoke = 1 ]; then  # the CPU, Triton's interpreter, toy sizes: every secti
   lyap="--runs 2 --samples 2 --steps 5 --repeats 1"; lyap_cpu="$lyap"
   sweep_warps="4"; sweep_budget="4096"; sweep_trials="2"
   table2="task.num_series=2 task.length=30 num_runs=2 train.experts.steps=2 train.gating.steps=2 eval=quick eval.num_samples=2 eval.lyapunov_steps=20 eval.transient=5 eval.plot_steps=20 task.switch_prob=0.5"
-  tests=(-m "not gpu" -k "gpu and closed_loop_kernel_leaves")
+  tests=(-m "not gpu" -k "gpu and closed_loop_kernel_leaves"); workers=0
 else
   device=cuda; runs="90"; big="900"; f32runs=90; size="--steps 20 --repeats 2"
   lyap="--runs 90 --samples 50 --steps 1000 --repeats 2"; lyap_cpu="--runs 90 --samples 50 --steps 200 --repeats 1"
   sweep_warps="2 4 8"; sweep_budget="2048 4096 8192"; sweep_trials="1 4 8"
   table2="train.experts.steps=3000 train.gating.steps=1000"
   tests=(-m "gpu or not slow" -k "gpu and not smoke and not aot")
+  workers=$(( cores / 2 ))  # compiles in parallel; each worker holds its own CUDA context
 fi
 lim() { [ $smoke = 1 ] && echo 900 || echo "$1"; }  # a section's limit (s) on a GPU
 wanted() { [[ ",$only," == *",$1,"* ]]; }
@@ -94,7 +96,7 @@ for name in REGISTRY:
     b, why = available(name)
     print(f"backend {name}:", f"{b.device}, {b.caps}" if b else why)'
   section 1 "gpu tests" $(lim 240) \
-      $py -m pytest -q -p no:cacheprovider -o addopts="" "${tests[@]}" "$here/tests"
+      $py -m pytest -q -p no:cacheprovider -o addopts="" -n $workers "${tests[@]}" "$here/tests"
   section 2 "epochs: ms per network-epoch" $(lim 150) bash -c "
       $(declare -f epochs); py=$py; here=$here; device=$device; size='$size'
       epochs --runs $runs $big --kernels

@@ -456,8 +456,21 @@ def main(argv: list[str] | None = None) -> None:
     sweep = folders.named_folder(args, "hydra.sweep.dir")
     if multirun and sweep is not None and sweep.is_dir():
         _sweeps.add(sweep.resolve())
+    _summarise_sweeps(verb)
+
+
+def _summarise_sweeps(verb: str) -> None:
+    """A line per sweep folder this command ran jobs in; exit 1 when any of their jobs failed
+    (the sweep went on past them, so that only the exit status can tell a script)."""
+    failed = 0
     for folder in sorted(_sweeps):
-        print(folders.sweep_summary(folder, verb))
+        line, n = folders.sweep_summary(folder, verb)
+        print(line)
+        failed += n
+    if failed:
+        print(f"moex: {failed} job(s) failed (status.json in each job folder says which; the "
+              f"traceback is in its {verb}.log)", file=sys.stderr)
+        sys.exit(1)
 
 
 COMPLETION = ("install=bash", "install=zsh", "install=fish", "uninstall=bash", "uninstall=zsh",

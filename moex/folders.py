@@ -61,8 +61,9 @@ def discard_if_empty(out_dir: Path, verb: str) -> bool:
     return True
 
 
-def sweep_summary(sweep_dir: Path, verb: str) -> str:
-    """One line at the end of a sweep: where it is, how its jobs ended, and what to run next."""
+def sweep_summary(sweep_dir: Path, verb: str) -> tuple[str, int]:
+    """One line at the end of a sweep (where it is, how its jobs ended, what to run next) and
+    how many of its jobs failed."""
     ended: dict[str, int] = {}
     seconds = 0.0
     for path in sweep_dir.glob(f"*/{STATUS}"):
@@ -73,7 +74,8 @@ def sweep_summary(sweep_dir: Path, verb: str) -> str:
     jobs = len(list(sweep_dir.glob("*/.hydra")))
     counts = ", ".join(f"{n} {state}" for state, n in sorted(ended.items())) or f"{jobs} jobs"
     hint = f"\nmoex: compare them with: moex report {sweep_dir}" if verb == "train" else ""
-    return f"moex: sweep folder {sweep_dir}: {jobs} jobs ({counts}, {seconds / 60:.1f} min){hint}"
+    return (f"moex: sweep folder {sweep_dir}: {jobs} jobs ({counts}, {seconds / 60:.1f} min)"
+            f"{hint}", ended.get("failed", 0))
 
 
 def named_folder(args: list[str], key: str) -> Path | None:

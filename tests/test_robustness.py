@@ -129,6 +129,23 @@ def test_a_failing_multirun_job_writes_its_status_and_the_sweep_goes_on(tmp_path
     assert status == {"verb": "train", "status": "failed", "error": "RuntimeError: boom"}
 
 
+def test_a_sweep_with_a_failed_job_ends_with_exit_status_1(tmp_path, monkeypatch, capsys):
+    """The summary after a sweep counts its jobs' ends; a failed one makes the command exit 1
+    (a script driving sweeps must not read a failure as success); all done exits normally."""
+    for job, status in (("0", "done"), ("1", "failed")):
+        (tmp_path / job / ".hydra").mkdir(parents=True)
+        (tmp_path / job / "status.json").write_text(json.dumps({"status": status}))
+    monkeypatch.setattr(cli, "_sweeps", {tmp_path})
+    with pytest.raises(SystemExit) as ended:
+        cli._summarise_sweeps("train")
+    assert ended.value.code == 1
+    out, err = capsys.readouterr()
+    assert "2 jobs (1 done, 1 failed" in out and "1 job(s) failed" in err
+    (tmp_path / "1" / "status.json").write_text(json.dumps({"status": "done"}))
+    cli._summarise_sweeps("train")  # no exit
+    assert "2 jobs (2 done" in capsys.readouterr().out
+
+
 def test_a_nan_gating_run_leaves_the_others_identical(backend):
     """Phase 2 as phase 1 above: run 0 gets an infinite bias and fails; runs 1 and 2 end exactly
     as they do in a batch without it."""

@@ -86,7 +86,7 @@ def test_a_steady_state_gpu_step_stays_within_its_host_budget(monkeypatch, phase
 
     for module in (lanes, phases):  # every training launch goes through `launch`
         monkeypatch.setattr(module, "launch", launch)
-    monkeypatch.setattr(phases._Problem, "trials", 4)  # a GPU's default (the interpreter's is 1)
+    monkeypatch.setattr(phases._Problem, "trials", 4)  # several candidates per call (default 1)
     launches = [0]
     short = _train(phase, 21, adaptive, gpu)
     before = launches[0]

@@ -5,8 +5,8 @@ lanes, buffers and the two launches; `launch` is every training kernel's launch.
 
 Three knobs for the GPU session's sweep, read once: MOEX_GPU_LANE_BUDGET (entries of the lanes'
 (BL, H, H) products per program, default 4096), MOEX_GPU_WARPS (warps per program, default
-Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive rate per launch, default 4 on a
-GPU and 1 in Triton's interpreter; the result is the same for any value).
+Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive rate per launch, default 1; the
+result is the same for any value).
 """
 
 import os
@@ -16,7 +16,7 @@ import torch
 import triton
 
 from moex.errors import check
-from moex.kernels.gpu.rnn import INTERPRET, rnn_backward, rnn_forward
+from moex.kernels.gpu.rnn import rnn_backward, rnn_forward
 
 
 def _knob(name: str, default: str) -> int:
@@ -28,10 +28,10 @@ def _knob(name: str, default: str) -> int:
 
 LANE_BUDGET = _knob("MOEX_GPU_LANE_BUDGET", "4096")
 NUM_WARPS = _knob("MOEX_GPU_WARPS", "4")
-# k candidates are one call of k·R networks' forward passes: on a GPU k times the work in one
-# launch (what that costs is unmeasured: the session's sweep, section 3, times 1, 4 and 8); in
-# Triton's interpreter (a CPU) k times the time, so 1 there
-TRIALS = _knob("MOEX_GPU_TRIALS", "1" if INTERPRET else "4")
+# k candidates are one call of k·R networks' forward passes, k times the work in one launch: on an
+# H200 at 90 networks k = 1 took 0.12 ms per network-epoch in phase 1 (adaptive), k = 4 0.16 and
+# k = 8 0.22 (BENCHMARKS.md, "First contact with an H200"); in Triton's interpreter k times the time
+TRIALS = _knob("MOEX_GPU_TRIALS", "1")
 COMPILED: dict[str, object] = {}  # kernel name -> the last compiled kernel launched (CUDA only)
 PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN kernels read
 # every launch's compile options beside its warps: a multiply and an add fused into one FMA, as
