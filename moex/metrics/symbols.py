@@ -62,12 +62,17 @@ def block_distribution(sequences, m: int) -> dict[tuple, float]:
 def block_kl(data, model, m: int, floor: float = 1e-3) -> float:
     """D_KL^(m)(ŝ ‖ s) = Σ_b p(b | ŝ) ln(p(b | ŝ) / p(b | s)) (Eq. 21), data ŝ first.
 
-    Blocks the data has and the model never produced get the model probability `floor`
-    (without renormalising), so the divergence stays finite and a model that misses a block
-    pays ln(p/floor) for it; blocks only the model produced do not enter Eq. 21.
+    Blocks the data has and the model never produced get the model probability `floor`, and
+    the model's probabilities are then divided by 1 + floor × (the number of such blocks), so
+    that q is again a distribution: the divergence stays finite, is never negative (Gibbs'
+    inequality), and a model that misses a block pays about ln(p/floor) for it. (Before
+    2026-12-04 the floor was not renormalised, and a model that missed many rare blocks of a
+    many-symbol recording could score below 0.) Blocks only the model produced do not enter
+    Eq. 21.
     """
     p, q = block_distribution(data, m), block_distribution(model, m)
-    return float(sum(pb * np.log(pb / q.get(b, floor)) for b, pb in p.items()))
+    z = 1.0 + floor * sum(b not in q for b in p)
+    return float(sum(pb * np.log(pb * z / q.get(b, floor)) for b, pb in p.items()))
 
 
 def block_kl_mregn(data, model, m: int, floor_count: float = 1e-3) -> float:
