@@ -118,3 +118,15 @@ def test_the_gpu_profile_names_where_each_phase_spends_its_epoch():
     for phase in ("phase 1, fixed rate", "phase 1, adaptive rate", "phase 2, adaptive rate"):
         assert re.search(rf"{phase}, 1 networks: \d+\.\d+ ms wall per epoch", done.stdout), phase
     assert done.stdout.count("| on the host (self CPU time) | ms per epoch |") == 3
+
+
+def test_the_sizes_benchmark_reports_time_and_memory_per_number_of_networks():
+    """benchmarks/bench_sizes.py at toy sizes: a row per number of networks with two times, the
+    measured peak and moex's estimate (a time can come out below 0 at 2 steps: a number still)."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_sizes.py"), "--runs",
+                           "1", "--steps", "2", "--length", "300", "--features", "3",
+                           "--experts", "2", "--threads", "1"], capture_output=True, text=True,
+                          timeout=600, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-2000:]
+    number = r"-?\d+\.\d+"
+    assert re.search(rf"\| 1 \| {number} \| {number} \| \d+\.\d\d \| \d+\.\d\d \|", done.stdout)
