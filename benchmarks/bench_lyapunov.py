@@ -15,10 +15,10 @@ import numba
 import torch
 from bench_epochs import print_kernels  # (benchmarks/ is the script's folder)
 
-from moex.closed_loop import closed_loop_lyapunov, random_state
+from moex.closed_loop import closed_loop_lyapunov
 from moex.config import Config
 from moex.kernels import get_backend
-from moex.model import init_experts, init_gating
+from moex.model import init_experts, init_gating, random_state
 from moex.run import run_seeds
 
 

@@ -31,8 +31,9 @@ import pandas as pd
 import torch
 
 from moex import checkpoint
-from moex.closed_loop import closed_loop_lyapunov, random_state
+from moex.closed_loop import closed_loop_lyapunov
 from moex.config import config_from_dict
+from moex.model import random_state
 from moex.report import to_markdown
 
 REPEATS = 20

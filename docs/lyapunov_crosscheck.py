@@ -38,9 +38,10 @@ import pandas as pd
 import torch
 
 from moex import checkpoint
-from moex.closed_loop import closed_loop_lyapunov, random_state
+from moex.closed_loop import closed_loop_lyapunov
 from moex.importer import export_run
 from moex.kernels import get_backend
+from moex.model import random_state
 from moex.mregn_format import read_save
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -12,14 +12,14 @@ import types
 
 _HOMES = {
     "moex.api": ("Fitted", "fit", "load"),
-    "moex.closed_loop": ("closed_loop_lyapunov", "generate", "random_state", "trained_state"),
+    "moex.closed_loop": ("closed_loop_lyapunov", "generate", "trained_state"),
     "moex.config": ("Config",),
     "moex.errors": ("ConfigError",),
     "moex.evaluate": ("EvalConfig", "evaluate"),
     "moex.kernels": ("get_backend",),
     "moex.metrics.lyapunov": ("lyapunov_exponents",),
     "moex.model": ("ModelConfig", "expert_forward", "gate_estimates", "gating_forward",
-                   "init_experts", "init_gating", "leaky_scan"),
+                   "init_experts", "init_gating", "leaky_scan", "random_state"),
     "moex.pipeline": ("run_train",),
     "moex.tasks": ("Dataset", "TaskConfig", "make_task"),
     "moex.train": ("TrainConfig", "train_experts", "train_gating"),

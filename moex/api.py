@@ -14,12 +14,12 @@ import torch
 
 from moex import checkpoint, io, provenance
 from moex.closed_loop import generate as run_closed_loop
-from moex.closed_loop import random_state, trained_state
+from moex.closed_loop import trained_state
 from moex.config import Config, RunFolder
 from moex.errors import check
 from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
-from moex.model import gate_estimates
+from moex.model import gate_estimates, random_state
 from moex.pipeline import evaluation_generators, in_data_units, load_run, settled
 from moex.run import Job, run_generators, train_jobs
 from moex.segment import METHODS, Segmentation, responsibilities, segmentation

@@ -35,26 +35,6 @@ def trained_state(experts, gating, gate_targets, series, delay,
     return ClosedLoopState(experts_u, gating["u0"], inputs, gate_targets[:, :, :delay])
 
 
-def random_state(experts, gating, num_samples, num_features, delay,
-                 generator) -> ClosedLoopState:
-    """Random initial states: u ~ U[-1, 1], x ~ U[-1, 1] and random probability vectors in the
-    delay lines (Sec. 4; the C code fills the gate line with U(-1, 1) instead)."""
-    R, K, H = gating["w_out"].shape
-    dtype = gating["w_out"].dtype
-
-    def uniform(*shape):
-        return draw(torch.rand, shape, generator, dtype) * 2 - 1
-
-    M = experts["w_rec"].shape[-1] if experts else 0
-    # normalised exponentials: uniform on the probability simplex
-    e = -torch.log(draw(torch.rand, (R, num_samples, delay, K), generator,
-                        dtype).clamp_min(1e-300))
-    return ClosedLoopState(uniform(R, num_samples, K if experts else 0, M),
-                           uniform(R, num_samples, H),
-                           uniform(R, num_samples, delay, num_features),
-                           e / e.sum(-1, keepdim=True))
-
-
 def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
     """(R, N, steps, D) Gaussian noise on x_m, or None; drawn one step at a time so that the
     random stream does not depend on how the steps are chunked."""

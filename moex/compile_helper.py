@@ -1,4 +1,4 @@
-"""The compile helper's process (`python -m moex.kernels.cpu.helper <precision>`) between its start
+"""The compile helper's process (`python -m moex.precompile <precision>`) between its start
 by the `moex` command (`moex.launch`, before the command's heavy imports) and its adoption by the
 run (`moex.kernels.cpu.warm.start`). Imports nothing of moex, so the command can start it at once
 and neither side imports the other.
@@ -23,7 +23,7 @@ helper: tuple[str, subprocess.Popen] | None = None  # (precision, process) until
 
 def spawn(precision: str) -> subprocess.Popen:
     """A helper process compiling the kernels of `precision` into the cache."""
-    return subprocess.Popen([sys.executable, "-m", "moex.kernels.cpu.helper", precision],
+    return subprocess.Popen([sys.executable, "-m", "moex.precompile", precision],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 

@@ -16,7 +16,6 @@ from moex.closed_loop import (
     CHUNK,
     closed_loop_lyapunov,
     generate,
-    random_state,
     trained_state,
 )
 from moex.draws import Generators
@@ -31,7 +30,7 @@ from moex.metrics.symbols import (
     symbolize_argmax,
     symbolize_threshold,
 )
-from moex.model import expert_forward, gate_estimates, gating_forward
+from moex.model import expert_forward, gate_estimates, gating_forward, random_state
 from moex.tasks import Dataset
 from moex.train import phase2_targets
 

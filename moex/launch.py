@@ -1,7 +1,7 @@
 """The `moex` command's entry point: starts compiling before the command's own imports.
 
 A first `moex train` on the cpu backend (an empty numba cache) compiles its kernels, about 50 s
-of CPU: the run compiles the phase-1 kernel while a helper process (`moex.kernels.cpu.helper`)
+of CPU: the run compiles the phase-1 kernel while a helper process (`moex.precompile`)
 compiles the closed loop and phase 2. Here the helper starts before the command imports PyTorch
 and Hydra (about 3 s on a 2-core machine), when the command line says the run trains on the cpu
 backend (`moex.compile_helper`); the run adopts it (`warm.start`). One it never adopts (a bad

@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from moex.draws import draw
 from moex.errors import check, check_range
 
 INIT_SCHEMES = ("paper", "mregn")
@@ -364,3 +365,23 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
         d_nxt = shifted(ClosedLoopState(d_experts_u if experts else tangents.experts_u,
                                         d_gating_u, tangents.inputs, tangents.gates), dy, d_gates)
     return Step(nxt, y, g, gating_u, d_nxt)
+
+
+def random_state(experts, gating, num_samples, num_features, delay,
+                 generator) -> ClosedLoopState:
+    """Random initial states: u ~ U[-1, 1], x ~ U[-1, 1] and random probability vectors in the
+    delay lines (Sec. 4; the C code fills the gate line with U(-1, 1) instead)."""
+    R, K, H = gating["w_out"].shape
+    dtype = gating["w_out"].dtype
+
+    def uniform(*shape):
+        return draw(torch.rand, shape, generator, dtype) * 2 - 1
+
+    M = experts["w_rec"].shape[-1] if experts else 0
+    # normalised exponentials: uniform on the probability simplex
+    e = -torch.log(draw(torch.rand, (R, num_samples, delay, K), generator,
+                        dtype).clamp_min(1e-300))
+    return ClosedLoopState(uniform(R, num_samples, K if experts else 0, M),
+                           uniform(R, num_samples, H),
+                           uniform(R, num_samples, delay, num_features),
+                           e / e.sum(-1, keepdim=True))

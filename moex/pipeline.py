@@ -23,7 +23,7 @@ from moex import (
     run_page,
     segment,
 )
-from moex.closed_loop import generate, random_state, trained_state
+from moex.closed_loop import generate, trained_state
 from moex.config import (
     Config,
     EvaluateConfig,
@@ -39,7 +39,7 @@ from moex.evaluate import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
 from moex.metrics.table import LOGGED, METRICS
-from moex.model import ModelConfig, gate_estimates
+from moex.model import ModelConfig, gate_estimates, random_state
 from moex.run import Job, run_generators, train_jobs
 from moex.tasks import Dataset, Scale, files, make_task, planned_shape, task_of_run
 from moex.tasks.scaling import WINDOW, noise_floor

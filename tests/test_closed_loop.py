@@ -1,6 +1,6 @@
 import torch
 
-from moex.closed_loop import generate, random_state, trained_state
+from moex.closed_loop import generate, trained_state
 from moex.model import (
     ClosedLoopState,
     ModelConfig,
@@ -9,6 +9,7 @@ from moex.model import (
     gating_forward,
     init_experts,
     init_gating,
+    random_state,
 )
 from tests.conftest import generators
 

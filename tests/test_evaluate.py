@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from moex import objectives
-from moex.closed_loop import closed_loop_lyapunov, generate, random_state, trained_state
+from moex.closed_loop import closed_loop_lyapunov, generate, trained_state
 from moex.config import Config
 from moex.evaluate import EvalConfig, _decided, _train_block_kl, evaluate
 from moex.metrics.lyapunov import chaos_label, standard_error
 from moex.metrics.switching import segment_symbols, switch_probability
-from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward
+from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward, random_state
 from moex.pipeline import load_task, run_train
 from moex.run import initial_parameters
 from moex.tasks import Dataset, TaskConfig, make_task

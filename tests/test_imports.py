@@ -81,3 +81,20 @@ def test_the_package_has_no_import_circle():
 def test_the_circle_finder_finds_a_circle():
     assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert _circles({"a": {"b"}, "b": set()}) == []
+
+
+# what the compute kernels may build on: the model's definitions and its mathematics (the
+# objectives, the Lyapunov and symbol formulas the reference backend spells out), the errors, the
+# draws and the compile stamp; nothing of training, evaluation, the CLI or the pipeline
+KERNEL_FLOOR = {"moex", "moex.model", "moex.objectives", "moex.metrics",
+                "moex.metrics.lyapunov", "moex.metrics.symbols", "moex.errors", "moex.draws",
+                "moex.compile_helper"}
+
+
+def test_the_kernels_import_nothing_from_the_layers_above_them():
+    graph = _graph(_modules())
+    upward = {(name, dep) for name, deps in graph.items() if name.startswith("moex.kernels")
+              for dep in deps if not dep.startswith("moex.kernels") and dep not in KERNEL_FLOOR}
+    assert upward == set()
+    assert {dep for name, deps in graph.items() if name.startswith("moex.kernels")
+            for dep in deps} >= {"moex.model", "moex.errors"}  # the test sees their imports

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from moex.closed_loop import closed_loop_lyapunov, generate, random_state
+from moex.closed_loop import closed_loop_lyapunov, generate
 from moex.kernels import REGISTRY, available, get_backend, reference
 from moex.metrics.lyapunov import initial_tangents, reorthonormalise
-from moex.model import ModelConfig, closed_loop_step, init_experts, init_gating
+from moex.model import ModelConfig, closed_loop_step, init_experts, init_gating, random_state
 from moex.tasks import TaskConfig, make_task
 from moex.train import (
     AdaptiveLRConfig,

@@ -1,4 +1,4 @@
-"""The first run's helper process (`moex.kernels.cpu.helper`, started by `moex.launch`): the run
+"""The first run's helper process (`moex.precompile`, started by `moex.launch`): the run
 waits for the kernels the helper compiles, only while the helper runs and only until the kernel is
 in the cache for the run's precision; the command starts a helper only for a cpu training, and the
 run adopts it or stops it."""

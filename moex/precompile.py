@@ -1,4 +1,4 @@
-"""The helper process of a first run (`python -m moex.kernels.cpu.helper <precision>`, started by
+"""The helper process of a first run (`python -m moex.precompile <precision>`, started by
 `moex.compile_helper`, adopted by `warm.start`): it calls the phase-2, closed-loop and symbol
 kernels once on tiny inputs, so that numba compiles them into its cache while the run trains
 phase 1. Nothing imports this module; it imports what it calls."""
@@ -8,11 +8,10 @@ import sys
 import torch
 
 from moex import compile_helper
-from moex.closed_loop import random_state
 from moex.kernels.cpu import LATER, phases, warm
 from moex.kernels.cpu.closed_loop import closed_loop
 from moex.kernels.cpu.symbols import nearest_symbols
-from moex.model import ModelConfig, init_experts, init_gating
+from moex.model import ModelConfig, init_experts, init_gating, random_state
 from moex.train import GatingPhaseConfig
 
 
