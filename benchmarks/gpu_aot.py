@@ -113,7 +113,8 @@ def config(overrides: list[str]):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from moex.config import CONF_DIR, register_configs
+    from moex.cli import register_configs
+    from moex.config import CONF_DIR
 
     register_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

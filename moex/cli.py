@@ -22,6 +22,7 @@ import hydra
 from hydra import compose, initialize_config_dir
 from hydra._internal.callbacks import Callbacks
 from hydra._internal.utils import run_and_report
+from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -33,12 +34,26 @@ from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from moex import config, folders, packing, pipeline, provenance, report
-from moex.config import EvaluateConfig, register_configs
+from moex.config import (
+    Config,
+    EvaluateConfig,
+    GenerateConfig,
+    ImportConfig,
+    SegmentConfig,
+)
 from moex.errors import ConfigError, Interrupted, check, closest_first
 
 log = logging.getLogger("moex")
 CONF_DIR = str(config.CONF_DIR)
 SHOWS_CONFIG = {"--cfg", "-c", "--info"}  # Hydra flags that print instead of running
+
+
+def register_configs() -> None:
+    """The typed schemas of every verb's config, in Hydra's ConfigStore (done before composing)."""
+    for name, node in (("base_config", Config), ("base_evaluate", EvaluateConfig),
+                       ("base_generate", GenerateConfig), ("base_import", ImportConfig),
+                       ("base_segment", SegmentConfig)):
+        ConfigStore.instance().store(name=name, node=node)
 
 
 USAGE = """usage: moex <verb> [-m] [key=value ...]    (moex --version: the installed version)

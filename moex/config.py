@@ -1,5 +1,6 @@
-"""The top-level `Config`, assembled from each component's own dataclass, and its registration
-as Hydra's schema (`base_config`), so that every YAML value is type-checked when composed."""
+"""The top-level `Config`, assembled from each component's own dataclass, and the configs of the
+other verbs. `moex.cli.register_configs` registers them as Hydra's schemas (`base_config`, ...),
+so that every YAML value is type-checked when composed; nothing here imports Hydra."""
 
 from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
@@ -7,7 +8,6 @@ from typing import Optional
 
 import torch
 import yaml
-from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from moex.errors import check
@@ -156,14 +156,6 @@ class ImportConfig(Config):
     def __post_init__(self):
         super().__post_init__()
         check(self.min_variance > 0, f"min_variance={self.min_variance} must be > 0")
-
-
-def register_configs() -> None:
-    ConfigStore.instance().store(name="base_config", node=Config)
-    ConfigStore.instance().store(name="base_evaluate", node=EvaluateConfig)
-    ConfigStore.instance().store(name="base_generate", node=GenerateConfig)
-    ConfigStore.instance().store(name="base_import", node=ImportConfig)
-    ConfigStore.instance().store(name="base_segment", node=SegmentConfig)
 
 
 def config_from_dict(data: dict) -> Config:

@@ -7,8 +7,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
-from moex.cli import CONF_DIR, _override_variants
-from moex.config import Config, config_from_dict, register_configs
+from moex.cli import CONF_DIR, _override_variants, register_configs
+from moex.config import Config, config_from_dict
 from moex.pipeline import load_task
 from moex.run import phase1_cache
 

@@ -98,3 +98,17 @@ def test_the_kernels_import_nothing_from_the_layers_above_them():
     assert upward == set()
     assert {dep for name, deps in graph.items() if name.startswith("moex.kernels")
             for dep in deps} >= {"moex.model", "moex.errors"}  # the test sees their imports
+
+
+def test_the_python_api_imports_no_hydra():
+    """`import moex` and every public name (fit, load, evaluate, ...) run without Hydra: only
+    the command line (moex.cli) composes configs with it."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", "import sys, moex\n"
+                           "for name in moex.__all__: getattr(moex, name)\n"
+                           "print(sorted({m.split('.')[0] for m in sys.modules} & "
+                           "{'hydra', 'moex'}))"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["['moex']"]

@@ -6,8 +6,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from moex.cli import CONF_DIR
-from moex.config import register_configs
+from moex.cli import CONF_DIR, register_configs
 from moex.pipeline import run_train
 
 

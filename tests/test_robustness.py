@@ -16,7 +16,7 @@ from hydra.types import RunMode
 from omegaconf import open_dict
 
 from moex import cli
-from moex.config import register_configs
+from moex.cli import register_configs
 from moex.model import ModelConfig, init_experts, init_gating
 from moex.run import run_seeds
 from moex.tasks import TaskConfig, make_task
