@@ -7,15 +7,13 @@ start compiling kernels before it imports PyTorch (`moex.launch`).
 """
 
 import importlib
-import sys
-import types
 
 _HOMES = {
     "moex.api": ("Fitted", "fit", "load"),
     "moex.closed_loop": ("closed_loop_lyapunov", "generate", "trained_state"),
     "moex.config": ("Config",),
     "moex.errors": ("ConfigError",),
-    "moex.evaluate": ("EvalConfig", "evaluate"),
+    "moex.evaluation": ("EvalConfig", "evaluate"),
     "moex.kernels": ("get_backend",),
     "moex.metrics.lyapunov": ("lyapunov_exponents",),
     "moex.model": ("ModelConfig", "expert_forward", "gate_estimates", "gating_forward",
@@ -39,14 +37,3 @@ def __getattr__(name: str):
 def __dir__():
     return sorted(set(globals()) | set(__all__))
 
-
-class _Package(types.ModuleType):
-    """Keeps `moex.evaluate` the function: importing the submodule of that name would otherwise
-    bind the module to it (an eager `from moex.evaluate import evaluate` used to rebind it)."""
-
-    def __setattr__(self, name, value):
-        if not (name in _HOME_OF and isinstance(value, types.ModuleType)):
-            super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package

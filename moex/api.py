@@ -17,7 +17,7 @@ from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import trained_state
 from moex.config import Config, RunFolder
 from moex.errors import check
-from moex.evaluate import EvalConfig, evaluate
+from moex.evaluation import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.model import gate_estimates, random_state
 from moex.pipeline import evaluation_generators, in_data_units, load_run, settled

@@ -11,7 +11,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from moex.errors import check
-from moex.evaluate import EvalConfig
+from moex.evaluation import EvalConfig
 from moex.kernels import BACKENDS, get_backend
 from moex.model import ModelConfig
 from moex.plotting import PlotConfig

@@ -35,7 +35,7 @@ from moex.config import (
     paper_eval_sizes,
 )
 from moex.errors import ConfigError, check, never
-from moex.evaluate import EvalConfig, evaluate
+from moex.evaluation import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
 from moex.metrics.table import LOGGED, METRICS

@@ -24,7 +24,7 @@ from moex import checkpoint, io, provenance
 from moex.closed_loop import never
 from moex.config import Config
 from moex.errors import check
-from moex.evaluate import track_metrics
+from moex.evaluation import track_metrics
 from moex.kernels import Backend, get_backend
 from moex.model import init_experts, init_gating
 from moex.tasks import Dataset

@@ -1,4 +1,4 @@
-"""The metric table (moex.evaluate), tracking during training, and the production Lyapunov path
+"""The metric table (moex.evaluation), tracking during training, and the production Lyapunov path
 (moex.closed_loop on a backend) against a known exponent."""
 
 import dataclasses
@@ -12,7 +12,7 @@ import torch
 from moex import objectives
 from moex.closed_loop import closed_loop_lyapunov, generate, trained_state
 from moex.config import Config
-from moex.evaluate import EvalConfig, _decided, _train_block_kl, evaluate
+from moex.evaluation import EvalConfig, _decided, _train_block_kl, evaluate
 from moex.metrics.lyapunov import chaos_label, standard_error
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward, random_state

@@ -91,7 +91,7 @@ def test_bad_symbol_rule_is_refused():
     import pytest
 
     from moex.errors import ConfigError
-    from moex.evaluate import EvalConfig
+    from moex.evaluation import EvalConfig
 
     with pytest.raises(ConfigError, match="eval.symbol_rule='vote'; choose argmax or threshold"):
         EvalConfig(symbol_rule="vote")

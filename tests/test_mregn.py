@@ -15,7 +15,7 @@ from moex import checkpoint, pipeline
 from moex.closed_loop import generate, trained_state
 from moex.config import ImportConfig
 from moex.errors import ConfigError
-from moex.evaluate import _teacher_forced
+from moex.evaluation import _teacher_forced
 from moex.importer import export_run, import_networks
 from moex.model import ModelConfig
 from moex.mregn_format import read_save, read_targets, write_save, write_targets

@@ -7,7 +7,6 @@ _ = object()
 # Python and Hydra call these by name
 __getattr__  # moex/__init__.py: the package's lazy names (PEP 562)
 __dir__  # moex/__init__.py: the same, for dir(moex)
-_.__class__  # moex/__init__.py: the package module's own class (keeps moex.evaluate the function)
 _.SLP_VECTORIZE  # moex/kernels/cpu/simd.py: a numba setting numba reads
 _.align  # moex/kernels/cpu/simd.py: the alignment of an llvmlite alloca, which llvmlite prints
 _.get_source_stamp  # moex/kernels/cpu/cache.py: numba's cache locator interface, numba calls it
