@@ -1,5 +1,5 @@
 """What the adaptive learning rate (Sec. 2.1.4) costs over a fixed rate on the cpu backend, with
-the forward pass of an accepted trial reused by the next gradient step (`lanes._Forwarded`) and
+the forward pass of an accepted trial reused by the next gradient step (`lanes.Forwarded`) and
 without (every call runs its own forward pass, as before the reuse).
 
     python benchmarks/bench_adaptive.py [--runs 1 30] [--rounds 5]
@@ -27,15 +27,15 @@ def rounds(runs: int, count: int, steps: int, base: int) -> dict[tuple[str, bool
     fns = trainers("lissajous2", runs, "cpu", 1, 15, "float64")[0]
     out = {case: [] for case in CASES}
     for phase, reuse in CASES:  # compile (or load) at the timed sizes
-        lanes._Forwarded.enabled = reuse
+        lanes.Forwarded.enabled = reuse
         warm_up(fns[phase], steps, base)
     try:
         for _ in range(count):
             for phase, reuse in CASES:
-                lanes._Forwarded.enabled = reuse
+                lanes.Forwarded.enabled = reuse
                 out[(phase, reuse)].append(1e3 * marginal(fns[phase], steps, base)[1] / runs)
     finally:
-        lanes._Forwarded.enabled = True
+        lanes.Forwarded.enabled = True
     return out
 
 

@@ -86,12 +86,12 @@ def _allowed_keys(config_name: str, key: str) -> str:
         root = compose(config_name)
         node = OmegaConf.select(root, parent) if parent else root
         if not OmegaConf.is_dict(node):  # the parent itself is misspelt: the closest full keys
-            paths = _dotted(OmegaConf.to_container(root, resolve=False))
+            paths = dotted_keys(OmegaConf.to_container(root, resolve=False))
             close = difflib.get_close_matches(key, paths, n=3, cutoff=0.6)
             return f"; did you mean {' or '.join(close)}?" if close else ""
         keys = [str(k) for k in node.keys()]
         # a key given without its group (noise_var for eval.noise_var): its dotted forms first
-        nested = [path for path in _dotted(OmegaConf.to_container(root, resolve=False))
+        nested = [path for path in dotted_keys(OmegaConf.to_container(root, resolve=False))
                   if path.endswith(f".{leaf}")] if not parent else []
     except Exception:  # nothing to compose against: nothing to list
         return ""
@@ -101,12 +101,12 @@ def _allowed_keys(config_name: str, key: str) -> str:
     return f"{hint}; allowed keys: {', '.join(names)}"
 
 
-def _dotted(tree: dict, prefix: str = "") -> list[str]:
+def dotted_keys(tree: dict, prefix: str = "") -> list[str]:
     """Every leaf key of a nested config as a dotted path."""
     paths = []
     for k, v in tree.items():
         path = f"{prefix}{k}"
-        paths += _dotted(v, f"{path}.") if isinstance(v, dict) and v else [path]
+        paths += dotted_keys(v, f"{path}.") if isinstance(v, dict) and v else [path]
     return paths
 
 

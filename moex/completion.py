@@ -65,7 +65,7 @@ def table() -> dict:
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
-    from moex.cli import _dotted, register_configs
+    from moex.cli import dotted_keys, register_configs
     from moex.config import CONF_DIR
 
     register_configs()
@@ -74,7 +74,7 @@ def table() -> dict:
     for verb, name in CONFIGS.items():
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             root = compose(name)
-        keys = [k for k in _dotted(OmegaConf.to_container(root, resolve=False))
+        keys = [k for k in dotted_keys(OmegaConf.to_container(root, resolve=False))
                 if not k.startswith("hydra")]
         defaults = OmegaConf.load(Path(CONF_DIR) / f"{name}.yaml").get("defaults", [])
         named = {next(iter(d)) for d in defaults if OmegaConf.is_dict(d)}

@@ -24,9 +24,9 @@ def compile_later_phases(dtype: str) -> None:
     gating = init_gating(model, 1, 2, generators, torch_dtype)
     experts = init_experts(model, 1, 2, generators, torch_dtype)
     # the closed loop first (about 12 s of an idle 2-core VM's core, the largest), then phase 2,
-    # whose RNN passes (`rnn._forward`, `_backward`) the run's phase-1 kernel has cached by then,
-    # so only its own functions are left (about 5 s): the run's phase 1 (compiling, then
-    # training) ends about when they are ready
+    # whose RNN passes (`rnn.forward_pass`, `backward_pass`) the run's phase-1 kernel has cached
+    # by then, so only its own functions are left (about 5 s): the run's phase 1 (compiling,
+    # then training) ends about when they are ready
     state = random_state(experts, gating, 1, 2, 1, generators[0])
     tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
     tangents[..., 0, 0] = 1.0
@@ -38,7 +38,7 @@ def compile_later_phases(dtype: str) -> None:
     active = torch.ones(1, dtype=torch.bool)
     problem.value_and_grad(gating, grads, active)
     problem.value(gating, active)  # an adaptive trial: the record of the lanes' forward pass
-    problem.value_and_grad(gating, grads, active)  # and its reuse (`lanes._Forwarded`)
+    problem.value_and_grad(gating, grads, active)  # and its reuse (`lanes.Forwarded`)
     nearest_symbols(torch.zeros((1, 2, 2)), torch.zeros((2, 2)), torch.arange(2))
 
 

@@ -112,3 +112,14 @@ def test_the_python_api_imports_no_hydra():
                            "{'hydra', 'moex'}))"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["['moex']"]
+
+
+def test_no_module_imports_another_modules_private_names():
+    """A name with a leading underscore is its module's own: none is imported by another."""
+    private = []
+    for name, path in _modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("moex"):
+                private += [(name, node.module, a.name) for a in node.names
+                            if a.name.startswith("_") and not a.name.startswith("__")]
+    assert private == []

@@ -447,7 +447,7 @@ def test_cuda_backends_match_cpu(name):
 @pytest.mark.parametrize("noise", [0.0, 0.01])
 def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(monkeypatch, noise):
     """The cpu backend's gradient step after an accepted adaptive trial takes the trial's forward
-    pass from the lanes (`lanes._Forwarded`): both phases trained so (with retries, steps given up
+    pass from the lanes (`lanes.Forwarded`): both phases trained so (with retries, steps given up
     after 2 retries, learned τ and 3 runs whose lanes share blocks) equal the same training with
     every forward pass run afresh, bit for bit; with phase-2 input noise (fresh inputs every
     step) nothing is reused."""
@@ -462,17 +462,17 @@ def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(mo
     phase2 = GatingPhaseConfig(steps=12, adaptive_lr=True, learning_rate=20.0, log_every=1,
                                input_noise_var=noise)
     calls = []
-    original = lanes._Forwarded.stale
+    original = lanes.Forwarded.stale
 
     def spy(self, params, active):  # (active runs, runs given a forward pass) per gradient step
         result = original(self, params, active)
         calls.append((int(active.sum()), int(result.sum())))
         return result
 
-    monkeypatch.setattr(lanes._Forwarded, "stale", spy)
+    monkeypatch.setattr(lanes.Forwarded, "stale", spy)
     out = []
     for reuse in (True, False):
-        monkeypatch.setattr(lanes._Forwarded, "enabled", reuse)
+        monkeypatch.setattr(lanes.Forwarded, "enabled", reuse)
         calls.clear()
         experts, beta, rows1 = train_experts(init_experts(model, 3, 2, generators([0, 1, 2])),
                                              series, model, phase1, rule, backend=COMPILED)
@@ -510,13 +510,13 @@ def test_lane_arrays_start_on_a_cache_line(shape, dtype):
 
 
 def test_forward_pass_record_of_runs_whose_lanes_share_blocks():
-    """`_Forwarded` with 8 lanes a block and 6 lanes a run: run 0 in block 0, run 1 in blocks 0
+    """`Forwarded` with 8 lanes a block and 6 lanes a run: run 0 in block 0, run 1 in blocks 0
     and 1, run 2 in blocks 1 and 2. Recomputing block 0 alone (run 0 stale) after run 1's
     parameters changed leaves run 1 half old, half new: stale; run 0 current; run 2 untouched."""
-    from moex.kernels.cpu.lanes import LB, _Forwarded, _runs_of_blocks
+    from moex.kernels.cpu.lanes import LB, Forwarded, runs_of_blocks
 
     assert LB == 8
-    record = _Forwarded(_runs_of_blocks(3, 6, 3), 6, ("w",))
+    record = Forwarded(runs_of_blocks(3, 6, 3), 6, ("w",))
     params = {"w": np.zeros((3, 2))}
     everyone = np.ones(3, bool)
     np.testing.assert_array_equal(record.stale(params, everyone), everyone)  # nothing recorded
@@ -533,7 +533,7 @@ def test_forward_pass_record_of_runs_whose_lanes_share_blocks():
 
 @pytest.mark.parametrize("R", [1, 2])
 def test_staging_hands_contiguous_views_to_the_kernels_as_they_are(monkeypatch, R):
-    """`lanes._Staging` with the training loop's (R, P) buffers: at R = 1 every group's view is
+    """`lanes.Staging` with the training loop's (R, P) buffers: at R = 1 every group's view is
     C-contiguous, and the kernels read and write the buffers themselves (no copy); at R = 2 the
     views are strided and go through copies, gradients copied back. Either way a step of both
     phases gives the same bits as a step with every group copied (the copying staging)."""
@@ -559,7 +559,7 @@ def test_staging_hands_contiguous_views_to_the_kernels_as_they_are(monkeypatch, 
         results = []
         def copying(value, own, copy_in):  # the staging before: every group copied
             if copy_in:
-                np.copyto(own, lanes._host(value))
+                np.copyto(own, lanes.to_host(value))
             return own
 
         for direct in (True, False):

@@ -62,17 +62,17 @@ from moex.kernels.cpu import rnn, simd
 z = np.zeros((1, 1, simd.LB))
 args = (z, z, z, z, z[0], z[0], z[0] + 1.0, z[0], True, z[0], z, z,  # T = H = inputs = 1
         np.zeros((0, 1, simd.LB)), np.zeros((0, simd.LB)), np.zeros((0, simd.LB)))
-rnn._forward(*args)
-stats = rnn._forward.stats
+rnn.forward_pass(*args)
+stats = rnn.forward_pass.stats
 print(rnn.__file__, sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))
 """
 
 
 def test_a_kernel_cached_before_an_edit_of_a_file_it_inlines_from_is_compiled_afresh(tmp_path):
     """numba keys a cached function on its own file only; the cpu package keys its kernels on all
-    of its sources (`moex.kernels.cpu.cache`). On a copy of the package: `rnn._forward` compiled
+    of its sources (`moex.kernels.cpu.cache`). On a copy of the package: `rnn.forward_pass` compiled
     into an empty cache is loaded by the next process; after an edit of simd.py alone (which
-    `_forward` inlines, rnn.py unchanged) the next process compiles it afresh instead of loading
+    `forward_pass` inlines, rnn.py unchanged) the next process compiles it afresh instead of loading
     the stale entry. A function outside the package keeps numba's own key."""
     import shutil
     import sys
@@ -100,8 +100,8 @@ def test_a_kernel_cached_before_an_edit_of_a_file_it_inlines_from_is_compiled_af
     with open(tmp_path / "moex" / "kernels" / "cpu" / "simd.py", "a") as simd:
         simd.write("# an edit\n")
     assert probe() == (0, 1)  # compiled afresh, not the stale entry
-    assert type(rnn._forward._cache._impl.locator).__name__.startswith("Package")
-    assert rnn._forward._cache._impl.locator.get_source_stamp() == kernel_sources()
+    assert type(rnn.forward_pass._cache._impl.locator).__name__.startswith("Package")
+    assert rnn.forward_pass._cache._impl.locator.get_source_stamp() == kernel_sources()
 
     @njit(cache=True)
     def outside(x):  # pragma: no cover

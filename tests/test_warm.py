@@ -33,7 +33,7 @@ def helper(monkeypatch):
 
 def test_the_run_waits_for_a_kernel_the_helper_compiles_until_the_helper_ends(helper, tmp_path):
     start = time.perf_counter()
-    assert warm.wait_for(_kernel("_closed_blocks", tmp_path / "missing.nbi"))
+    assert warm.wait_for(_kernel("closed_blocks", tmp_path / "missing.nbi"))
     assert time.perf_counter() - start > 0.3
     assert helper.poll() is not None
 
@@ -42,7 +42,7 @@ def test_the_run_stops_waiting_when_the_kernel_is_in_the_cache(helper, tmp_path)
     index = tmp_path / "kernel.nbi"
     index.write_text("")
     start = time.perf_counter()
-    assert not warm.wait_for(_kernel("_gating_items", index))
+    assert not warm.wait_for(_kernel("gating_items", index))
     assert time.perf_counter() - start < 0.3
     assert helper.poll() is None
 
@@ -54,7 +54,7 @@ def test_the_run_never_waits_for_a_kernel_the_helper_does_not_compile(helper, tm
 
 def test_without_a_helper_nothing_waits(monkeypatch, tmp_path):
     monkeypatch.setattr(warm, "_helper", None)
-    assert not warm.wait_for(_kernel("_closed_blocks", tmp_path / "missing.nbi"))
+    assert not warm.wait_for(_kernel("closed_blocks", tmp_path / "missing.nbi"))
 
 
 def _sleeper():

@@ -24,12 +24,12 @@ from moex.kernels.cpu.cache import install
 
 install()  # numba's cache keyed on all of this package's sources, before any kernel is decorated
 
-from moex.kernels.cpu.closed_loop import _closed_blocks, closed_loop  # noqa: E402
-from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, _gating_items  # noqa: E402
+from moex.kernels.cpu.closed_loop import closed_blocks, closed_loop  # noqa: E402
+from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, gating_items  # noqa: E402
 from moex.kernels.cpu.symbols import nearest_symbols  # noqa: E402
 
 __all__ = ["ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up"]
-LATER = (_closed_blocks, _gating_items)  # the helper's two large kernels (`warm.cached`)
+LATER = (closed_blocks, gating_items)  # the helper's two large kernels (`warm.cached`)
 
 
 def warm_up(precision: str) -> None:

@@ -6,7 +6,7 @@ import torch
 from numba import njit
 
 from moex.kernels.cpu import threads
-from moex.kernels.cpu.lanes import _NET, _first_use, _in_lanes
+from moex.kernels.cpu.lanes import NET, first_use, in_lanes
 from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log, stack, tanh, zeros
 from moex.model import ClosedLoopRun
 
@@ -34,8 +34,8 @@ def _spread_run(lane, N, params, lane_params):  # pragma: no cover
 
 
 @njit(nogil=True, **JIT)
-def _closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, noise_all, count,
-                   uniform_gates, out_y_all, out_g_all, out_u_all, growth_all):  # pragma: no cover
+def closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, noise_all, count,
+                  uniform_gates, out_y_all, out_g_all, out_u_all, growth_all):  # pragma: no cover
     """Blocks lo..hi-1 of trajectories for out_y_all.shape[1] steps; each block first gets its
     lanes' weights from experts / gating (`_spread_run`), then, with every array below its part
     of the block-major *_all array:
@@ -340,13 +340,13 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
 
     def lanes_of(x, per_trajectory_shape):  # (R, N, ...) -> (NB, ..., LB)
         flat = np.asarray(x.detach().cpu().numpy(), dtype).reshape((B,) + per_trajectory_shape)
-        return _in_lanes(np.moveaxis(flat, 0, -1))
+        return in_lanes(np.moveaxis(flat, 0, -1))
 
     def params_of(net, per_run):
         if not net:  # symbolic tasks: no experts
             return tuple(np.zeros((R, 0, 1, 1), dtype) if n in ("w_in", "w_rec", "w_out") else
-                         np.ones((R, 0, 1), dtype) for n in _NET)
-        arrays = tuple(np.ascontiguousarray(net[n].detach().cpu().numpy(), dtype) for n in _NET)
+                         np.ones((R, 0, 1), dtype) for n in NET)
+        arrays = tuple(np.ascontiguousarray(net[n].detach().cpu().numpy(), dtype) for n in NET)
         return arrays if per_run else tuple(a[:, None] for a in arrays)
 
     experts_p, gating_p = params_of(experts, True), params_of(gating, False)
@@ -363,8 +363,8 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
     out_y, out_g = zeros((NB, steps, D, LB), dtype), zeros((NB, steps, K, LB), dtype)
     out_u = zeros((NB, steps if potentials else 0, H, LB), dtype)
     growth = zeros((NB, k, LB), dtype)
-    with _first_use(_closed_blocks, "closed-loop kernel"):
-        threads.over(_closed_blocks, NB, N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V,
+    with first_use(closed_blocks, "closed-loop kernel"):
+        threads.over(closed_blocks, NB, N, experts_p, gating_p, E, G, (eu, gu, xl, gl), V,
                      noise_l, count, uniform_gates, out_y, out_g, out_u, growth)
 
     def back(x, shape):  # (NB, ..., LB) -> (R, N, ...)

@@ -17,7 +17,7 @@ from moex.kernels.cpu.simd import JIT, LB, padded, zeros
 
 
 @njit(inline="always", **JIT)
-def _spread(lane, S, params, u0, net):  # pragma: no cover
+def spread(lane, S, params, u0, net):  # pragma: no cover
     """Copy the weights of the network that owns `lane` into it (zeros for padding lanes).
     Network parameters are (R, K', ...) with K' experts per run (1 for the gating RNN); u0 is
     (R, S, K', H)."""
@@ -44,7 +44,7 @@ def _spread(lane, S, params, u0, net):  # pragma: no cover
 
 
 @njit(inline="always", **JIT)
-def _lane_sum(x, lo, hi):  # pragma: no cover
+def lane_sum(x, lo, hi):  # pragma: no cover
     """Σ over lanes lo..hi-1 of x (NB, LB)."""
     total = 0.0
     for lane in range(lo, hi):
@@ -53,9 +53,9 @@ def _lane_sum(x, lo, hi):  # pragma: no cover
 
 
 @njit(inline="always", **JIT)
-def _gather(g, S, tau, lane_grads, grads, learn_eps):  # pragma: no cover
+def gather(g, S, tau, lane_grads, grads, learn_eps):  # pragma: no cover
     """Sum the per-lane gradients of network g's S lanes into its parameter gradients
-    (∂/∂τ = -ε² ∂/∂ε); layouts as in `_spread`."""
+    (∂/∂τ = -ε² ∂/∂ε); layouts as in `spread`."""
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps = lane_grads
     g_w_in, g_w_rec, g_w_out, g_b_c, g_b_o, g_tau = grads
     KK = g_w_in.shape[1]
@@ -63,22 +63,22 @@ def _gather(g, S, tau, lane_grads, grads, learn_eps):  # pragma: no cover
     H, NI, NO = g_w_rec.shape[2], g_w_in.shape[3], g_w_out.shape[2]
     lo, hi = g * S, g * S + S
     for i in range(H):
-        g_b_c[r, k, i] = _lane_sum(l_b_c[:, i], lo, hi)
+        g_b_c[r, k, i] = lane_sum(l_b_c[:, i], lo, hi)
         if learn_eps:
-            g_tau[r, k, i] = -_lane_sum(l_eps[:, i], lo, hi) / (tau[r, k, i] * tau[r, k, i])
+            g_tau[r, k, i] = -lane_sum(l_eps[:, i], lo, hi) / (tau[r, k, i] * tau[r, k, i])
         for d in range(NI):
-            g_w_in[r, k, i, d] = _lane_sum(l_w_in[:, i, d], lo, hi)
+            g_w_in[r, k, i, d] = lane_sum(l_w_in[:, i, d], lo, hi)
         for j in range(H):
-            g_w_rec[r, k, i, j] = _lane_sum(l_w_rec[:, i, j], lo, hi)
+            g_w_rec[r, k, i, j] = lane_sum(l_w_rec[:, i, j], lo, hi)
     for o in range(NO):
-        g_b_o[r, k, o] = _lane_sum(l_b_o[:, o], lo, hi)
+        g_b_o[r, k, o] = lane_sum(l_b_o[:, o], lo, hi)
         for i in range(H):
-            g_w_out[r, k, o, i] = _lane_sum(l_w_out[:, o, i], lo, hi)
+            g_w_out[r, k, o, i] = lane_sum(l_w_out[:, o, i], lo, hi)
 
 
 @njit(inline="always", **JIT)
-def _run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
-               g_u0):  # pragma: no cover
+def run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
+              g_u0):  # pragma: no cover
     """After the backward pass, for the lanes of run r: the C code's attraction of u_0 to the
     mean μ of its own trajectory {u_0..u_T} (not in the paper; value returned, gradient
     (μ - u_0)/max(var, floor) added) and the u_0 gradients copied out to g_u0 (R, S, K', H)."""
@@ -99,7 +99,7 @@ def _run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
     return value
 
 
-def _runs_of_blocks(num_blocks, lanes_per_run, num_runs):
+def runs_of_blocks(num_blocks, lanes_per_run, num_runs):
     """(NB, 2): the first and last run each block of lanes touches."""
     starts = np.arange(num_blocks) * LB
     first = np.minimum(starts // lanes_per_run, num_runs - 1)
@@ -108,11 +108,11 @@ def _runs_of_blocks(num_blocks, lanes_per_run, num_runs):
 
 
 @njit(inline="always", **JIT)
-def _block_active(b, block_runs, active):  # pragma: no cover
+def block_active(b, block_runs, active):  # pragma: no cover
     return active[block_runs[b, 0]:block_runs[b, 1] + 1].any()
 
 
-class _Forwarded:
+class Forwarded:
     """Which runs' lanes hold the forward pass of the parameters a call now hands: the gradient
     step after an accepted adaptive trial (Sec. 2.1.4) is at the trial's point, so it finds the
     trial's forward pass in the lanes and runs only what follows it. The forward pass is a
@@ -124,7 +124,7 @@ class _Forwarded:
     was, and unknown (stale from then on) if some were and its parameters had changed.
 
     Args:
-        block_runs: (NB, 2) the first and last run of each block (`_runs_of_blocks`).
+        block_runs: (NB, 2) the first and last run of each block (`runs_of_blocks`).
         lanes_per_run: lanes of one run; names: the parameters the forward pass reads.
     """
 
@@ -211,7 +211,7 @@ _ready: set = set()
 
 
 @contextlib.contextmanager
-def _first_use(kernel, what: str, after: float = 2.0):
+def first_use(kernel, what: str, after: float = 2.0):
     """Log lines around the first call of a kernel in this process where it takes a while: numba
     compiles it then (tens of seconds) or waits for the helper that compiles it beside the run
     (`warm`); a kernel loaded from the cache on disk (about a second) says nothing, so a cached
@@ -244,16 +244,16 @@ def _first_use(kernel, what: str, after: float = 2.0):
         logger.info("compiled %s ready in %.1f s", what, time.perf_counter() - start)
 
 
-_NET = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau")
+NET = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau")
 
 
-def _per_network(params: dict, experts: bool) -> tuple:
+def per_network(params: dict, experts: bool) -> tuple:
     """The network parameters as (R, K', ...) views (K' = 1 for the gating RNN), never copies:
     the kernels write gradients into them."""
-    return tuple(params[n] if experts else params[n][:, None] for n in _NET)
+    return tuple(params[n] if experts else params[n][:, None] for n in NET)
 
 
-def _in_lanes(per_lane: np.ndarray) -> np.ndarray:
+def in_lanes(per_lane: np.ndarray) -> np.ndarray:
     """(..., NL) -> (NB, ..., LB), lanes padded with zeros to whole blocks."""
     NL = per_lane.shape[-1]
     padded_lanes = np.zeros(per_lane.shape[:-1] + (padded(NL),), per_lane.dtype)
@@ -264,7 +264,7 @@ def _in_lanes(per_lane: np.ndarray) -> np.ndarray:
     return out
 
 
-class _Lanes:
+class Lanes:
     """Work arrays of one phase, block-major (NB, ..., LB) so that a block's history is one
     contiguous piece of memory: per-lane weights, histories and per-lane gradients."""
 
@@ -282,7 +282,7 @@ class _Lanes:
                      blocks(*((T, H) if learn_tau else (0, 0))), zeros(sums), zeros(sums),
                      blocks(T, NO)]
         self.lane_grads = tuple(zeros(x.shape, dtype) for x in self.net)
-        self.block_runs = _runs_of_blocks(NB, lanes_per_run, num_runs)
+        self.block_runs = runs_of_blocks(NB, lanes_per_run, num_runs)
         self.num_lanes = NB * LB
         self.out = np.zeros((4, num_runs), dtype)
 
@@ -290,7 +290,7 @@ class _Lanes:
         return {n: torch.from_numpy(self.out[i].copy()) for i, n in enumerate(names)}
 
 
-class _Staging:
+class Staging:
     """The arrays the kernels read parameters from and write gradients to. numba types a strided
     view differently from a C-contiguous array, and the training loop's views of its (R, P)
     buffers are strided for R > 1: those are copied into C-contiguous arrays of this class (a few
@@ -315,13 +315,13 @@ class _Staging:
         """Copy the gradients the kernels wrote into `written` out to `grads` where they differ."""
         for name, value in (grads or {}).items():
             if written[name] is self.grads[name]:
-                np.copyto(_host(value), self.grads[name])
+                np.copyto(to_host(value), self.grads[name])
 
 
 def _direct(value, own: np.ndarray, copy_in: bool) -> np.ndarray:
     """The numpy view of `value` where the kernels can take it as it is (C-contiguous, writeable,
     aligned, of the staged shape and dtype), else `own`, with the value copied in if `copy_in`."""
-    x = _host(value)
+    x = to_host(value)
     if (x.flags.c_contiguous and x.flags.writeable and x.flags.aligned and x.shape == own.shape
             and x.dtype == own.dtype):
         return x
@@ -330,7 +330,7 @@ def _direct(value, own: np.ndarray, copy_in: bool) -> np.ndarray:
     return own
 
 
-def _host(x) -> np.ndarray:
+def to_host(x) -> np.ndarray:
     """The numpy view of a CPU tensor (the training loop's buffers; a tensor elsewhere is
     copied to the host), or the array itself."""
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)

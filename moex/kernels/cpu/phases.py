@@ -10,21 +10,21 @@ from numba import njit
 
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import (
-    _NET,
-    _block_active,
-    _first_use,
-    _Forwarded,
-    _gather,
-    _host,
-    _in_lanes,
-    _lane_sum,
-    _Lanes,
-    _per_network,
-    _run_lanes,
-    _spread,
-    _Staging,
+    NET,
+    Forwarded,
+    Lanes,
+    Staging,
+    block_active,
+    first_use,
+    gather,
+    in_lanes,
+    lane_sum,
+    per_network,
+    run_lanes,
+    spread,
+    to_host,
 )
-from moex.kernels.cpu.rnn import _backward, _forward
+from moex.kernels.cpu.rnn import backward_pass, forward_pass
 from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log
 from moex.kernels.noise import input_noise
 
@@ -162,12 +162,12 @@ def _run_sums(r, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_lo
     K = g_log_sigma.shape[1]
     if want_grad:
         for g in range(r * K, (r + 1) * K):
-            _gather(g, S, params[5], lane_grads[:6], grads, work[3].shape[1] > 0)
+            gather(g, S, params[5], lane_grads[:6], grads, work[3].shape[1] > 0)
     log_lik = partial[r * S:(r + 1) * S, 0].sum()
     prior = partial[r * S:(r + 1) * S, 1].sum()
     error = partial[r * S:(r + 1) * S, 2].sum()
-    out[0, r] = log_lik + prior + _run_lanes(r, S, T, net[6], S1, S2, floor, attraction,
-                                             want_grad, lane_grads[6], g_u0)
+    out[0, r] = log_lik + prior + run_lanes(r, S, T, net[6], S1, S2, floor, attraction,
+                                            want_grad, lane_grads[6], g_u0)
     out[1, r], out[2, r] = log_lik, prior
     out[3, r] = 0.5 * error / (S * T * targets.shape[3])
     if want_grad:
@@ -185,7 +185,7 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                   g_u0, g_log_sigma, g_beta, X, targets, floor, prior_std, attraction, want_grad,
                   active, stale, block_runs, chunk, out):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent);
-    the forward pass only in blocks that hold a `stale` run (`_Forwarded`).
+    the forward pass only in blocks that hold a `stale` run (`Forwarded`).
 
     _CHUNKS: chunks of `chunk` runs (whole blocks of lanes), each taken through every stage (a
     call of this function per stage) in one thread while its histories are in that thread's
@@ -212,17 +212,18 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     for i in range(lo, hi):
         if stage == _FORWARD:
             for lane in range(i * LB, (i + 1) * LB):
-                _spread(lane, S, params, u0, net)
-            if _block_active(i, block_runs, stale):
-                _forward(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i], u0_lane[i],
-                         True, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                spread(lane, S, params, u0, net)
+            if block_active(i, block_runs, stale):
+                forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
+                             u0_lane[i], True, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
         elif stage == _MIXTURE:
             if active[i // S]:
                 _mixture(i // S, i % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
         elif stage == _BACKWARD:
-            if want_grad and _block_active(i, block_runs, active):
-                _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i], eps[i],
-                          l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i], l_eps[i], l_u0[i])
+            if want_grad and block_active(i, block_runs, active):
+                backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
+                              eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
+                              l_eps[i], l_u0[i])
         elif active[i]:
             _run_sums(i, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_log_sigma,
                       floor, attraction, want_grad, out)
@@ -266,11 +267,11 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
 
 
 @njit(nogil=True, **JIT)
-def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
-                  entropy, sigma_min, attraction, want_grad, active, stale, block_runs,
-                  out):  # pragma: no cover
+def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
+                 entropy, sigma_min, attraction, want_grad, active, stale, block_runs,
+                 out):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-2 step: with `blocks`, blocks of lanes (weights
-    spread to the lanes, forward where a `stale` run is (`_Forwarded`), objective, backward);
+    spread to the lanes, forward where a `stale` run is (`Forwarded`), objective, backward);
     otherwise runs, after every block
     (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes)."""
     C0, C, Y, U, S1, S2, DY, log_lik = work
@@ -281,25 +282,25 @@ def _gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0
     for i in range(lo, hi):
         if blocks:
             for lane in range(i * LB, (i + 1) * LB):
-                _spread(lane, S, params, u0, net)
-            if _block_active(i, block_runs, active):
-                if _block_active(i, block_runs, stale):
-                    _forward(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
-                             u0_lane[i], False, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                spread(lane, S, params, u0, net)
+            if block_active(i, block_runs, active):
+                if block_active(i, block_runs, stale):
+                    forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
+                                 u0_lane[i], False, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
                 _softmax_objective(Y[i], targets[i], want_grad, DY[i], log_lik[i])
                 if want_grad:
-                    _backward(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
-                              eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
-                              l_eps[i], l_u0[i])
+                    backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
+                                  eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
+                                  l_eps[i], l_u0[i])
         elif active[i]:
-            total = _lane_sum(log_lik, i * S, (i + 1) * S)
+            total = lane_sum(log_lik, i * S, (i + 1) * S)
             out[1, i] = total
             out[2, i] = entropy[i] - total
             out[3, i] = out[2, i] / (S * T * K)
-            out[0, i] = total + _run_lanes(i, S, T, u0_lane, S1, S2, sigma_min * sigma_min,
-                                           attraction, want_grad, l_u0, g_u0)
+            out[0, i] = total + run_lanes(i, S, T, u0_lane, S1, S2, sigma_min * sigma_min,
+                                          attraction, want_grad, l_u0, g_u0)
             if want_grad:
-                _gather(i, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
+                gather(i, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
 
 
 class _Problem:
@@ -313,10 +314,10 @@ class _Problem:
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.outputs(grads), self.lanes
-        active = np.ascontiguousarray(_host(active))
+        active = np.ascontiguousarray(to_host(active))
         # a gradient step right after an accepted adaptive trial finds its forward pass done
         stale = self.forwarded.stale(p, active) if want_grad else active
-        with _first_use(*self.KERNEL):
+        with first_use(*self.KERNEL):
             self._step(p, g, lanes, active, stale, want_grad)
         if want_grad:
             self.forwarded.forget()  # the next call is at other parameters (a step was taken)
@@ -348,25 +349,25 @@ class ExpertProblem(_Problem):
     KERNEL = (_expert_items, "phase-1 kernel")
 
     def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
-        inputs, targets = _host(inputs), _host(targets)
+        inputs, targets = to_host(inputs), to_host(targets)
         S, T, D = targets.shape[-3:]
         R, K, M = num_runs, model.num_experts, model.experts.context_size
         dtype = np.dtype(inputs.dtype)
         self.shape, self.model, self.phase = (R, S, T, K), model, phase
-        self.lanes = _Lanes(T, M, D, D, R * K * S, K * S, R, model.learn_time_constants,
-                            phase.attraction, dtype)
+        self.lanes = Lanes(T, M, D, D, R * K * S, K * S, R, model.learn_time_constants,
+                           phase.attraction, dtype)
         # lane (r·K + k)·S + s reads series s of run r
         x = np.broadcast_to(inputs, (R, S, T, D)).transpose(2, 3, 0, 1)
-        self.inputs = _in_lanes(np.broadcast_to(x[:, :, :, None], (T, D, R, K, S)).reshape(
+        self.inputs = in_lanes(np.broadcast_to(x[:, :, :, None], (T, D, R, K, S)).reshape(
             T, D, R * K * S))
         self.targets = np.ascontiguousarray(targets.reshape(-1, S, T, D))
         self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype)]
         self.chunk = LB // math.gcd(K * S, LB)  # the fewest runs whose lanes fill whole blocks
-        self.staging = _Staging({
+        self.staging = Staging({
             "w_in": (R, K, M, D), "w_rec": (R, K, M, M), "w_out": (R, K, D, M), "b_c": (R, K, M),
             "b_o": (R, K, D), "tau": (R, K, M), "log_sigma": (R, K), "u0": (R, S, K, M),
             "beta": (R, S, T, K)}, dtype)
-        self.forwarded = _Forwarded(self.lanes.block_runs, K * S, _NET + ("u0",))
+        self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",))
 
     def _step(self, p, g, lanes, active, stale, want_grad):
         """One phase-1 step of every active run: whole chunks of runs, as many per thread
@@ -375,8 +376,8 @@ class ExpertProblem(_Problem):
         R, S, T, K = self.shape
         floor = float(self.model.sigma_min) ** 2
         prior_std = float(self.phase.gate_prior_std)
-        args = (_per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
-                tuple(lanes.work), lanes.lane_grads, _per_network(g, True), g["u0"],
+        args = (per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
+                tuple(lanes.work), lanes.lane_grads, per_network(g, True), g["u0"],
                 g["log_sigma"], g["beta"], self.inputs, self.targets, floor, prior_std,
                 bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
                 self.chunk, lanes.out)
@@ -410,41 +411,41 @@ class GatingProblem(_Problem):
     """
 
     STATS = ("objective", "log_likelihood", "kl", "E_g")
-    KERNEL = (_gating_items, "phase-2 kernel")
+    KERNEL = (gating_items, "phase-2 kernel")
 
     def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
-        gate_targets, inputs = _host(gate_targets), _host(inputs)
+        gate_targets, inputs = to_host(gate_targets), to_host(inputs)
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
         dtype = np.dtype(gate_targets.dtype)
         self.shape, self.model, self.phase = (R, S, T_g, K), model, phase
-        self.lanes = _Lanes(T_g, H, K + D, K, R * S, S, R, model.learn_time_constants,
-                            phase.attraction, dtype)
+        self.lanes = Lanes(T_g, H, K + D, K, R * S, S, R, model.learn_time_constants,
+                           phase.attraction, dtype)
         ghat = gate_targets
         x = np.broadcast_to(inputs, (R, S, T, D))
         # lane r·S + s reads [ĝ_n, x_n] of run r, series s and is fitted to ĝ_{n+τ} (Eq. 5)
         feed = np.concatenate([ghat[:, :, :T_g], x[:, :, :T_g]], -1)  # (R, S, T_g, K + D)
-        self.inputs = _in_lanes(feed.transpose(2, 3, 0, 1).reshape(T_g, K + D, R * S))
+        self.inputs = in_lanes(feed.transpose(2, 3, 0, 1).reshape(T_g, K + D, R * S))
         self.clean, self.seeds = self.inputs.copy(), seeds
         targets = ghat[:, :, delay:]
-        self.targets = _in_lanes(targets.transpose(2, 3, 0, 1).reshape(T_g, K, R * S))
+        self.targets = in_lanes(targets.transpose(2, 3, 0, 1).reshape(T_g, K, R * S))
         with np.errstate(divide="ignore", invalid="ignore"):
             self.entropy = np.where(targets > 0, targets * np.log(targets), 0.0).sum((1, 2, 3))
         self.lanes.work.append(np.zeros((self.lanes.num_lanes // LB, LB), dtype))
-        self.staging = _Staging({
+        self.staging = Staging({
             "w_in": (R, H, K + D), "w_rec": (R, H, H), "w_out": (R, K, H), "b_c": (R, H),
             "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
-        self.forwarded = _Forwarded(self.lanes.block_runs, S, _NET + ("u0",))
+        self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",))
 
     def _step(self, p, g, lanes, active, stale, want_grad):
-        args = (_per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
-                lanes.lane_grads, _per_network(g, False), g["u0"][:, :, None], self.inputs,
+        args = (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
+                lanes.lane_grads, per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),
                 bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
                 lanes.out)
-        threads.over(_gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
-        _gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
+        threads.over(gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
+        gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""
@@ -455,5 +456,5 @@ class GatingProblem(_Problem):
         D = self.inputs.shape[2] - K
         noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),  # all of x_n
                             self.phase.input_noise_var, self.inputs.dtype)[:, :, :T_g]
-        self.inputs[:, :, K:] = self.clean[:, :, K:] + _in_lanes(
+        self.inputs[:, :, K:] = self.clean[:, :, K:] + in_lanes(
             noise.transpose(2, 3, 0, 1).reshape(T_g, D, R * S))

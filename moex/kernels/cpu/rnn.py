@@ -22,8 +22,8 @@ from moex.kernels.cpu.simd import JIT, LB, fma, lanes, stack, tanh
 
 
 @njit(**JIT)
-def _forward(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1,
-             S2):  # pragma: no cover
+def forward_pass(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1,
+                 S2):  # pragma: no cover
     """One block of lanes (every array is that block's (..., LB) part): Y (T, NO, LB) = tanh(o_t)
     if `squash` else o_t; C (T, H, LB), U (T, H, LB) and the sums S1, S2 (H, LB) of u and u²
     over {u_0..u_T} are filled where their arrays are not empty."""
@@ -123,8 +123,8 @@ def _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps
 
 
 @njit(**JIT)
-def _backward(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_out, g_b_c, g_b_o, g_eps,
-              g_u0):  # pragma: no cover
+def backward_pass(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_out, g_b_c,
+                  g_b_o, g_eps, g_u0):  # pragma: no cover
     """One block of lanes, given DY (T, NO, LB) = ∂L/∂o_t: every per-lane gradient (BPTT). g_eps
     is filled when U holds the potentials (learned time constants). Gradients are summed in
     stack arrays (they cannot alias the histories they read) and written once."""

@@ -5,7 +5,7 @@ import torch
 from numba import njit
 
 from moex.kernels.cpu import threads
-from moex.kernels.cpu.lanes import _first_use
+from moex.kernels.cpu.lanes import first_use
 from moex.kernels.cpu.simd import JIT, LB, fma, lanes, padded
 
 
@@ -43,7 +43,7 @@ def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
     by_coordinate = np.zeros((D, padded(len(flat))))
     by_coordinate[:, :len(flat)] = flat.T
     out = np.empty(by_coordinate.shape[1], np.int64)
-    with _first_use(_nearest, "symbol kernel"):
+    with first_use(_nearest, "symbol kernel"):
         threads.over(_nearest, by_coordinate.shape[1] // LB, by_coordinate,
                      np.ascontiguousarray(torch.as_tensor(prototypes).cpu().numpy(), np.float64),
                      np.ascontiguousarray(torch.as_tensor(prototype_symbols).cpu().numpy(),

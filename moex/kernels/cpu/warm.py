@@ -5,7 +5,7 @@ on a tiny problem of the same types and leaves them in the cache. `moex.launch` 
 before the command's imports (`moex.compile_helper`) and the run adopts it (`start`); a run
 started otherwise starts its own. Exact reruns make this safe: a kernel loaded from the cache
 gives the bits of one compiled in the process (tested). Imports no kernel module: they import
-this one (`lanes._first_use`)."""
+this one (`lanes.first_use`)."""
 
 import pickle
 import subprocess
@@ -16,7 +16,7 @@ from moex import compile_helper
 
 _helper: subprocess.Popen | None = None
 _dtype: str | None = None  # the precision of the run (and its helper)
-_COMPILES = ("_gating_items", "_closed_blocks", "_nearest")  # what the helper compiles
+_COMPILES = ("gating_items", "closed_blocks", "_nearest")  # what the helper compiles
 
 
 def _indexed(kernel, dtype: str | None = None) -> bool:

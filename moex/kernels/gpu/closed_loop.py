@@ -25,7 +25,7 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import OPTIONS, launched, pow2
-from moex.kernels.gpu.rnn import _tanh, device
+from moex.kernels.gpu.rnn import device, stable_tanh
 from moex.model import ClosedLoopRun
 
 
@@ -167,21 +167,21 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
                        ok[:, None] & dm[None, :])
         y = x
         if EXPERTS:  # Eqs. 1-4, every expert on the same input
-            c_old = _tanh(eu + e_b_c[None])
+            c_old = stable_tanh(eu + e_b_c[None])
             drive = tl.sum(e_w_in[None] * x[:, None, None, :], axis=3)
             eu_new = eu + e_eps[None] * (
                 drive + tl.sum(e_w_rec[None] * c_old[:, :, None, :], axis=3) - eu)
-            c = _tanh(eu_new + e_b_c[None])
-            out = _tanh(tl.sum(e_w_out[None] * c[:, :, None, :], axis=3)
-                        + e_b_o[None])  # (BN, KP, DP)
+            c = stable_tanh(eu_new + e_b_c[None])
+            out = stable_tanh(tl.sum(e_w_out[None] * c[:, :, None, :], axis=3)
+                              + e_b_o[None])  # (BN, KP, DP)
             y = tl.sum(g[:, :, None] * out, axis=1)
         # Eqs. 5-8: the gating RNN reads (g_m, x_m) and emits g_{m+τ}
-        cg_old = _tanh(gu + g_b_c[None])
+        cg_old = stable_tanh(gu + g_b_c[None])
         drive_g = tl.sum(gwg[None] * g[:, None, :], axis=2) + tl.sum(gwx[None] * x[:, None, :],
                                                                      axis=2)
         gu_new = gu + g_eps[None] * (drive_g + tl.sum(g_w_rec[None] * cg_old[:, None, :], axis=2)
                                     - gu)
-        cg = _tanh(gu_new + g_b_c[None])
+        cg = stable_tanh(gu_new + g_b_c[None])
         logits = tl.sum(g_w_out[None] * cg[:, None, :], axis=2) + g_b_o[None]
         logits = tl.where(km[None, :], logits, float("-inf"))
         e = tl.exp(logits - tl.max(logits, axis=1)[:, None])

@@ -24,7 +24,7 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import TRIALS, Net, launch, pow2, strides
-from moex.kernels.gpu.rnn import _row, _tanh, device
+from moex.kernels.gpu.rnn import device, load_rows, stable_tanh
 from moex.kernels.noise import input_noise
 
 BT = 64  # time steps per tile of the objective kernels, at most
@@ -50,9 +50,9 @@ def _attraction(SUMS, U0, U0J, first, floor, LPR: tl.constexpr, T: tl.constexpr,
         j = jb * BJ + tl.arange(0, BJ)
         ok = j < LPR
         lane = first + j
-        u0 = _row(U0, tl.load(U0J + lane, mask=ok, other=0), ok, h, H)
-        mean = _row(SUMS, lane * 2, ok, h, H) / (T + 1)
-        var = tl.maximum(_row(SUMS, lane * 2 + 1, ok, h, H) / (T + 1) - mean * mean, floor)
+        u0 = load_rows(U0, tl.load(U0J + lane, mask=ok, other=0), ok, h, H)
+        mean = load_rows(SUMS, lane * 2, ok, h, H) / (T + 1)
+        var = tl.maximum(load_rows(SUMS, lane * 2 + 1, ok, h, H) / (T + 1) - mean * mean, floor)
         dev = u0 - mean
         total += tl.where(ok[:, None] & (h < H)[None, :], -(dev * dev) / (2.0 * var), 0.0)
     return tl.sum(tl.sum(total, axis=1), axis=0)
@@ -99,7 +99,7 @@ def mixture_objective(OUT, TARGETS, BETA, LOG_SIGMA, SUMS, U0, U0J, CONST, ACTIV
             m2 = n_ok[:, None] & k_ok[None, :]
             m3 = m2[:, :, None] & d_ok[None, None, :]
             at = (lanes[None, :, None] * T + n[:, None, None]) * D + d[None, None, :]
-            y = _tanh(tl.load(OUT + at, mask=m3, other=0.0))
+            y = stable_tanh(tl.load(OUT + at, mask=m3, other=0.0))
             row = (r % data_runs) * S * OWN + s
             target = tl.load(TARGETS + (row * T + n[:, None]) * D + d[None, :],
                              mask=n_ok[:, None] & d_ok[None, :], other=0.0)

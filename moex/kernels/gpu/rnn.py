@@ -53,7 +53,7 @@ def device(fn):
 
 
 @device
-def _tanh(x):
+def stable_tanh(x):
     """tanh(x) = 2σ(2x) - 1: finite for every x, ≤ 3e-16 from tanh in float64, and the same
     formula on a GPU and in the interpreter."""
     return 2.0 * tl.sigmoid(2.0 * x) - 1.0
@@ -101,7 +101,7 @@ def _vector(ptr, cols, NC: tl.constexpr, other):
 
 
 @device
-def _row(ptr, index, lane_ok, cols, NC: tl.constexpr):
+def load_rows(ptr, index, lane_ok, cols, NC: tl.constexpr):
     """(BL, CP): row index[l] of (·, NC) memory for each lane."""
     mask = lane_ok[:, None] & (cols < NC)[None, :]
     return tl.load(ptr + index[:, None] * NC + cols[None, :], mask=mask, other=0.0)
@@ -149,13 +149,13 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
     eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
-        u = _row(U0 + r * sU0, u0j, ok, h, H)
-        c = _tanh(u + b_c)
+        u = load_rows(U0 + r * sU0, u0j, ok, h, H)
+        c = stable_tanh(u + b_c)
         s1, s2 = u, u * u
         for t in range(T):
-            x = _row(X, xrow * T + t, ok, i, NI)
+            x = load_rows(X, xrow * T + t, ok, i, NI)
             u = u + eps * (_matvec(w_in, x) + _matvec(w_rec, c) - u)
-            c = _tanh(u + b_c)
+            c = stable_tanh(u + b_c)
             if KEEP_SUMS:
                 s1 += u
                 s2 += u * u
@@ -197,37 +197,38 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         ok = ok & (tl.load(ACTIVE + r + 0 * lane) != 0)
-        u0 = _row(U0 + r * sU0, u0j, ok, h, H)
-        c0 = _tanh(u0 + b_c)
+        u0 = load_rows(U0 + r * sU0, u0j, ok, h, H)
+        c0 = stable_tanh(u0 + b_c)
         zero_h = tl.zeros((BL, HP), dtype=w_rec.dtype)
         a, back, g_b_c, g_eps = zero_h, zero_h, zero_h, zero_h
         g_b_o = tl.zeros((BL, NOP), dtype=w_rec.dtype)
         for step in range(T):
             t = T - 1 - step
-            c = _row(C, lane * T + t, ok, h, H)
+            c = load_rows(C, lane * T + t, ok, h, H)
             first = t == 0
             before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
-            prev = tl.where(first, c0, _row(C, lane * T + t - 1, before, h, H))
-            do = _row(DO, lane * T + t, ok, o, NO)
+            prev = tl.where(first, c0, load_rows(C, lane * T + t - 1, before, h, H))
+            do = load_rows(DO, lane * T + t, ok, o, NO)
             dq = (1.0 - c * c) * (_matvec_t(w_out, do) + back)
             g_b_c += dq
             a = (1.0 - eps) * a + dq
             ea = eps * a
             g_b_o += do
             n_w_out += tl.sum(do[:, :, None] * c[:, None, :], axis=0)
-            n_w_in += tl.sum(ea[:, :, None] * _row(X, xrow * T + t, ok, i, NI)[:, None, :], axis=0)
+            x_t = load_rows(X, xrow * T + t, ok, i, NI)
+            n_w_in += tl.sum(ea[:, :, None] * x_t[:, None, :], axis=0)
             n_w_rec += tl.sum(ea[:, :, None] * prev[:, None, :], axis=0)
             if LEARN_EPS:
-                u = _row(U, lane * T + t, ok, h, H)
-                u_prev = tl.where(first, u0, _row(U, lane * T + t - 1, before, h, H))
+                u = load_rows(U, lane * T + t, ok, h, H)
+                u_prev = tl.where(first, u0, load_rows(U, lane * T + t - 1, before, h, H))
                 g_eps += a * (u - u_prev) / eps
             back = _matvec_t(w_rec, ea)
         dq = (1.0 - c0 * c0) * back
         g_u0 = (1.0 - eps) * a + dq
         if ATTRACT:
             count = T + 1
-            mean = _row(SUMS, lane * 2, ok, h, H) / count
-            var = tl.maximum(_row(SUMS, lane * 2 + 1, ok, h, H) / count - mean * mean,
+            mean = load_rows(SUMS, lane * 2, ok, h, H) / count
+            var = tl.maximum(load_rows(SUMS, lane * 2 + 1, ok, h, H) / count - mean * mean,
                              tl.load(FLOOR))
             g_u0 += (mean - u0) / var
         _put(G_U0 + r * sG_U0, u0j, ok, h, g_u0, H)
