@@ -38,11 +38,12 @@ def bench(runs: int, samples: int, steps: int, threads: int, backend: str, devic
     generator = torch.Generator().manual_seed(0)
     state = random_state(experts, gating, samples, 2, 1, generator)
     with torch.no_grad():  # warm-up at the timed length: every chunk size compiled before
-        closed_loop_lyapunov(experts, gating, state, steps, 0, generator, backend=backend)
+        closed_loop_lyapunov(experts, gating, state, steps, 0, generator=generator, backend=backend)
         best = float("inf")
         for _ in range(repeats):  # a shared machine's noise only ever adds time
             start = time.perf_counter()
-            closed_loop_lyapunov(experts, gating, state, steps, 0, generator, backend=backend)
+            closed_loop_lyapunov(experts, gating, state, steps, 0, generator=generator,
+                                 backend=backend)
             if device.startswith("cuda"):
                 torch.cuda.synchronize()
             best = min(best, time.perf_counter() - start)

@@ -162,7 +162,7 @@ def record(size: str, evaluation: bool = True) -> list[Launch]:
         state = trained_state(experts, gating, targets, series, cfg.model.delay)
         generate(experts, gating, state, targets.shape[2], backend=backend)
         start = random_state(experts, gating, 4, D, cfg.model.delay, gens[0])
-        closed_loop_lyapunov(experts, gating, start, CHUNK, cfg.eval.transient, gens[0], 1,
+        closed_loop_lyapunov(experts, gating, start, CHUNK, cfg.eval.transient, generator=gens[0],
                              on_chunk=lambda run: data.symbolize(run.outputs.numpy(),
                                                                  run.gates.numpy(),
                                                                  backend.nearest_symbols),

@@ -33,6 +33,7 @@ import torch
 from moex import checkpoint
 from moex.closed_loop import closed_loop_lyapunov
 from moex.config import config_from_dict
+from moex.kernels import get_backend
 from moex.model import random_state
 from moex.report import to_markdown
 
@@ -52,7 +53,8 @@ def noise_floor(run_dir: Path) -> np.ndarray:
                              cfg.model.delay, generator)
         with torch.no_grad():
             lam = closed_loop_lyapunov(saved.experts, saved.gating, state, cfg.eval.track_steps,
-                                       min(cfg.eval.transient, cfg.eval.track_steps), generator)
+                                       min(cfg.eval.transient, cfg.eval.track_steps),
+                                       generator=generator, backend=get_backend())
         estimates.append(lam[..., 0].mean(1).numpy())
     return np.std(estimates, axis=0, ddof=1)
 

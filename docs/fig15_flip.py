@@ -22,6 +22,7 @@ import torch
 from moex import checkpoint
 from moex.closed_loop import closed_loop_lyapunov
 from moex.config import config_from_dict
+from moex.kernels import get_backend
 from moex.model import random_state
 from moex.pipeline import load_task
 from moex.report import to_markdown
@@ -56,7 +57,8 @@ def estimates(saved, cfg, run: int, gating: dict, noise_var: float = 0.0) -> np.
                              generator)
         with torch.no_grad():
             lam = closed_loop_lyapunov(experts, gating, state, STEPS, cfg.eval.transient,
-                                       generator, noise_std=noise_var ** 0.5)
+                                       generator=generator, noise_std=noise_var ** 0.5,
+                                       backend=get_backend())
         out.append(float(lam[0, :, 0].mean()))
     return np.array(out)
 

@@ -102,9 +102,8 @@ def paired(out: Path, samples: int = PAIRED_SAMPLES, steps: int = STEPS) -> pd.D
         generator = torch.Generator().manual_seed(0)
         start = random_state(saved.experts, saved.gating, samples, saved.series.shape[-1],
                              int(saved.config["model"]["delay"]), generator)
-        exact = closed_loop_lyapunov(saved.experts, saved.gating,
-                                     start.like(start.flat().clone()), steps, TRANSIENT,
-                                     generator, backend=backend)[..., 0]
+        exact = closed_loop_lyapunov(saved.experts, saved.gating, start.like(start.flat().clone()),
+                                     steps, TRANSIENT, generator=generator, backend=backend)[..., 0]
         state = backend.closed_loop(saved.experts, saved.gating, start, TRANSIENT).state
         direct = two_trajectories(saved.experts, saved.gating, state, steps, backend, generator)
         files = pd.read_csv(out / design / "moex" / "imported_from.csv")

@@ -66,10 +66,10 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: flo
             for i, name in enumerate(("outputs", "gates", "gating_u"))}
 
 
-def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, transient: int,
-                         generator, num_exponents: int = 1, noise_std: float = 0.0,
-                         uniform_gates: bool = False, on_chunk=None, keep_potentials: int = 0,
-                         backend: Backend | None = None, should_stop=never) -> torch.Tensor:
+def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, transient: int, *,
+                         generator, backend: Backend, num_exponents: int = 1,
+                         noise_std: float = 0.0, uniform_gates: bool = False, on_chunk=None,
+                         keep_potentials: int = 0, should_stop=never) -> torch.Tensor:
     """The first k Lyapunov exponents (R, N, k) of the whole closed loop (Benettin's method).
 
     Tangent vectors start random and orthonormal, are propagated by the exact Jacobian and
@@ -83,10 +83,9 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
         on_chunk: receives the `ClosedLoopRun` of every chunk after the transient.
         keep_potentials: record u^g in the chunks that reach into the last so many steps (None
             in the others: at the paper's scale it would be gigabytes).
-        backend: where the closed loop runs (default: auto).
+        backend: where the closed loop runs (`moex.kernels.get_backend`).
         should_stop: asked between chunks; `Interrupted` is raised when it returns True.
     """
-    backend = backend or get_backend()
 
     def advance(tangents, size, counted, done):
         nonlocal state

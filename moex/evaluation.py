@@ -145,7 +145,7 @@ def track_metrics(experts, targets, gating, series, delay, cfg: EvalConfig,
         state = random_state(experts, gating, cfg.track_samples, series.shape[-1], delay,
                              generator)
         lam = closed_loop_lyapunov(experts, gating, state, cfg.track_steps,
-                                   min(cfg.transient, cfg.track_steps), generator,
+                                   min(cfg.transient, cfg.track_steps), generator=generator,
                                    backend=backend)[..., 0]
     kl = _train_block_kl(targets, closed["gates"], cfg)
     lam = lam.cpu()
@@ -245,19 +245,18 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
     with torch.no_grad():  # the paper's λ_max is that of the noiseless loop; with noise (which
         # only judges periodicity, Sec. 4.3) a second pass from the same initial states records
         # the symbols: the first pass draws exactly what an evaluation without noise draws
+        common = dict(generator=generator, num_exponents=cfg.num_exponents,
+                      uniform_gates=uniform, keep_potentials=cfg.plot_steps, backend=backend,
+                      should_stop=should_stop)
         exponents = closed_loop_lyapunov(
-            experts, gating, state.like(state.flat().clone()), cfg.lyapunov_steps,
-            cfg.transient, generator, cfg.num_exponents, 0.0, uniform,
-            None if cfg.noise_var > 0 else on_chunk, cfg.plot_steps, backend,
-            should_stop).numpy()
+            experts, gating, state.like(state.flat().clone()), cfg.lyapunov_steps, cfg.transient,
+            on_chunk=None if cfg.noise_var > 0 else on_chunk, **common).numpy()
         noisy = None if cfg.noise_var == 0 else closed_loop_lyapunov(
-            experts, gating, state, cfg.lyapunov_steps, cfg.transient, generator,
-            cfg.num_exponents, cfg.noise_var**0.5, uniform, on_chunk, cfg.plot_steps, backend,
-            should_stop).numpy()
+            experts, gating, state, cfg.lyapunov_steps, cfg.transient,
+            noise_std=cfg.noise_var**0.5, on_chunk=on_chunk, **common).numpy()
         exponents = _decided(exponents, cfg, lambda: closed_loop_lyapunov(
             experts, gating, random_state(experts, gating, cfg.num_samples, D, delay, generator),
-            cfg.lyapunov_steps, cfg.transient, generator, cfg.num_exponents, 0.0, uniform,
-            None, cfg.plot_steps, backend, should_stop).numpy())
+            cfg.lyapunov_steps, cfg.transient, **common).numpy())
     sampled, gate_winners = np.concatenate(recorded, -1), np.concatenate(winners, -1)
     test = _test_symbols(dataset, backend)
     truth = _true_symbols(dataset)

@@ -159,7 +159,7 @@ def _host(arrays: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
-            rates: dict[str, float], problem, criterion: str, steps: int, momentum: float,
+            rates: dict[str, float], problem, *, criterion: str, steps: int, momentum: float,
             adaptive: bool, rule: TrainConfig, phase: str, log_every: int,
             hooks: Hooks | None = None, error: str | None = None
             ) -> tuple[dict[str, torch.Tensor], list[dict]]:
@@ -377,8 +377,9 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
     rates = {k: alpha / (S * T * D) for k in params}
     rates.update(u0=alpha / D, beta=alpha)
     problem = backend.expert_problem(inputs, targets, model, cfg, R)
-    trained, rows = _ascend(params, fixed, rates, problem, "E", cfg.steps, cfg.momentum,
-                            cfg.adaptive_lr, rule, "experts", cfg.log_every, hooks, "E")
+    trained, rows = _ascend(params, fixed, rates, problem, criterion="E", steps=cfg.steps,
+                            momentum=cfg.momentum, adaptive=cfg.adaptive_lr, rule=rule,
+                            phase="experts", log_every=cfg.log_every, hooks=hooks, error="E")
     beta = trained.pop("beta")
     return {**trained, **fixed}, beta, rows
 
@@ -421,6 +422,7 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     rates["u0"] = cfg.learning_rate / K
     problem = backend.gating_problem(gate_targets.detach(), inputs.detach(), model, cfg,
                                      list(range(R)) if seeds is None else seeds)
-    trained, rows = _ascend(params, fixed, rates, problem, "kl", cfg.steps, cfg.momentum,
-                            cfg.adaptive_lr, rule, "gating", cfg.log_every, hooks, "E_g")
+    trained, rows = _ascend(params, fixed, rates, problem, criterion="kl", steps=cfg.steps,
+                            momentum=cfg.momentum, adaptive=cfg.adaptive_lr, rule=rule,
+                            phase="gating", log_every=cfg.log_every, hooks=hooks, error="E_g")
     return {**trained, **fixed}, rows

@@ -490,8 +490,8 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
                            (chaotic, {**gating, "tau": torch.ones_like(gating["tau"])})):
         state = random_state(mixture, gates, 1, 2, 1, torch.Generator().manual_seed(4))
         state = backend.closed_loop(mixture, gates, state, 500).state
-        jacobian = closed_loop_lyapunov(mixture, gates, state, 5000, 0,
-                                        torch.Generator().manual_seed(5), backend=backend)[..., 0]
+        jacobian = closed_loop_lyapunov(mixture, gates, state, 5000, 0, backend=backend,
+                                        generator=torch.Generator().manual_seed(5))[..., 0]
         direct = check.two_trajectories(mixture, gates, state, 5000, backend,
                                         torch.Generator().manual_seed(6))
         assert torch.allclose(direct, jacobian, rtol=0.02, atol=1e-3), (direct, jacobian)

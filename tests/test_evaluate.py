@@ -13,6 +13,7 @@ from moex import objectives
 from moex.closed_loop import closed_loop_lyapunov, generate, trained_state
 from moex.config import Config
 from moex.evaluation import EvalConfig, _decided, _train_block_kl, evaluate
+from moex.kernels import get_backend
 from moex.metrics.lyapunov import chaos_label, standard_error
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward, random_state
@@ -210,9 +211,8 @@ def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backen
     state = random_state(experts, gating, 3, 2, 1, torch.Generator().manual_seed(0))
     # (a long transient: the experts' faster decay must leave the tangents first)
     lam = closed_loop_lyapunov(experts, gating, state, 200, 400,
-                               torch.Generator().manual_seed(1),
-                               num_exponents=1 if backend.caps.interpreted else 2,
-                               backend=backend)
+                               generator=torch.Generator().manual_seed(1),
+                               num_exponents=1 if backend.caps.interpreted else 2, backend=backend)
     torch.testing.assert_close(lam, torch.full_like(lam, math.log(1 - 0.07)), rtol=0,
                                atol=1e-10)
 
@@ -256,7 +256,8 @@ def test_trained_initial_states_start_each_sample_from_its_series():
     series = torch.as_tensor(data.series)
     state = trained_state(experts, gating, gate_estimates(beta), series, 1, [0, 1, 0, 1])
     direct = closed_loop_lyapunov(experts, gating, state, cfg.lyapunov_steps, cfg.transient,
-                                  torch.Generator().manual_seed(0))
+                                  generator=torch.Generator().manual_seed(0),
+                                  backend=get_backend())
     np.testing.assert_allclose(rows["max_lyapunov"], direct.mean(1)[:, 0], rtol=1e-12)
     with pytest.raises(ValueError, match="eval.initial_states='nope'; choose random or trained"):
         EvalConfig(initial_states="nope")

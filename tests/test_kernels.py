@@ -338,9 +338,10 @@ def test_generation_and_exponents_equal_across_backends(backend, exponents):
     out = []
     for each in (REFERENCE, backend):
         chunks = []
-        lam = closed_loop_lyapunov(experts, gating, state, 30, 7, torch.Generator().manual_seed(0),
-                                   num_exponents=exponents, noise_std=1e-2,
-                                   on_chunk=chunks.append, backend=each)
+        lam = closed_loop_lyapunov(experts, gating, state, 30, 7,
+                                   generator=torch.Generator().manual_seed(0),
+                                   num_exponents=exponents, noise_std=1e-2, on_chunk=chunks.append,
+                                   backend=each)
         gen = generate(experts, gating, state, 20, 0.01, torch.Generator().manual_seed(1), each)
         out.append((lam, torch.cat([c.outputs for c in chunks], 2), gen["outputs"]))
     for a, b in zip(*out, strict=True):
@@ -374,7 +375,8 @@ def test_exponents_at_a_fixed_point_are_benettins_qr_of_its_jacobian(backend, fi
     from the same initial tangents (the transient's steps not counted)."""
     experts, gating, fixed, J = fixed_point
     lam = closed_loop_lyapunov(experts, gating, fixed, steps, transient,
-                               torch.Generator().manual_seed(0), num_exponents=k, backend=backend)
+                               generator=torch.Generator().manual_seed(0), num_exponents=k,
+                               backend=backend)
     q = initial_tangents(fixed.flat(), k, torch.Generator().manual_seed(0))[:, 0]  # (2, dim, k)
     total = 0
     for t in range(transient + steps):
@@ -387,8 +389,9 @@ def test_exponents_at_a_fixed_point_converge_to_log_eigenvalue_moduli(fixed_poin
     """...and that iteration converges to ln |μ_i|, the log moduli of J's leading eigenvalues
     (here within 1e-3 after 300 + 300 steps: the leading moduli lie within 0.5 % of each other)."""
     experts, gating, fixed, J = fixed_point
-    lam = closed_loop_lyapunov(experts, gating, fixed, 300, 300, torch.Generator().manual_seed(0),
-                               num_exponents=2, backend=COMPILED)
+    lam = closed_loop_lyapunov(experts, gating, fixed, 300, 300,
+                               generator=torch.Generator().manual_seed(0), num_exponents=2,
+                               backend=COMPILED)
     moduli = torch.linalg.eigvals(J).abs().sort(descending=True).values[:, :2]
     torch.testing.assert_close(lam[:, 0], moduli.log(), rtol=0, atol=1e-3)
 
