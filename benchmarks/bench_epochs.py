@@ -106,7 +106,7 @@ def trainers(task: str, runs: int, backend: str, threads: int, context_size: int
 
     def phase2(n):
         cfg.train.gating.steps = n
-        train_gating(gating, targets.to(dtype), inputs, cfg.model, cfg.train.gating, cfg.train,
+        train_gating(gating, targets.to(dtype), inputs, cfg.model, cfg.train.gating, rule=cfg.train,
                      backend=chosen)
 
     out["phase 2, adaptive rate"] = phase2

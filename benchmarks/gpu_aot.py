@@ -152,7 +152,7 @@ def record(size: str, evaluation: bool = True) -> list[Launch]:
         gating = init_gating(cfg.model, S, D, gens, dtype)
         cfg.train.gating.steps = 1
         gating, _ = train_gating(gating, targets, series[:, :targets.shape[2]], cfg.model,
-                                 cfg.train.gating, cfg.train, backend=backend)
+                                 cfg.train.gating, rule=cfg.train, backend=backend)
         if not evaluation:
             return launches
         # the evaluation's kernels as `moex.evaluate` calls them (its metrics are not computed:

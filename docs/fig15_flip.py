@@ -44,7 +44,8 @@ def gating_after(saved, cfg, run: int, updates: int) -> tuple[dict, list[dict]]:
     phase = cfg.train.gating
     phase.steps, phase.log_every = updates, 10
     return train_gating(alone, targets, series[:, :-cfg.model.delay], cfg.model, phase,
-                        cfg.train, seeds=run_seeds(cfg.seed, cfg.num_runs)[run:run + 1])
+                        rule=cfg.train, seeds=run_seeds(cfg.seed, cfg.num_runs)[run:run + 1],
+                        backend=get_backend())
 
 
 def estimates(saved, cfg, run: int, gating: dict, noise_var: float = 0.0) -> np.ndarray:

@@ -92,10 +92,11 @@ class Fitted:
         """
         sizes = dict(num_samples=4, lyapunov_steps=5000, transient=500) if quick else {}
         cfg = dataclasses.replace(self.config.eval, **{**sizes, **eval_settings})
+        generators = evaluation_generators(self.config.seed, len(self.gating["w_out"]))
         result = evaluate(self.experts, self.beta, self.gating, self.dataset,
-                          self.config.model.delay, cfg,
-                          evaluation_generators(self.config.seed, len(self.gating["w_out"])),
-                          self.backend, self.config.train.gating.target_temperature,
+                          self.config.model.delay, cfg=cfg, generator=generators,
+                          backend=self.backend,
+                          target_temperature=self.config.train.gating.target_temperature,
                           sigma_min=self.config.model.sigma_min,
                           gate_prior_std=self.config.train.experts.gate_prior_std)
         return pd.DataFrame(result.rows)
@@ -151,8 +152,8 @@ class Fitted:
             state = trained_state(self.experts, self.gating, targets,
                                   torch.as_tensor(self.dataset.series), delay, k)
         with torch.no_grad():
-            out = run_closed_loop(self.experts, self.gating, state, steps, noise_var**0.5,
-                                  generator, self.backend)
+            out = run_closed_loop(self.experts, self.gating, state, steps, noise_std=noise_var**0.5,
+                                  generator=generator, backend=self.backend)
         return in_data_units({name: value.numpy() for name, value in out.items()}, self.dataset)
 
 

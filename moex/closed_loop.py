@@ -7,7 +7,7 @@ import torch
 from moex import progress
 from moex.draws import draw
 from moex.errors import never, stop_if_asked
-from moex.kernels import Backend, get_backend
+from moex.kernels import Backend
 from moex.metrics.lyapunov import benettin, chunks, initial_tangents
 from moex.model import ClosedLoopState
 
@@ -45,16 +45,15 @@ def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
                         for _ in range(steps)], 2)
 
 
-def generate(experts, gating, state: ClosedLoopState, steps: int, noise_std: float = 0.0,
-             generator=None, backend: Backend | None = None,
-             should_stop=never) -> dict[str, torch.Tensor]:
-    """Run the closed loop for `steps` steps on `backend` (default: auto); `should_stop` is
+def generate(experts, gating, state: ClosedLoopState, steps: int, *, backend: Backend,
+             noise_std: float = 0.0, generator=None, should_stop=never
+             ) -> dict[str, torch.Tensor]:
+    """Run the closed loop for `steps` steps on `backend`; `should_stop` is
     asked between chunks (`Interrupted` when it says so).
 
     Returns:
         outputs (R, N, T, D), gates (R, N, T, K) and gating potentials (R, N, T, H).
     """
-    backend = backend or get_backend()
     parts = []
     for _, size in chunks(steps, CHUNK):  # (well under a second each)
         stop_if_asked(should_stop, "the closed loop was")

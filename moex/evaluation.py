@@ -20,7 +20,7 @@ from moex.closed_loop import (
 )
 from moex.draws import Generators
 from moex.errors import check, check_positive, never
-from moex.kernels import Backend, get_backend
+from moex.kernels import Backend
 from moex.metrics import switching
 from moex.metrics.errors import closed_loop_mse
 from moex.metrics.lyapunov import UNDETERMINED, chaos_label, standard_error
@@ -134,8 +134,8 @@ def _train_block_kl(targets, closed_gates, cfg: EvalConfig) -> np.ndarray:
                      for r in range(len(data))])
 
 
-def track_metrics(experts, targets, gating, series, delay, cfg: EvalConfig,
-                  generator, backend: Backend | None = None) -> dict[str, torch.Tensor]:
+def track_metrics(experts, targets, gating, series, delay, *, cfg: EvalConfig, generator,
+                  backend: Backend) -> dict[str, torch.Tensor]:
     """The cheap subset tracked during training (paper Figs. 3, 6, 11): the training-data block
     KL and the maximum Lyapunov exponent on `track_samples` × `track_steps` with its standard
     error over those samples (NaN for one sample), per run (R,)."""
@@ -196,10 +196,10 @@ def _switching_columns(symbols, winners, dataset: Dataset, cfg: EvalConfig) -> t
     }, segments, reps, cut
 
 
-def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfig,
-             generator: Generators, backend: Backend | None = None,
-             target_temperature: float = 1.0, should_stop=never,
-             sigma_min: float = 0.05, gate_prior_std: float = 10.0) -> Evaluation:
+def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalConfig,
+             generator: Generators, backend: Backend, target_temperature: float = 1.0,
+             should_stop=never, sigma_min: float = 0.05, gate_prior_std: float = 10.0
+             ) -> Evaluation:
     """All metrics of R trained networks, one row per run, and arrays for the figures.
 
     Args:
@@ -213,7 +213,6 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, cfg: EvalConfi
         sigma_min, gate_prior_std: σ̄ and ς of the trained model (the held-out series'
             segmentation, `moex.segment`).
     """
-    backend = backend or get_backend()
     series = torch.as_tensor(dataset.series, dtype=gating["w_out"].dtype)
     R, K = gating["w_out"].shape[:2]
     S, L, D = series.shape

@@ -258,9 +258,11 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
             + (f", noise ρ² = {ev.noise_var:g}" if ev.noise_var else "")]):
         log.info("%s", line)  # (no silent pause: at the paper's scale this takes minutes)
     with np.errstate(invalid="ignore"), provenance.part("evaluation"):
-        rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg.eval,
-                                 generator, backend, cfg.train.gating.target_temperature, stop,
-                                 cfg.model.sigma_min, cfg.train.experts.gate_prior_std)
+        rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg=cfg.eval,
+                                 generator=generator, backend=backend,
+                                 target_temperature=cfg.train.gating.target_temperature,
+                                 should_stop=stop, sigma_min=cfg.model.sigma_min,
+                                 gate_prior_std=cfg.train.experts.gate_prior_std)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
     counts = metrics.select_dtypes("integer").columns  # stay integers beside a failed run's NaN
     metrics = metrics.astype({c: "Int64" for c in counts})
@@ -538,8 +540,8 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
         k = [tool.from_series] * tool.num_samples
         state = trained_state(experts, gating, estimates, saved.series, cfg.model.delay, k)
     with torch.no_grad():
-        out = generate(experts, gating, state, tool.steps, tool.noise_var**0.5, generator,
-                       run.backend, stop)
+        out = generate(experts, gating, state, tool.steps, noise_std=tool.noise_var**0.5,
+                       generator=generator, backend=run.backend, should_stop=stop)
     samples = {k: v.numpy() for k, v in out.items()}
     samples["symbols"] = dataset.symbolize(samples["outputs"], samples["gates"],
                                            run.backend.nearest_symbols)

@@ -211,7 +211,8 @@ def train_jobs(jobs: list[Job], stop=never, backend: Backend | None = None
         else:
             with provenance.part("phase 1"):
                 experts, beta, rows = train_experts(experts, series, cfg.model, cfg.train.experts,
-                                                    cfg.train, hooks("experts"), backend)
+                                                    cfg.train, hooks=hooks("experts"),
+                                                    backend=backend)
             if cached is not None:
                 io.atomic_write(cached, lambda tmp: torch.save(
                     {"experts": _cpu(experts), "beta": _cpu(beta), "rows": rows}, tmp))
@@ -228,13 +229,14 @@ def train_jobs(jobs: list[Job], stop=never, backend: Backend | None = None
     if cfg.eval.every:  # a job alone (packing_key)
         def monitor(gating_params):
             return track_metrics(experts, gate_targets, gating_params, series, cfg.model.delay,
-                                 cfg.eval, track_rng, backend)
+                                 cfg=cfg.eval, generator=track_rng, backend=backend)
 
     with provenance.part("phase 2"):
         gating, gating_rows = train_gating(
-            gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, cfg.train,
-            hooks("gating", monitor=monitor, monitor_every=cfg.eval.every,
-                  monitor_from=cfg.eval.track_from), backend,
+            gating, gate_targets, gating_inputs, cfg.model, cfg.train.gating, rule=cfg.train,
+            hooks=hooks("gating", monitor=monitor, monitor_every=cfg.eval.every,
+                        monitor_from=cfg.eval.track_from),
+            backend=backend,
             seeds=[s for job in jobs for s in run_seeds(job.cfg.seed, job.cfg.num_runs)])
     for record, part, n in zip(records, runs, sizes, strict=True):
         record.phase, record.gating, record.train_state = "done", _cpu(_part(gating, part)), None

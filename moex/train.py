@@ -16,7 +16,7 @@ import torch
 
 from moex import progress
 from moex.errors import Interrupted, check, check_positive, check_range
-from moex.kernels import Backend, get_backend
+from moex.kernels import Backend
 from moex.model import ModelConfig, gate_estimates
 from moex.tasks import Dataset
 
@@ -346,8 +346,8 @@ def _rows(phase, step, stats, lr_scale, retries, failed) -> list[dict]:
 
 
 def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model: ModelConfig,
-                  cfg: ExpertPhaseConfig, rule: TrainConfig, hooks: Hooks | None = None,
-                  backend: Backend | None = None
+                  cfg: ExpertPhaseConfig, rule: TrainConfig, *, backend: Backend,
+                  hooks: Hooks | None = None
                   ) -> tuple[dict[str, torch.Tensor], torch.Tensor, list[dict]]:
     """Phase 1 (Sec. 2.1.2-2.1.3): maximum likelihood of the experts and the gate logits β.
 
@@ -358,13 +358,12 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
         model: the model config (delay, σ̄, whether τ = 1/ε is learned).
         cfg: this phase's settings; rule: adaptive thresholds and momentum form.
         hooks: checkpointing, interruption and resuming (see `Hooks`).
-        backend: where the time loops run (`moex.kernels.get_backend`; default: auto).
+        backend: where the time loops run (`moex.kernels.get_backend`).
 
     Returns:
         trained experts, gate logits β (R, S, T, K) with T = L - τ (ĝ = softmax β, Eq. 9), and
         history rows with the columns objective, log_likelihood, log_prior, E.
     """
-    backend = backend or get_backend()
     data = series.detach()
     inputs, targets = data[..., : -model.delay, :], data[..., model.delay:, :]
     S, T, D = targets.shape[-3:]
@@ -394,8 +393,8 @@ def phase2_targets(beta: torch.Tensor | None, dataset: Dataset, num_runs: int,
 
 
 def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
-                 inputs: torch.Tensor, model: ModelConfig, cfg: GatingPhaseConfig,
-                 rule: TrainConfig, hooks: Hooks | None = None, backend: Backend | None = None,
+                 inputs: torch.Tensor, model: ModelConfig, cfg: GatingPhaseConfig, *,
+                 rule: TrainConfig, backend: Backend, hooks: Hooks | None = None,
                  seeds: list[int] | None = None) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Phase 2 (Sec. 2.1.2-2.1.4): fit the gating RNN to the estimates ĝ by teacher forcing.
 
@@ -406,13 +405,12 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
             (R, S, T, D) per run.
         model: the model config; cfg: this phase's settings; rule: adaptive thresholds.
         hooks: tracking (its monitor sees the full gating parameters), checkpointing, resuming.
-        backend: where the time loops run (`moex.kernels.get_backend`; default: auto).
+        backend: where the time loops run (`moex.kernels.get_backend`).
         seeds: one per run, for the input noise of `cfg.input_noise_var` (default 0, 1, ...).
 
     Returns:
         trained gating parameters and history rows with objective, log_likelihood, kl, E_g.
     """
-    backend = backend or get_backend()
     R, S, T, K = gate_targets.shape
     T_g = T - model.delay
     params = {k: v.detach().cpu() for k, v in gating.items()}

@@ -1,6 +1,7 @@
 import torch
 
 from moex.closed_loop import generate, trained_state
+from moex.kernels import get_backend
 from moex.model import (
     ClosedLoopState,
     ModelConfig,
@@ -59,7 +60,7 @@ def test_closed_loop_equals_open_loop_fed_its_own_outputs(T=12, delay=2):
     series = torch.randn(S, delay, 2).tanh()
     gates = torch.softmax(torch.randn(2, S, delay, 3), -1)
     state = trained_state(experts, gating, gates, series, delay)
-    out = generate(experts, gating, state, T)
+    out = generate(experts, gating, state, T, backend=get_backend())
     # rebuild the closed loop's input and gate sequences, then run the teacher-forced passes
     inputs = torch.cat([series[None].expand(2, -1, -1, -1), out["outputs"][:, :, : T - delay]], 2)
     g_seq = out["gates"]
@@ -107,7 +108,7 @@ def test_a_runs_random_states_and_noise_do_not_depend_on_the_runs_beside_it():
         first = tuple({k: v[:runs] for k, v in net.items()} for net in (experts, gating))
         gens = run_generators(5, runs)
         state = random_state(*first, 3, 2, 2, gens)
-        return generate(*first, state, 20, noise_std=0.1, generator=gens)
+        return generate(*first, state, 20, noise_std=0.1, generator=gens, backend=get_backend())
 
     alone, batch = run0(1), run0(2)
     for name in ("outputs", "gates"):

@@ -42,10 +42,10 @@ def _trained(task: TaskConfig, model: ModelConfig, R=2, steps=(30, 20)):
     beta = None
     if D:
         experts, beta, _ = train_experts(experts, series, model, ExpertPhaseConfig(steps[0]),
-                                         TrainConfig())
+                                         TrainConfig(), backend=get_backend())
     targets = phase2_targets(beta, data, R, torch.float64)
     gating, _ = train_gating(gating, targets, series[:, :-1] if D else series, model,
-                             GatingPhaseConfig(steps[1]), TrainConfig())
+                             GatingPhaseConfig(steps[1]), rule=TrainConfig(), backend=get_backend())
     return data, experts, beta, gating
 
 
@@ -54,8 +54,9 @@ def test_the_metric_table_of_a_lissajous_task():
     model.experts.context_size, model.gating.context_size = 4, 5
     data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
                                                       num_test_series=1), model)
-    rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, QUICK,
-                                 torch.Generator().manual_seed(0)).rows)
+    rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg=QUICK,
+                                 generator=torch.Generator().manual_seed(0),
+                                 backend=get_backend()).rows)
     series = torch.as_tensor(data.series)
     outputs, _ = expert_forward(experts, series[:, :-1])
     ghat = gate_estimates(beta)
@@ -77,8 +78,10 @@ def test_the_metric_table_of_a_lissajous_task():
     assert (rows["chaos"] == labels).all()
     # undetermined runs get more samples until decided or eval.decide_samples is spent; the
     # first num_samples are the same draws as without (the symbol statistics keep only those)
-    decided = pd.DataFrame(evaluate(experts, beta, gating, data, 1, dataclasses.replace(
-        QUICK, decide_samples=9), torch.Generator().manual_seed(0)).rows)
+    decided = pd.DataFrame(evaluate(experts, beta, gating, data, 1,
+                                    cfg=dataclasses.replace(QUICK, decide_samples=9),
+                                    generator=torch.Generator().manual_seed(0),
+                                    backend=get_backend()).rows)
     for first, then in zip(rows.itertuples(), decided.itertuples(), strict=True):
         assert then.lyapunov_samples == (3 if first.chaos != "undetermined" else
                                          then.lyapunov_samples) in (3, 6, 9)
@@ -101,8 +104,8 @@ def test_a_networks_evaluation_is_the_same_alone_and_in_a_batch():
     def run0(runs: int, generators) -> pd.Series:
         first = {k: v[:runs] for k, v in experts.items()}, beta[:runs], {
             k: v[:runs] for k, v in gating.items()}
-        return pd.DataFrame(evaluate(first[0], first[1], first[2], data, 1, noisy,
-                                     generators).rows).iloc[0]
+        return pd.DataFrame(evaluate(first[0], first[1], first[2], data, 1, cfg=noisy,
+                                     generator=generators, backend=get_backend()).rows).iloc[0]
 
     alone, batch = run0(1, evaluation_generators(7, 1)), run0(2, evaluation_generators(7, 2))
     for column in ("E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
@@ -117,13 +120,14 @@ def test_metrics_a_task_cannot_have_are_left_out():
     model.gating.context_size = 4
     data, experts, beta, gating = _trained(TaskConfig(name="reber", num_series=2, length=30),
                                            model)
-    rows = evaluate(experts, beta, gating, data, 1, dataclasses.replace(QUICK, block_length=3),
-                    torch.Generator().manual_seed(0)).rows
+    rows = evaluate(experts, beta, gating, data, 1, cfg=dataclasses.replace(QUICK, block_length=3),
+                    generator=torch.Generator().manual_seed(0), backend=get_backend()).rows
     assert not {"E", "E_closed"} & set(rows[0]) and "block_kl_test" in rows[0]
     # the C code's symbol rule on the same closed loop: a step with no gate above 0.5 becomes a
     # symbol of its own, so the KLs may differ; λ_max and E^g are untouched
-    threshold = evaluate(experts, beta, gating, data, 1, dataclasses.replace(
-        QUICK, block_length=3, symbol_rule="threshold"), torch.Generator().manual_seed(0))
+    threshold = evaluate(experts, beta, gating, data, 1,
+                         cfg=dataclasses.replace(QUICK, block_length=3, symbol_rule="threshold"),
+                         generator=torch.Generator().manual_seed(0), backend=get_backend())
     for key in ("max_lyapunov", "E_g"):
         assert threshold.rows[0][key] == rows[0][key]
     assert threshold.samples["transition"].shape[-1] == 8  # 7 gates and "none"
@@ -135,7 +139,8 @@ def test_metrics_a_task_cannot_have_are_left_out():
     cfg = Config(model=model, num_runs=1)
     experts, gating = initial_parameters(cfg, 2, 2, torch.float64)
     beta = torch.zeros(1, 2, 39, 2)
-    rows = evaluate(experts, beta, gating, mine, 1, QUICK, torch.Generator().manual_seed(0)).rows
+    rows = evaluate(experts, beta, gating, mine, 1, cfg=QUICK,
+                    generator=torch.Generator().manual_seed(0), backend=get_backend()).rows
     assert not {"block_kl_test", "data_switch_prob"} & set(rows[0])
     assert all(not isinstance(v, float) or not math.isnan(v)
                for k, v in rows[0].items() if k not in ("switch_prob", "switch_prob_gates",
@@ -179,7 +184,7 @@ def test_tracking_during_training(tmp_path):
     targets = gate_estimates(saved.beta)
     closed = generate(saved.experts, saved.gating,
                       trained_state(saved.experts, saved.gating, targets, series, 1),
-                      targets.shape[2])
+                      targets.shape[2], backend=get_backend())
     last = tracked[tracked["step"] == 4].sort_values("run")["block_kl_train"]
     np.testing.assert_allclose(last, _train_block_kl(targets, closed["gates"], cfg.eval))
 
@@ -228,8 +233,9 @@ def test_noise_enters_only_the_metrics_it_is_said_to():
 
     def table(noise_var):
         cfg = dataclasses.replace(QUICK, noise_var=noise_var)
-        return pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg,
-                                     torch.Generator().manual_seed(0)).rows)
+        return pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg=cfg,
+                                     generator=torch.Generator().manual_seed(0),
+                                     backend=get_backend()).rows)
 
     clean, noisy = table(0.0), table(0.01)
     assert "max_lyapunov_noisy" not in clean and "noise_enters" not in clean
@@ -251,8 +257,9 @@ def test_trained_initial_states_start_each_sample_from_its_series():
     data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
                                                       num_test_series=1), model)
     cfg = dataclasses.replace(QUICK, initial_states="trained", num_samples=4)
-    rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg,
-                                 torch.Generator().manual_seed(0)).rows)
+    rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg=cfg,
+                                 generator=torch.Generator().manual_seed(0),
+                                 backend=get_backend()).rows)
     series = torch.as_tensor(data.series)
     state = trained_state(experts, gating, gate_estimates(beta), series, 1, [0, 1, 0, 1])
     direct = closed_loop_lyapunov(experts, gating, state, cfg.lyapunov_steps, cfg.transient,

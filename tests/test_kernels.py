@@ -183,12 +183,11 @@ def test_training_trajectories_of_both_phases_match(backend, dtype, form, adapti
     phase2 = GatingPhaseConfig(steps=steps, adaptive_lr=adaptive, learning_rate=1.0, log_every=1)
     out = []
     for each in (REFERENCE, backend):
-        experts, beta, rows1 = train_experts(
-            init_experts(model, 2, 2, generators([0, 1]), dtype), series, model, phase1, rule,
-            backend=each)
+        experts, beta, rows1 = train_experts(init_experts(model, 2, 2, generators([0, 1]), dtype),
+                                             series, model, phase1, rule, backend=each)
         gating, rows2 = train_gating(init_gating(model, 2, 2, generators([0, 1]), dtype),
-                                     torch.softmax(beta, -1), series[:, :-1], model, phase2, rule,
-                                     backend=each)
+                                     torch.softmax(beta, -1), series[:, :-1], model, phase2,
+                                     rule=rule, backend=each)
         out.append((experts, beta, gating, rows1 + rows2))
     ref, fast = out
     tol = TOLERANCE[dtype] * (100 if dtype == torch.float32 else 1)  # 24 steps of float32
@@ -224,7 +223,7 @@ def test_gpu_candidate_steps_in_one_call_train_as_one_by_one(monkeypatch):
                                              series, model, phase1, rule, backend=gpu)
         gating, rows2 = train_gating(init_gating(model, 3, 2, generators([3, 4, 5])),
                                      torch.softmax(beta, -1), series[:, :-1], model, phase2,
-                                     rule, backend=gpu)
+                                     rule=rule, backend=gpu)
         out.append(({**experts, "beta": beta}, gating, rows1, rows2))
     for one, batched in zip(*out, strict=True):
         if isinstance(one, dict):
@@ -249,16 +248,15 @@ def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(backend, st
     out = []
     for each in (REFERENCE, backend):
         out.append(train_gating(init_gating(model, 2, 2, generators([4, 5, 6])), ghat,
-                                series[:, :-1], model, phase2, TrainConfig(), backend=each,
+                                series[:, :-1], model, phase2, rule=TrainConfig(), backend=each,
                                 seeds=[7, 8, 9])[0])
-        alone = train_gating(init_gating(model, 2, 2, generators([5])), ghat[1:2],
-                             series[:, :-1], model, phase2, TrainConfig(), backend=each,
-                             seeds=[8])[0]
+        alone = train_gating(init_gating(model, 2, 2, generators([5])), ghat[1:2], series[:, :-1],
+                             model, phase2, rule=TrainConfig(), backend=each, seeds=[8])[0]
         for k in alone:
             torch.testing.assert_close(alone[k][0], out[-1][k][1], rtol=0, atol=1e-12)
     clean = train_gating(init_gating(model, 2, 2, generators([4, 5, 6])), ghat, series[:, :-1],
-                         model, dataclasses.replace(phase2, input_noise_var=0.0), TrainConfig(),
-                         backend=backend, seeds=[7, 8, 9])[0]
+                         model, dataclasses.replace(phase2, input_noise_var=0.0),
+                         rule=TrainConfig(), backend=backend, seeds=[7, 8, 9])[0]
     for k in clean:
         torch.testing.assert_close(out[1][k], out[0][k], rtol=1e-10, atol=1e-10)
     assert (clean["w_out"] - out[1]["w_out"]).abs().max() > 1e-6  # noise did act
@@ -342,7 +340,8 @@ def test_generation_and_exponents_equal_across_backends(backend, exponents):
                                    generator=torch.Generator().manual_seed(0),
                                    num_exponents=exponents, noise_std=1e-2, on_chunk=chunks.append,
                                    backend=each)
-        gen = generate(experts, gating, state, 20, 0.01, torch.Generator().manual_seed(1), each)
+        gen = generate(experts, gating, state, 20, noise_std=0.01,
+                       generator=torch.Generator().manual_seed(1), backend=each)
         out.append((lam, torch.cat([c.outputs for c in chunks], 2), gen["outputs"]))
     for a, b in zip(*out, strict=True):
         torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-10)
@@ -481,7 +480,7 @@ def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(mo
                                              series, model, phase1, rule, backend=COMPILED)
         gating, rows2 = train_gating(init_gating(model, 3, 2, generators([0, 1, 2])),
                                      torch.softmax(beta, -1), series[:, :-1], model, phase2,
-                                     rule, backend=COMPILED)
+                                     rule=rule, backend=COMPILED)
         out.append(({**experts, "beta": beta, **{f"g_{k}": v for k, v in gating.items()}},
                     rows1 + rows2, list(calls)))
     (reused, rows, calls_on), (fresh, fresh_rows, calls_off) = out
@@ -576,3 +575,19 @@ def test_staging_hands_contiguous_views_to_the_kernels_as_they_are(monkeypatch, 
         assert torch.isfinite(g1).all() and torch.equal(g1, g2)
         assert all(torch.equal(s1[k], s2[k]) for k in s1)
         monkeypatch.undo()
+
+
+def test_every_entry_point_to_the_time_loops_asks_for_its_backend():
+    """No silent `auto`: training, evaluation and the closed loop take the backend as a required
+    keyword, so a caller who forgets it gets a TypeError instead of the CPU."""
+    import inspect
+
+    from moex.closed_loop import closed_loop_lyapunov, generate
+    from moex.evaluation import evaluate, track_metrics
+    from moex.train import train_experts, train_gating
+
+    for function in (train_experts, train_gating, generate, closed_loop_lyapunov, evaluate,
+                     track_metrics):
+        backend = inspect.signature(function).parameters["backend"]
+        assert backend.kind is inspect.Parameter.KEYWORD_ONLY, function.__name__
+        assert backend.default is inspect.Parameter.empty, function.__name__

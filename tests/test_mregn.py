@@ -17,6 +17,7 @@ from moex.config import ImportConfig
 from moex.errors import ConfigError
 from moex.evaluation import _teacher_forced
 from moex.importer import export_run, import_networks
+from moex.kernels import get_backend
 from moex.model import ModelConfig
 from moex.mregn_format import read_save, read_targets, write_save, write_targets
 from moex.tasks import TaskConfig, make_task
@@ -94,7 +95,8 @@ def test_imported_mixture_generates_what_mregn_generate_prints():
                           {n: v[:, k] if n == "u0" else v for n, v in record.gating.items()},
                           targets[:, k], record.series[k], cfg.model.delay)
     with torch.no_grad():
-        outputs = generate(record.experts, record.gating, state, 40)["outputs"][0, 0].numpy()
+        outputs = generate(record.experts, record.gating, state, 40,
+                           backend=get_backend())["outputs"][0, 0].numpy()
     printed = np.loadtxt(DATA / "mixture/generate_from_series1.txt")
     assert np.abs(outputs - printed).max() <= 5e-7 + 1e-12
 
@@ -194,6 +196,6 @@ def test_imported_gating_network_generates_what_rnn_generate_prints():
                                record.gating.items()}, targets[:, [1]], record.series[[1]],
                           cfg.model.delay)
     with torch.no_grad():
-        gates = generate({}, record.gating, state, 41)["gates"][0, 0].numpy()
+        gates = generate({}, record.gating, state, 41, backend=get_backend())["gates"][0, 0].numpy()
     printed = np.loadtxt(DATA / "gating/generate_from_series1.txt")
     assert np.abs(gates[1:] - printed).max() <= 5e-7 + 1e-12

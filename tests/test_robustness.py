@@ -17,6 +17,7 @@ from omegaconf import open_dict
 
 from moex import cli
 from moex.cli import register_configs
+from moex.kernels import get_backend
 from moex.model import ModelConfig, init_experts, init_gating
 from moex.run import run_seeds
 from moex.tasks import TaskConfig, make_task
@@ -101,8 +102,10 @@ def test_a_nan_run_leaves_the_others_identical():
         clean = init_experts(model, 2, 2, generators(seeds))
         broken = {k: v.clone() for k, v in clean.items()}
         broken["w_rec"][1, 0, 0, 0] = float("nan")
-        trained_clean, beta_clean, _ = train_experts(clean, series, model, phase, TrainConfig())
-        trained, beta, rows = train_experts(broken, series, model, phase, TrainConfig())
+        trained_clean, beta_clean, _ = train_experts(clean, series, model, phase, TrainConfig(),
+                                                     backend=get_backend())
+        trained, beta, rows = train_experts(broken, series, model, phase, TrainConfig(),
+                                            backend=get_backend())
         for k in trained:
             for r in (0, 2):
                 assert torch.equal(trained[k][r], trained_clean[k][r]), k
@@ -158,9 +161,9 @@ def test_a_nan_gating_run_leaves_the_others_identical(backend):
     clean = init_gating(model, 2, 2, generators([0, 1, 2]))
     broken = {k: v.clone() for k, v in clean.items()}
     broken["b_o"][0, 0] = float("inf")
-    trained_clean, _ = train_gating(clean, ghat, inputs, model, phase, TrainConfig(),
+    trained_clean, _ = train_gating(clean, ghat, inputs, model, phase, rule=TrainConfig(),
                                     backend=backend)
-    trained, rows = train_gating(broken, ghat, inputs, model, phase, TrainConfig(),
+    trained, rows = train_gating(broken, ghat, inputs, model, phase, rule=TrainConfig(),
                                  backend=backend)
     assert all(row["failed"] == (row["run"] == 0) for row in rows)
     for k in trained:

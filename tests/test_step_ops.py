@@ -57,10 +57,9 @@ def _train(phase: int, steps: int, adaptive: bool, backend) -> Counter:
                           ExpertPhaseConfig(steps=steps, adaptive_lr=adaptive, log_every=1000),
                           TrainConfig(), backend=backend)
         else:
-            train_gating(init_gating(model, 2, 2, generators([1, 2])), ghat, series[:, :-1],
-                         model, GatingPhaseConfig(steps=steps, adaptive_lr=adaptive,
-                                                  log_every=1000), TrainConfig(),
-                         backend=backend)
+            train_gating(init_gating(model, 2, 2, generators([1, 2])), ghat, series[:, :-1], model,
+                         GatingPhaseConfig(steps=steps, adaptive_lr=adaptive, log_every=1000),
+                         rule=TrainConfig(), backend=backend)
     return count.ops
 
 

@@ -3,6 +3,7 @@ import dataclasses
 import pytest
 import torch
 
+from moex.kernels import get_backend
 from moex.kernels.reference import expert_objective, gating_objective
 from moex.model import ModelConfig, init_experts, init_gating
 from moex.run import run_seeds
@@ -82,7 +83,7 @@ def _train_both(model, rule, series, seeds, S, D, phase1, phase2, backend):
     experts, beta, _ = train_experts(experts, series, model, phase1, rule, backend=backend)
     gating = init_gating(model, S, D, generators(seeds))
     ghat = torch.softmax(beta, -1)
-    gating, _ = train_gating(gating, ghat, series[:, :-model.delay], model, phase2, rule,
+    gating, _ = train_gating(gating, ghat, series[:, :-model.delay], model, phase2, rule=rule,
                              backend=backend)
     return experts, beta, gating
 
@@ -130,7 +131,7 @@ def test_runs_with_data_of_their_own_equal_each_data_set_trained_alone(backend):
         experts, beta, _ = train_experts(experts, series, model, phase1, rule, backend=backend)
         gating = init_gating(model, 2, 2, generators(seeds))
         gating, _ = train_gating(gating, torch.softmax(beta, -1), series[..., :-1, :], model,
-                                 phase2, rule, backend=backend, seeds=seeds)
+                                 phase2, rule=rule, backend=backend, seeds=seeds)
         return experts, beta, gating
 
     packed = both(torch.stack(data), seeds)
@@ -150,7 +151,8 @@ def test_learning_rate_scaling_per_group():
     S, T, D, K, alpha = 3, 20, 2, 2, 0.01
     experts = init_experts(model, S, D, generators([0]))
     phase1 = ExpertPhaseConfig(steps=1, learning_rate=alpha)
-    trained, beta, _ = train_experts(experts, series, model, phase1, TrainConfig())
+    trained, beta, _ = train_experts(experts, series, model, phase1, TrainConfig(),
+                                     backend=get_backend())
     start = {k: v.clone().requires_grad_(True) for k, v in experts.items() if k != "tau"}
     start["beta"] = torch.zeros(1, S, T, K, requires_grad=True)
     objective = expert_objective(series[:, :-1], series[:, 1:], model, phase1)
@@ -165,7 +167,8 @@ def test_learning_rate_scaling_per_group():
     gating = init_gating(model, S, D, generators([0]))
     ghat = torch.softmax(beta, -1).detach()
     phase2 = GatingPhaseConfig(steps=1, adaptive_lr=False, learning_rate=alpha)
-    trained_g, _ = train_gating(gating, ghat, series[:, :-1], model, phase2, TrainConfig())
+    trained_g, _ = train_gating(gating, ghat, series[:, :-1], model, phase2, rule=TrainConfig(),
+                                backend=get_backend())
     start = {k: v.clone().requires_grad_(True) for k, v in gating.items() if k != "tau"}
     objective = gating_objective(ghat, series[:, :-1], model, phase2)
     value = objective({**start, "tau": gating["tau"]})[0].sum()
@@ -182,15 +185,16 @@ def test_both_phases_reduce_their_errors():
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 5, 6
     experts = init_experts(model, 2, 2, generators([0, 1]))
-    _, beta, rows = train_experts(experts, series, model,
-                                  ExpertPhaseConfig(steps=60, log_every=59), TrainConfig())
+    _, beta, rows = train_experts(experts, series, model, ExpertPhaseConfig(steps=60, log_every=59),
+                                  TrainConfig(), backend=get_backend())
     first, last = [r for r in rows if r["step"] == 0], [r for r in rows if r["step"] == 59]
     for a, b in zip(first, last, strict=True):
         assert b["objective"] > a["objective"]
         assert b["E"] < a["E"]
     gating = init_gating(model, 2, 2, generators([0, 1]))
     _, rows = train_gating(gating, torch.softmax(beta, -1), series[:, :-1], model,
-                           GatingPhaseConfig(steps=40, log_every=39), TrainConfig())
+                           GatingPhaseConfig(steps=40, log_every=39), rule=TrainConfig(),
+                           backend=get_backend())
     first, last = [r for r in rows if r["step"] == 0], [r for r in rows if r["step"] == 39]
     for a, b in zip(first, last, strict=True):
         assert b["E_g"] < a["E_g"]
@@ -202,12 +206,12 @@ def test_adaptive_rate_never_accepts_a_large_increase():
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     experts = init_experts(model, 2, 2, generators([0]))
-    _, beta, _ = train_experts(experts, series, model, ExpertPhaseConfig(steps=5), TrainConfig())
+    _, beta, _ = train_experts(experts, series, model, ExpertPhaseConfig(steps=5), TrainConfig(),
+                               backend=get_backend())
     gating = init_gating(model, 2, 2, generators([0, 1]))
-    _, rows = train_gating(gating, torch.softmax(beta, -1).expand(2, -1, -1, -1),
-                           series[:, :-1], model,
-                           GatingPhaseConfig(steps=30, learning_rate=50.0, log_every=1),
-                           TrainConfig())
+    _, rows = train_gating(gating, torch.softmax(beta, -1).expand(2, -1, -1, -1), series[:, :-1],
+                           model, GatingPhaseConfig(steps=30, learning_rate=50.0, log_every=1),
+                           rule=TrainConfig(), backend=get_backend())
     for run in (0, 1):
         kl = [r["kl"] for r in rows if r["run"] == run]
         assert all(b <= 1.1 * a + 1e-12 for a, b in zip(kl, kl[1:], strict=False))
@@ -282,15 +286,17 @@ def test_stopped_and_resumed_training_is_bit_identical(backend):
     phase = GatingPhaseConfig(steps=6, adaptive_lr=True, learning_rate=1.0, log_every=1)
     ghat = torch.softmax(torch.randn(2, 2, 24, 2, generator=torch.Generator().manual_seed(3)), -1)
     init = init_gating(model, 2, 2, generators([0, 1]))
-    whole, rows = train_gating(init, ghat, series[:, :-1], model, phase, TrainConfig(),
+    whole, rows = train_gating(init, ghat, series[:, :-1], model, phase, rule=TrainConfig(),
                                backend=backend)
     saved, calls = [], iter(range(100))
     stop = Hooks(save=saved.append, save_every=2, should_stop=lambda: next(calls) == 3)
     with pytest.raises(TrainingInterrupted):
-        train_gating(init, ghat, series[:, :-1], model, phase, TrainConfig(), stop, backend)
+        train_gating(init, ghat, series[:, :-1], model, phase, rule=TrainConfig(), hooks=stop,
+                     backend=backend)
     assert saved[-1]["step"] == 3
-    resumed, resumed_rows = train_gating(init, ghat, series[:, :-1], model, phase, TrainConfig(),
-                                         Hooks(resume=saved[-1]), backend)
+    resumed, resumed_rows = train_gating(init, ghat, series[:, :-1], model, phase,
+                                         rule=TrainConfig(), hooks=Hooks(resume=saved[-1]),
+                                         backend=backend)
     for k in whole:
         assert torch.equal(resumed[k], whole[k]), k
     assert resumed_rows == rows
