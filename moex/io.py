@@ -16,6 +16,7 @@ SAMPLES = "samples.npz"
 FIGURES = "figures"
 SEGMENTS = "segments.csv"
 SEGMENT_SCORES = "segment_scores.csv"
+LABEL_STAYS = "label_stays.csv"
 EVAL_SETTINGS = "eval_config.yaml"  # the evaluation settings `moex evaluate` used
 
 

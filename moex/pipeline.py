@@ -271,6 +271,8 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     io.write_csv(out_dir / io.METRICS, metrics)
     samples = in_data_units(samples, dataset)
     io.save_arrays(out_dir / io.SAMPLES, samples)
+    if "label_stays" in samples:  # the closed loop's residence per label beside the data's
+        io.write_csv(out_dir / io.LABEL_STAYS, segment.label_stays_table(samples["label_stays"]))
     ok = metrics[~metrics["failed"]]
     _plot_samples(samples, dataset, cfg, out_dir, metrics, cfg.eval.noise_var)
     if beta is not None and dataset.series.shape[-1] > 0:  # which expert holds which stretch

@@ -177,15 +177,40 @@ def closed_loop_labels(winners: np.ndarray, labels: np.ndarray, label_of_expert:
     matching of experts to labels (an unmatched expert a label of its own): the block KL of the
     data's label sequence (S, T) against them (data first, Eq. 21 on per-step labels), and the
     mean stay on one label in steps, the closed loop's beside the data's (every stay counted,
-    those cut by a sequence's end at their observed length)."""
+    those cut by a sequence's end at their observed length); and per label (the last row: the
+    unmatched experts) `label_stays` (labels + 1, 4): the data's and the closed loop's mean stay
+    and their shares of the steps (NaN stays where a label never occurs)."""
     unmatched = int(labels.max()) + 1
     read = np.where(label_of_expert >= 0, label_of_expert, unmatched)[winners]
     data = _known_stretches(labels)
-    stays = [switching.rle(s)[1] for s in data]
-    loop_stays = [switching.rle(s)[1] for s in read]
+    both = [_stays(data), _stays(read)]  # (label of each stay, its length): data, closed loop
+
+    def of_label(k):
+        mean = [n[v == k].mean() if (v == k).any() else np.nan for v, n in both]
+        return mean + [n[v == k].sum() / n.sum() for v, n in both]
+
     return {"label_block_kl": block_kl(data, list(read)),
-            "label_mean_stay": float(np.concatenate(loop_stays).mean()),
-            "data_label_mean_stay": float(np.concatenate(stays).mean())}
+            "label_mean_stay": float(both[1][1].mean()),
+            "data_label_mean_stay": float(both[0][1].mean()),
+            "label_stays": np.array([of_label(k) for k in range(unmatched + 1)])}
+
+
+def _stays(sequences) -> tuple[np.ndarray, np.ndarray]:
+    """The label and the length of every stay in some label sequences."""
+    values, lengths = zip(*map(switching.rle, sequences), strict=True)
+    return np.concatenate(values), np.concatenate(lengths)
+
+
+LABEL_STAYS = ("data_mean_stay", "loop_mean_stay", "data_share", "loop_share")
+
+
+def label_stays_table(stays: np.ndarray) -> pd.DataFrame:
+    """label_stays.csv: per run and label (the last, "unmatched", the experts no label was
+    matched to) the data's and the closed loop's mean stay in steps and share of the steps."""
+    R, L, _ = stays.shape
+    return pd.DataFrame([{"run": r, "label": "unmatched" if k == L - 1 else str(k),
+                          **dict(zip(LABEL_STAYS, stays[r, k].tolist(), strict=True))}
+                         for r in range(R) for k in range(L)])
 
 
 class Segmentation(NamedTuple):

@@ -21,6 +21,7 @@ from moex.metrics.segmentation import (
     normalized_mutual_info,
     scores,
 )
+from moex.metrics.switching import rle
 from moex.tasks import TaskConfig, files, make_task
 
 MOEX = [sys.executable, "-c", "from moex.launch import main; main()"]
@@ -184,6 +185,9 @@ def test_moex_segment_scores_new_recordings_and_refuses_bad_ones(tmp_path):
     table = pd.read_csv(run_dir / "segments.csv")
     assert len(table) == 2 * 2 * 119 and {"label", "gate_0", "gate_1"} <= set(table)
     assert (run_dir / "figures" / "segments.png").is_file()
+    stays = pd.read_csv(run_dir / "label_stays.csv")  # per run and label, and the unmatched
+    assert len(stays) == 2 * 3 and set(stays["label"].astype(str)) == {"0", "1", "unmatched"}
+    assert np.allclose(stays.groupby("run")["data_share"].sum(), 1)
     out = tmp_path / "seg"
     done = subprocess.run(MOEX + ["segment", f"run_dir={run_dir}", f"task.path={tmp_path}/new",
                                   f"out_dir={out}"], capture_output=True, text=True,
@@ -218,6 +222,14 @@ def test_a_closed_loop_that_replays_the_data_reads_as_its_labels():
                                      lambda d, m: block_kl(d, m, 5))
     assert got["label_block_kl"] == pytest.approx(0, abs=1e-12)
     assert got["label_mean_stay"] == pytest.approx(got["data_label_mean_stay"])
+    stays = got["label_stays"]  # per label: the same stays and shares; no unmatched expert
+    assert stays.shape == (4, 4) and np.isnan(stays[3, :2]).all() and (stays[3, 2:] == 0).all()
+    np.testing.assert_allclose(stays[:3, 0], stays[:3, 1])
+    np.testing.assert_allclose(stays[:3, 2], stays[:3, 3])
+    assert stays[:3, 2].sum() == pytest.approx(1)
+    for k in range(3):  # the data's own mean stay on label k
+        lengths = [n for row in labels for v, n in zip(*rle(row), strict=True) if v == k]
+        assert stays[k, 0] == pytest.approx(np.mean(lengths))
     holes = labels.copy()
     holes[:, ::7] = -1
     assert all((part >= 0).all() for part in segment._known_stretches(holes))
