@@ -3,7 +3,8 @@ of a `paper_lissajous9` run kept as docs/lissajous9_history.csv, the tracked tab
 docs/reproduction/lissajous9.md, and each network's changes of λ_max between tracking points
 judged against their errors.
 
-    python docs/lissajous9_tracking.py RUN_DIR     # writes docs/lissajous9_history.csv, prints
+    python docs/lissajous9_tracking.py RUN_DIR     # writes docs/lissajous9_history.csv and
+                                                   # lissajous9_rerun_summary.csv, prints
     python docs/lissajous9_tracking.py             # prints from docs/lissajous9_history.csv
 
 A change between consecutive tracking points is *beyond its error* when |Δλ| > 2 √(se₁² + se₂²);
@@ -47,7 +48,7 @@ def table(frame: pd.DataFrame, runs=(0, 3)) -> str:
     for run in runs:
         lam, se = at.loc[run, "max_lyapunov"], at.loc[run, "max_lyapunov_se"]
         lines.append(f"| λ_max network {run} (± 2 se) | " + " | ".join(
-            f"{lam[s]:.4f} ± {2 * se[s]:.4f}" for s in steps) + " |")
+            f"{lam[s]:.2g} ± {2 * se[s]:.1g}" for s in steps) + " |")
     return "\n".join(lines)
 
 
@@ -75,10 +76,18 @@ def judged(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+SUMMARY = DOCS / "lissajous9_rerun_summary.csv"
+FINAL = ["run", "E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",
+         "max_lyapunov_se", "chaos", "positive_sample_fraction", "switch_prob", "switch_rate",
+         "nonperiodic_fraction"]
+
+
 def main(argv: list[str]) -> None:
     if argv:
         history(Path(argv[0])).to_csv(HISTORY, index=False)
-        print(f"wrote {HISTORY.relative_to(DOCS.parent)}")
+        metrics = pd.read_csv(Path(argv[0]) / "metrics.csv")
+        metrics[[c for c in FINAL if c in metrics]].to_csv(SUMMARY, index=False)
+        print(f"wrote {HISTORY.relative_to(DOCS.parent)}, {SUMMARY.relative_to(DOCS.parent)}")
     frame = pd.read_csv(HISTORY)
     print(table(frame), "", to_markdown(judged(frame)), sep="\n")
 

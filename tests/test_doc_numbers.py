@@ -47,9 +47,6 @@ LINK = re.compile(r"\]\(([^)#]+\.md)")
 # page → {number as printed: where it comes from}; facts no CSV holds, and values derived in ways
 # the summaries above do not cover (each recomputed by hand from its CSV when it was listed; the
 # ones whose source is not kept say so)
-_L9_HISTORY = ("the tracked history of the 2026-11-30 paper_lissajous9 run (its run folder was "
-               "not kept; the whole tracked table comes from it): replaced by "
-               "docs/lissajous9_history.csv when the rerun with standard errors lands")
 ELSEWHERE = {
     "docs/verdicts.md": {
         "1.4826": "the normal law's ratio of SD to median absolute deviation (robust_sd)"},
@@ -62,8 +59,6 @@ ELSEWHERE = {
     "docs/reproduction/learning_curves.md": {
         "2.36": "learning_curves_history.csv: mean block_kl_train at gating step 0, lissajous2"},
     "docs/reproduction/lissajous9.md": {
-        **dict.fromkeys(("4.39", "1.66", "1.76", "1.83", "1.64", "2.14", "0.0067", "0.0062"),
-                        _L9_HISTORY),
         "0.0072": "the 10 000-step evaluation of that run (out_dir n5_short, not kept)",
         "7.2·10⁻⁴": "a one-network run on the AMD VM (its metrics.csv, not kept)"},
     "docs/reproduction/table1.md": {
@@ -170,6 +165,7 @@ def computed() -> tuple[float, ...]:
                                           map(counts, embedding["stay on one curve: embed"]),
                                           strict=True)]
     frame, frames = verdicts.verdicts(), length.arms()
+    tracking, history = _script("lissajous9_tracking"), read("lissajous9_history.csv")
     tables = [verdicts.markdown(frame, evidence=True), verdicts.tool_question(),
               cells.summary(grid), cells.replication(grid),
               cells.window_table(read("capacity_window10k_summary.csv"), grid),
@@ -181,7 +177,8 @@ def computed() -> tuple[float, ...]:
               _script("residence").table(read("table2_own_data_residence.csv")),
               _script("fig15").power_table(read("fig15_end_summary.csv")),
               _script("roundoff").summary(read("roundoff_pairs.csv")),
-              *(arms.summary(read(f"table1_nc{nc}_arms.csv")) for nc in (10, 20))]
+              *(arms.summary(read(f"table1_nc{nc}_arms.csv")) for nc in (10, 20)),
+              tracking.table(history), tracking.judged(history)]
     paper = [*PAPER_TABLE1.to_numpy().ravel(), *PAPER_TABLE2.to_numpy().ravel(),
              *_script("fig15").PAPER_FLIP]
     return tuple(np.asarray([*paper, *fisher, *numbers_in(*tables)], float))
