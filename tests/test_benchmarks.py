@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -130,3 +132,14 @@ def test_the_sizes_benchmark_reports_time_and_memory_per_number_of_networks():
     assert done.returncode == 0, done.stderr[-2000:]
     number = r"-?\d+\.\d+"
     assert re.search(rf"\| 1 \| {number} \| {number} \| \d+\.\d\d \| \d+\.\d\d \|", done.stdout)
+
+
+def test_the_peak_probe_prints_a_clock_and_a_peak():
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_peak.py"), "--steps",
+                           "100000"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-2000:]
+    found = re.search(r"(\d+\.\d+) Gflop/s -> clock (\d+\.\d+) GHz .* = (\d+\.\d+) Gflop/s",
+                      done.stdout)
+    rate, clock, peak = map(float, found.groups())
+    assert rate == pytest.approx(4 * clock, rel=0.01)  # 2 pipes x 2 flops per cycle
+    assert peak == pytest.approx(16 * clock, rel=0.01)
