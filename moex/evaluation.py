@@ -51,7 +51,7 @@ class EvalConfig:
     # mregn-lyapunov computes them (a bug in that tool), to compare with its exponents
     jacobian_gates: str = "real"
     block_length: int = 5  # m of D_KL^(m) (3 for Reber)
-    kl_floor: float = 1e-3  # model probability given to data blocks it never produced
+    kl_floor: float = 1e-3  # model probability of data blocks it never produced (renormalised)
     # held-out series the test KL compares with (0: the task's num_test_series); drawn as the
     # task draws them, so that the first ones are the run's own held-out series
     test_series: int = 0
