@@ -299,9 +299,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
         row.update(noise_var=cfg.noise_var, num_samples=cfg.num_samples,
                    lyapunov_samples=len(lam), lyapunov_steps=cfg.lyapunov_steps)
         rows.append(row)
-    scores = segment.evaluation_scores(experts, beta, gating, dataset, delay, sigma_min,
-                                       gate_prior_std, gate_winners, cfg.block_kl)
-    stays = [more.pop("label_stays") for more in scores if "label_stays" in more]
+    scores, stays = segment.evaluation_scores(experts, beta, gating, dataset, delay, sigma_min,
+                                              gate_prior_std, gate_winners, cfg.block_kl)
     for row, more in zip(rows, scores, strict=True):
         row.update(more)
     samples = {name: torch.cat([k[i] for k in kept], 1)[:, -cfg.plot_steps:].numpy()
@@ -310,8 +309,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
                    transition=np.stack(transitions),
                    closed_outputs=closed["outputs"][:, 0].numpy(),
                    symbols=sampled[:, 0, -cfg.plot_steps:])
-    if stays:  # per label: (R, labels + 1, 4), label_stays.csv
-        samples["label_stays"] = np.stack(stays)
+    if stays is not None:  # per label: (R, labels + 1, 4), label_stays.csv
+        samples["label_stays"] = stays
     return Evaluation(rows, samples)
 
 

@@ -138,15 +138,16 @@ def run_scores(gates: np.ndarray, labels: np.ndarray, delay: int,
 
 def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: float,
                       prior_std: float, closed_winners: np.ndarray | None = None,
-                      block_kl=None) -> list[dict]:
+                      block_kl=None) -> tuple[list[dict], np.ndarray | None]:
     """Per run, where the data have labels: the segmentation of the training series by ĝ
     (segment_ari, segment_nmi, segment_accuracy), of the held-out series by the `smooth`
     method (the same with _test) and, given the closed loop's winning experts (R, N, steps)
-    and the evaluation's block KL, the closed loop read as labels (`closed_loop_labels`)."""
+    and the evaluation's block KL, the closed loop read as labels (`closed_loop_labels`): its
+    scores join the rows, its stays per label come back as (R, labels + 1, 4) (else None)."""
     R = len(gating["w_out"])
-    if beta is None or (dataset.labels < 0).all():
-        return [{} for _ in range(R)]
-    found = _scored(gate_estimates(beta).numpy(), dataset.labels, delay)
+    found = [] if beta is None else _scored(gate_estimates(beta).numpy(), dataset.labels, delay)
+    if not found:  # no labelled step the experts explain
+        return [{} for _ in range(R)], None
     rows = [_numbers(run) for run in found]
     test = dataset.test
     if test is not None and (test.labels >= 0).any():
@@ -155,11 +156,15 @@ def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: flo
         for row, more in zip(rows, run_scores(gates.numpy(), test.labels, delay, "_test"),
                              strict=True):
             row.update(more)
-    if closed_winners is not None:
-        for r, (row, run) in enumerate(zip(rows, found, strict=True)):
-            row.update(closed_loop_labels(closed_winners[r], dataset.labels,
-                                          run["label_of_expert"], block_kl))
-    return rows
+    if closed_winners is None:
+        return rows, None
+    stays = []
+    for r, (row, run) in enumerate(zip(rows, found, strict=True)):
+        closed, per_label = closed_loop_labels(closed_winners[r], dataset.labels,
+                                               run["label_of_expert"], block_kl)
+        row.update(closed)
+        stays.append(per_label)
+    return rows, np.stack(stays)
 
 
 def _known_stretches(labels: np.ndarray) -> list[np.ndarray]:
@@ -172,14 +177,14 @@ def _known_stretches(labels: np.ndarray) -> list[np.ndarray]:
 
 
 def closed_loop_labels(winners: np.ndarray, labels: np.ndarray, label_of_expert: np.ndarray,
-                       block_kl) -> dict:
+                       block_kl) -> tuple[dict, np.ndarray]:
     """The closed loop's winning experts (N, steps) read as labels through the training data's
     matching of experts to labels (an unmatched expert a label of its own): the block KL of the
     data's label sequence (S, T) against them (data first, Eq. 21 on per-step labels), and the
     mean stay on one label in steps, the closed loop's beside the data's (every stay counted,
     those cut by a sequence's end at their observed length); and per label (the last row: the
-    unmatched experts) `label_stays` (labels + 1, 4): the data's and the closed loop's mean stay
-    and their shares of the steps (NaN stays where a label never occurs)."""
+    unmatched experts), (labels + 1, 4): the data's and the closed loop's mean stay and their
+    shares of the steps (NaN stays where a label never occurs)."""
     unmatched = int(labels.max()) + 1
     read = np.where(label_of_expert >= 0, label_of_expert, unmatched)[winners]
     data = _known_stretches(labels)
@@ -189,10 +194,10 @@ def closed_loop_labels(winners: np.ndarray, labels: np.ndarray, label_of_expert:
         mean = [n[v == k].mean() if (v == k).any() else np.nan for v, n in both]
         return mean + [n[v == k].sum() / n.sum() for v, n in both]
 
-    return {"label_block_kl": block_kl(data, list(read)),
-            "label_mean_stay": float(both[1][1].mean()),
-            "data_label_mean_stay": float(both[0][1].mean()),
-            "label_stays": np.array([of_label(k) for k in range(unmatched + 1)])}
+    return ({"label_block_kl": block_kl(data, list(read)),
+             "label_mean_stay": float(both[1][1].mean()),
+             "data_label_mean_stay": float(both[0][1].mean())},
+            np.array([of_label(k) for k in range(unmatched + 1)]))
 
 
 def _stays(sequences) -> tuple[np.ndarray, np.ndarray]:

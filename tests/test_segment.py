@@ -218,11 +218,11 @@ def test_a_closed_loop_that_replays_the_data_reads_as_its_labels():
     rng = np.random.default_rng(5)
     labels = np.repeat(rng.integers(0, 3, (2, 40)), rng.integers(1, 6, 40), axis=1)
     renamed = (labels + 1) % 3
-    got = segment.closed_loop_labels(renamed, labels, np.array([2, 0, 1]),
-                                     lambda d, m: block_kl(d, m, 5))
+    got, stays = segment.closed_loop_labels(renamed, labels, np.array([2, 0, 1]),
+                                            lambda d, m: block_kl(d, m, 5))
     assert got["label_block_kl"] == pytest.approx(0, abs=1e-12)
     assert got["label_mean_stay"] == pytest.approx(got["data_label_mean_stay"])
-    stays = got["label_stays"]  # per label: the same stays and shares; no unmatched expert
+    # per label: the same stays and shares; no unmatched expert
     assert stays.shape == (4, 4) and np.isnan(stays[3, :2]).all() and (stays[3, 2:] == 0).all()
     np.testing.assert_allclose(stays[:3, 0], stays[:3, 1])
     np.testing.assert_allclose(stays[:3, 2], stays[:3, 3])
