@@ -25,7 +25,7 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import OPTIONS, launched, pow2
-from moex.kernels.gpu.rnn import device, stable_tanh
+from moex.kernels.gpu.rnn import device, divide, exp, log, stable_tanh
 from moex.model import ClosedLoopRun
 
 
@@ -68,8 +68,8 @@ def _orthonormalise(veu, vgu, vxl, vgl, growth, SB: tl.constexpr, KT: tl.constex
                        + tl.sum(tl.sum(q_i * q_i, axis=2), axis=1))
         safe = tl.where(norm > 0, norm, 1.0)
         if COUNT:
-            growth += tl.where(this, tl.log(safe)[:, None], 0.0)
-        scale = 1.0 / safe
+            growth += tl.where(this, log(safe)[:, None], 0.0)
+        scale = divide(tl.full((1,), 1.0, safe.dtype), safe)
         e_i, g_i = e_i * scale[:, None, None], g_i * scale[:, None]
         x_i, q_i = x_i * scale[:, None, None], q_i * scale[:, None, None]
         # every later vector loses its component along vector i; vector i is replaced by its unit
@@ -184,8 +184,8 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
         cg = stable_tanh(gu_new + g_b_c[None])
         logits = tl.sum(g_w_out[None] * cg[:, None, :], axis=2) + g_b_o[None]
         logits = tl.where(km[None, :], logits, float("-inf"))
-        e = tl.exp(logits - tl.max(logits, axis=1)[:, None])
-        new_g = e / tl.sum(e, axis=1)[:, None]
+        e = exp(logits - tl.max(logits, axis=1)[:, None])
+        new_g = divide(e, tl.sum(e, axis=1)[:, None])
         tl.store(OUT_Y + (row[:, None] * STEPS + t) * D + d[None, :], y, mask=rec_d)
         tl.store(OUT_G + (row[:, None] * STEPS + t) * K + k[None, :], g, mask=rec_k)
         if KEEP_U:

@@ -110,7 +110,7 @@ class Net:
         self.O = empty(L, T, NO)
         self.DO, self.C = (empty(L, T, NO), empty(L, T, H)) if keep else (empty(1), empty(1))
         self.U = empty(L, T, H) if learn_eps and keep else empty(1)
-        self.S = empty(L, 2, H) if sums else empty(1)
+        self.S = torch.zeros(L, 2, H, dtype=torch.float64, device=device) if sums else empty(1)
 
     def forward(self, X, params, keep):
         """O (L, T, NO); with `keep` also the histories the backward pass reads."""

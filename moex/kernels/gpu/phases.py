@@ -24,7 +24,7 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import TRIALS, Net, launch, pow2, strides
-from moex.kernels.gpu.rnn import device, load_rows, stable_tanh
+from moex.kernels.gpu.rnn import device, divide, exp, lane_moments, load_rows, log, stable_tanh
 from moex.kernels.noise import input_noise
 
 BT = 64  # time steps per tile of the objective kernels, at most
@@ -51,10 +51,9 @@ def _attraction(SUMS, U0, U0J, first, floor, LPR: tl.constexpr, T: tl.constexpr,
         ok = j < LPR
         lane = first + j
         u0 = load_rows(U0, tl.load(U0J + lane, mask=ok, other=0), ok, h, H)
-        mean = load_rows(SUMS, lane * 2, ok, h, H) / (T + 1)
-        var = tl.maximum(load_rows(SUMS, lane * 2 + 1, ok, h, H) / (T + 1) - mean * mean, floor)
+        mean, var = lane_moments(SUMS, lane, ok, h, floor, T, H)
         dev = u0 - mean
-        total += tl.where(ok[:, None] & (h < H)[None, :], -(dev * dev) / (2.0 * var), 0.0)
+        total += tl.where(ok[:, None] & (h < H)[None, :], -divide(dev * dev, 2.0 * var), 0.0)
     return tl.sum(tl.sum(total, axis=1), axis=0)
 
 
@@ -62,9 +61,9 @@ def _attraction(SUMS, U0, U0J, first, floor, LPR: tl.constexpr, T: tl.constexpr,
 def _log_softmax(x, ok):
     """(BT, KP) log-softmax over the K entries where `ok` ((KP,) bools); also the softmax."""
     m = tl.max(tl.where(ok[None, :], x, -float("inf")), axis=1)
-    e = tl.where(ok[None, :], tl.exp(x - m[:, None]), 0.0)
+    e = tl.where(ok[None, :], exp(x - m[:, None]), 0.0)
     total = tl.sum(e, axis=1)
-    return x - m[:, None] - tl.log(total)[:, None], e / total[:, None]
+    return x - m[:, None] - log(total)[:, None], divide(e, total[:, None])
 
 
 @triton.jit
@@ -85,9 +84,9 @@ def mixture_objective(OUT, TARGETS, BETA, LOG_SIGMA, SUMS, U0, U0J, CONST, ACTIV
     prior_var, prior_norm = tl.load(CONST + 2), tl.load(CONST + 3)
     on = tl.load(ACTIVE + r + 0 * k) != 0  # (KP,): the interpreter's masks need a vector
     log_sigma = tl.load(LOG_SIGMA + r * sLOG_SIGMA + k, mask=k_ok, other=0.0)
-    spread = tl.exp(2.0 * log_sigma)
+    spread = exp(2.0 * log_sigma)
     var = spread + floor
-    log_norm = (-0.5 * D) * tl.log(two_pi * var)
+    log_norm = (-0.5 * D) * log(two_pi * var)
     log_lik = tl.zeros((BT,), dtype=var.dtype)
     log_prior, sq_error = log_lik, log_lik
     g_log_sigma = tl.zeros((KP,), dtype=var.dtype)
@@ -108,25 +107,29 @@ def mixture_objective(OUT, TARGETS, BETA, LOG_SIGMA, SUMS, U0, U0J, CONST, ACTIV
             b_at = BETA + r * sBETA + (s * T + n[:, None]) * K + k[None, :]
             beta = tl.load(b_at, mask=m2, other=0.0)
             log_gate, gate = _log_softmax(beta, k_ok)
-            z = tl.where(k_ok[None, :], log_gate + (log_norm[None, :] - e / (2.0 * var[None, :])),
+            z = tl.where(k_ok[None, :],
+                         log_gate + (log_norm[None, :] - divide(e, 2.0 * var[None, :])),
                          -float("inf"))
             z_max = tl.max(z, axis=1)
-            w = tl.exp(z - z_max[:, None])
+            w = exp(z - z_max[:, None])
             w_sum = tl.sum(w, axis=1)
-            log_lik += tl.where(n_ok, z_max + tl.log(w_sum), 0.0)
+            log_lik += tl.where(n_ok, z_max + log(w_sum), 0.0)
             mix = tl.sum(gate[:, :, None] * y, axis=1) - target
             sq_error += tl.where(n_ok, tl.sum(mix * mix, axis=1), 0.0)
             step = tl.load(b_at + K, mask=next_ok[:, None] & k_ok[None, :], other=0.0) - beta
             log_prior += tl.where(next_ok, tl.sum(tl.where(
-                k_ok[None, :], -(step * step) / (2.0 * prior_var) - prior_norm, 0.0), axis=1), 0.0)
+                k_ok[None, :], -divide(step * step, 2.0 * prior_var) - prior_norm, 0.0), axis=1),
+                0.0)
             if WANT:
-                post = w / w_sum[:, None]
-                tl.store(DO + at, post[:, :, None] * (-err) / var[None, :, None] * (1.0 - y * y),
+                post = divide(w, w_sum[:, None])
+                tl.store(DO + at,
+                         post[:, :, None] * divide(-err, var[None, :, None]) * (1.0 - y * y),
                          mask=m3 & on[None, :, None])
-                g_log_sigma += tl.sum(tl.where(m2, post * (e / var[None, :] - D), 0.0), axis=0)
+                g_log_sigma += tl.sum(tl.where(m2, post * (divide(e, var[None, :]) - D), 0.0),
+                                      axis=0)
                 back = beta - tl.load(b_at - K, mask=(n > 0)[:, None] & k_ok[None, :], other=0.0)
-                g_beta = post - gate + (tl.where(next_ok[:, None], step, 0.0)
-                                        - tl.where((n > 0)[:, None], back, 0.0)) / prior_var
+                g_beta = post - gate + divide(tl.where(next_ok[:, None], step, 0.0)
+                                              - tl.where((n > 0)[:, None], back, 0.0), prior_var)
                 tl.store(G_BETA + r * sG_BETA + (s * T + n[:, None]) * K + k[None, :], g_beta,
                          mask=m2 & on[None, :])
     total_lik, total_prior = tl.sum(log_lik, axis=0), tl.sum(log_prior, axis=0)
@@ -138,7 +141,8 @@ def mixture_objective(OUT, TARGETS, BETA, LOG_SIGMA, SUMS, U0, U0J, CONST, ACTIV
     tl.store(STATS + 2 * num_runs + r, total_prior)
     tl.store(STATS + 3 * num_runs + r, 0.5 * tl.sum(sq_error, axis=0) / (S * T * D))
     if WANT:
-        tl.store(G_LOG_SIGMA + r * sG_LOG_SIGMA + k, g_log_sigma * spread / var, mask=k_ok & on)
+        tl.store(G_LOG_SIGMA + r * sG_LOG_SIGMA + k, divide(g_log_sigma * spread, var),
+                 mask=k_ok & on)
 
 
 @triton.jit

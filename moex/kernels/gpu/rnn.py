@@ -39,8 +39,13 @@ import os
 
 import triton
 import triton.language as tl
+from triton.language.extra import libdevice
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"  # read when Triton is (set it before)
+# float32 on a GPU: Triton lowers exp, σ and `/` to ex2.approx / div.full (≤ 2 ulp each, and a
+# phase-2 ∂u_0 35x further from float64 than PyTorch's float32); libdevice's expf, logf, tanhf
+# and div.rn are accurate. The interpreter computes with NumPy and has no libdevice.
+ACCURATE_F32 = tl.constexpr(not INTERPRET)
 
 
 def device(fn):
@@ -55,18 +60,50 @@ def device(fn):
 @device
 def stable_tanh(x):
     """tanh(x) = 2σ(2x) - 1: finite for every x, ≤ 3e-16 from tanh in float64, and the same
-    formula on a GPU and in the interpreter."""
-    return 2.0 * tl.sigmoid(2.0 * x) - 1.0
+    formula on a GPU and in the interpreter; in float32 on a GPU, libdevice's tanhf."""
+    out = 2.0 * tl.sigmoid(2.0 * x) - 1.0
+    if x.dtype == tl.float32:
+        if ACCURATE_F32:
+            out = libdevice.tanh(x)
+    return out
+
+
+@device
+def exp(x):
+    """e^x, accurate in both precisions (libdevice's expf in float32 on a GPU)."""
+    out = tl.exp(x)
+    if x.dtype == tl.float32:
+        if ACCURATE_F32:
+            out = libdevice.exp(x)
+    return out
+
+
+@device
+def log(x):
+    """ln x, accurate in both precisions (libdevice's logf in float32 on a GPU)."""
+    out = tl.log(x)
+    if x.dtype == tl.float32:
+        if ACCURATE_F32:
+            out = libdevice.log(x)
+    return out
+
+
+@device
+def divide(a, b):
+    """a / b (broadcast) rounded correctly in both precisions (a float32 `/` is approximate on
+    a GPU)."""
+    a, b = tl.broadcast(a, b)
+    if a.dtype == tl.float32:
+        out = tl.math.div_rn(a, b)
+    else:
+        out = a / b
+    return out
 
 
 @device
 def _reciprocal(x):
-    """1/x rounded correctly in both precisions (a float32 `/` is approximate on a GPU)."""
-    if x.dtype == tl.float32:
-        out = tl.math.div_rn(tl.full(x.shape, 1.0, x.dtype), x)
-    else:
-        out = 1.0 / x
-    return out
+    """1/x rounded correctly in both precisions."""
+    return divide(tl.full(x.shape, 1.0, x.dtype), x)
 
 
 @device
@@ -105,6 +142,17 @@ def load_rows(ptr, index, lane_ok, cols, NC: tl.constexpr):
     """(BL, CP): row index[l] of (·, NC) memory for each lane."""
     mask = lane_ok[:, None] & (cols < NC)[None, :]
     return tl.load(ptr + index[:, None] * NC + cols[None, :], mask=mask, other=0.0)
+
+
+@device
+def lane_moments(SUMS, lane, ok, h, floor, T: tl.constexpr, H: tl.constexpr):
+    """(BL, HP) mean μ and floored variance v of each lane's {u_0..u_T} from the forward kernel's
+    float64 Σu, Σu² (the C code's u_0 attraction), computed in float64 (in float32 the difference
+    Σu²/n - μ² loses the digits that the variance is made of), returned in floor's precision."""
+    count = tl.full((1, 1), T + 1, tl.float64)
+    mean = load_rows(SUMS, lane * 2, ok, h, H) / count
+    var = load_rows(SUMS, lane * 2 + 1, ok, h, H) / count - mean * mean
+    return mean.to(floor.dtype), tl.maximum(var.to(floor.dtype), floor)
 
 
 @device
@@ -151,14 +199,16 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         u = load_rows(U0 + r * sU0, u0j, ok, h, H)
         c = stable_tanh(u + b_c)
-        s1, s2 = u, u * u
+        s1 = u.to(tl.float64)  # float64 sums, as on the CPU: the variance is taken by difference
+        s2 = s1 * s1
         for t in range(T):
             x = load_rows(X, xrow * T + t, ok, i, NI)
             u = u + eps * (_matvec(w_in, x) + _matvec(w_rec, c) - u)
             c = stable_tanh(u + b_c)
             if KEEP_SUMS:
-                s1 += u
-                s2 += u * u
+                u64 = u.to(tl.float64)
+                s1 += u64
+                s2 += u64 * u64
             if KEEP_C:
                 _put(C, lane * T + t, ok, h, c, H)
             if KEEP_U:
@@ -221,16 +271,13 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
             if LEARN_EPS:
                 u = load_rows(U, lane * T + t, ok, h, H)
                 u_prev = tl.where(first, u0, load_rows(U, lane * T + t - 1, before, h, H))
-                g_eps += a * (u - u_prev) / eps
+                g_eps += divide(a * (u - u_prev), eps)
             back = _matvec_t(w_rec, ea)
         dq = (1.0 - c0 * c0) * back
         g_u0 = (1.0 - eps) * a + dq
         if ATTRACT:
-            count = T + 1
-            mean = load_rows(SUMS, lane * 2, ok, h, H) / count
-            var = tl.maximum(load_rows(SUMS, lane * 2 + 1, ok, h, H) / count - mean * mean,
-                             tl.load(FLOOR))
-            g_u0 += (mean - u0) / var
+            mean, var = lane_moments(SUMS, lane, ok, h, tl.load(FLOOR), T, H)
+            g_u0 += divide(mean - u0, var)
         _put(G_U0 + r * sG_U0, u0j, ok, h, g_u0, H)
         n_b_c += tl.sum(g_b_c + dq, axis=0)
         n_b_o += tl.sum(g_b_o, axis=0)
