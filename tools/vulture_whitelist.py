@@ -17,7 +17,7 @@ _.setup  # Hydra's Launcher interface
 _.launch  # Hydra's Launcher interface
 _.num  # hydra.job.num of a sweep job, read by Hydra
 
-# the Python API (README: "Python API", "The authors' C tools beside moex"), tested
+# the Python API (README: "Python API"; guide/mregn.md: "The authors' C tools beside moex"), tested
 lyapunov_exponents  # moex.lyapunov_exponents (moex/__init__.py names it in a string)
 export_run  # moex.importer.export_run: a moex run in the C tools' files
 read_targets  # moex.mregn_format.read_targets: their target files, the reader of write_targets
