@@ -143,3 +143,15 @@ def test_the_peak_probe_prints_a_clock_and_a_peak():
     rate, clock, peak = map(float, found.groups())
     assert rate == pytest.approx(4 * clock, rel=0.01)  # 2 pipes x 2 flops per cycle
     assert peak == pytest.approx(16 * clock, rel=0.01)
+
+
+def test_the_forward_variants_agree_in_the_interpreter():
+    """benchmarks/gpu_forward_variants.py without a GPU: the forward kernel by columns and its
+    earlier design by rows give the same outputs (to rounding), and a rerun the same bits."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_forward_variants.py")],
+                          capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "TRITON_INTERPRET": "1"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    row = done.stdout.strip().splitlines()[-1].split("|")
+    assert row[1].strip() == "4 (interpreter)"
+    assert float(row[5]) < 1e-12 and float(row[6]) < 1e-12 and row[7].strip() == "yes"

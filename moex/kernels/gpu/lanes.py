@@ -109,14 +109,16 @@ class Net:
 
         self.O = empty(L, T, NO)
         self.DO, self.C = (empty(L, T, NO), empty(L, T, H)) if keep else (empty(1), empty(1))
+        self.passing = empty(L, 2, H)  # a forward without histories passes c_t through these
         self.U = empty(L, T, H) if learn_eps and keep else empty(1)
         self.S = torch.zeros(L, 2, H, dtype=torch.float64, device=device) if sums else empty(1)
 
     def forward(self, X, params, keep):
         """O (L, T, NO); with `keep` also the histories the backward pass reads."""
         p = [params[k] for k in PARAMS]
-        launch(rnn_forward, self.networks, X, self.xrow, self.u0j, *p, self.O, self.C, self.U,
-               self.S, *strides(params, PARAMS), KEEP_C=keep, KEEP_U=keep and self.learn_eps,
+        launch(rnn_forward, self.networks, X, self.xrow, self.u0j, *p, self.O,
+               self.C if keep else self.passing, self.U, self.S, *strides(params, PARAMS),
+               KEEP_C=keep, KEEP_U=keep and self.learn_eps,
                KEEP_SUMS=self.sums, **self.meta)
         return self.O
 
@@ -127,6 +129,6 @@ class Net:
         g = {k: grads[k] if k in grads else grads["b_c"] for k in PARAMS}  # (τ: not written)
         read = ("w_rec", "w_out", "b_c", "tau", "u0")
         launch(rnn_backward, self.networks, self.DO, X, self.xrow, self.u0j,
-               *(params[k] for k in read), self.C, self.U, self.S, active, floor,
+               *(params[k] for k in read), self.C, self.U, self.S, active, floor, self.passing,
                *(g[k] for k in PARAMS), *strides(params, read), *strides(g, PARAMS),
                LEARN_EPS=learn, ATTRACT=attract, **self.meta)

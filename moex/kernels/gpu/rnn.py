@@ -46,6 +46,9 @@ INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"  # read when Triton is (se
 # phase-2 ∂u_0 35x further from float64 than PyTorch's float32); libdevice's expf, logf, tanhf
 # and div.rn are accurate. The interpreter computes with NumPy and has no libdevice.
 ACCURATE_F32 = tl.constexpr(not INTERPRET)
+# the forward kernel's loops over the columns of c_t, unrolled by this much: at Table 2's H = 10
+# the same machine code as unrolling them whole; H = 50 whole took 50 s to compile (this: 2 s)
+UNROLL = tl.constexpr(10)
 
 
 def device(fn):
@@ -107,25 +110,6 @@ def _reciprocal(x):
 
 
 @device
-def _matvec(w, v):
-    """(R, C) · (BL, C) -> (BL, R)."""
-    return tl.sum(w[None, :, :] * v[:, None, :], axis=2)
-
-
-@device
-def _matvec_t(w, v):
-    """(R, C)ᵀ · (BL, R) -> (BL, C)."""
-    return tl.sum(w[None, :, :] * v[:, :, None], axis=1)
-
-
-@device
-def _tile(ptr, rows, cols, NR: tl.constexpr, NC: tl.constexpr):
-    """The (RP, CP) tile of the (NR, NC) matrix at `ptr`."""
-    mask = (rows < NR)[:, None] & (cols < NC)[None, :]
-    return tl.load(ptr + rows[:, None] * NC + cols[None, :], mask=mask, other=0.0)
-
-
-@device
 def _put_tile(ptr, rows, cols, value, on, NR: tl.constexpr, NC: tl.constexpr):
     """Store an (RP, CP) tile where `on` ((RP,) bools: the run is active)."""
     mask = on[:, None] & (rows < NR)[:, None] & (cols < NC)[None, :]
@@ -178,6 +162,17 @@ def _chunk(XROW, U0J, n, chunk, LPN: tl.constexpr, BL: tl.constexpr):
             tl.load(U0J + lane, mask=ok, other=0))
 
 
+@device
+def _state_row(lane, t, T: tl.constexpr, KEEP_C: tl.constexpr):
+    """The row of C where lane `lane` leaves c_t: its history row, or one of its two scratch
+    rows (t mod 2: a row is rewritten only after the barrier of the step between)."""
+    if KEEP_C:
+        row = lane * T + t
+    else:
+        row = lane * 2 + t % 2
+    return row
+
+
 @triton.jit
 def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, SUMS,
                 sW_IN, sW_REC, sW_OUT, sB_C, sB_O, sTAU, sU0,
@@ -185,42 +180,66 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
                 NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
                 LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
                 KEEP_C: tl.constexpr, KEEP_U: tl.constexpr, KEEP_SUMS: tl.constexpr):
-    """Forward pass of one network's lanes: OUT (L, T, NO) always; C, U (L, T, H) and SUMS
-    (L, 2, H) when KEEP_C, KEEP_U, KEEP_SUMS."""
+    """Forward pass of one network's lanes: OUT (L, T, NO) always; U (L, T, H) and SUMS
+    (L, 2, H) when KEEP_U, KEEP_SUMS; C the history (L, T, H) when KEEP_C, else (L, 2, H) rows
+    that pass each step's state on.
+
+    The matrix-vector products go by columns: c_t is written to C, and after one barrier every
+    thread reads it back a column c_{t,j} at a time, W_rec c_t + W_in x_{t+1} = Σ_j c_{t,j} w_j +
+    Σ_i x_i w^in_i and W_out c_t likewise, as outer-product updates of the lanes' (BL, H)
+    accumulators, the weight columns read from memory (L1) at every step: no sum runs across
+    threads (on an H200, 0 warp shuffles per step instead of 296 and 0.59x the time at 90
+    networks; BENCHMARKS.md "Compiled for an H200 without one")."""
     n, r, k = _network(NPR)
-    h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
-    w_in = _tile(W_IN + r * sW_IN + k * (H * NI), h, i, H, NI)
-    w_rec = _tile(W_REC + r * sW_REC + k * (H * H), h, h, H, H)
-    w_out = _tile(W_OUT + r * sW_OUT + k * (NO * H), o, h, NO, H)
+    h, o = tl.arange(0, HP), tl.arange(0, NOP)
+    h_ok, o_ok = h < H, o < NO
+    w_in = W_IN + r * sW_IN + k * (H * NI)
+    w_rec = W_REC + r * sW_REC + k * (H * H)
+    w_out = W_OUT + r * sW_OUT + k * (NO * H)
     b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
     b_o = _vector(B_O + r * sB_O + k * NO, o, NO, 0.0)[None, :]
     eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         u = load_rows(U0 + r * sU0, u0j, ok, h, H)
-        c = stable_tanh(u + b_c)
         s1 = u.to(tl.float64)  # float64 sums, as on the CPU: the variance is taken by difference
         s2 = s1 * s1
+        # c_{-1} passes through row 0, which c_0 then takes: a barrier on either side
+        _put(C, _state_row(lane, 0, T, KEEP_C), ok, h, stable_tanh(u + b_c), H)
+        tl.debug_barrier()
+        drive = tl.zeros((BL, HP), dtype=u.dtype)  # W_rec c_{t-1}, then + W_in x_t
+        for j in tl.range(0, H, loop_unroll_factor=UNROLL):
+            c_j = tl.load(C + _state_row(lane, 0, T, KEEP_C) * H + j, mask=ok, other=0.0)[:, None]
+            drive += c_j * tl.load(w_rec + h * H + j, mask=h_ok, other=0.0)[None, :]
+        tl.debug_barrier()
         for t in range(T):
-            x = load_rows(X, xrow * T + t, ok, i, NI)
-            u = u + eps * (_matvec(w_in, x) + _matvec(w_rec, c) - u)
-            c = stable_tanh(u + b_c)
+            for i in tl.static_range(NI):
+                x_i = tl.load(X + (xrow * T + t) * NI + i, mask=ok, other=0.0)
+                drive += x_i[:, None] * tl.load(w_in + h * NI + i, mask=h_ok, other=0.0)[None, :]
+            u = u + eps * (drive - u)
             if KEEP_SUMS:
                 u64 = u.to(tl.float64)
                 s1 += u64
                 s2 += u64 * u64
-            if KEEP_C:
-                _put(C, lane * T + t, ok, h, c, H)
             if KEEP_U:
                 _put(U, lane * T + t, ok, h, u, H)
-            _put(OUT, lane * T + t, ok, o, _matvec(w_out, c) + b_o, NO)
+            row = _state_row(lane, t, T, KEEP_C)
+            _put(C, row, ok, h, stable_tanh(u + b_c), H)
+            tl.debug_barrier()  # every lane's c_t written before any thread reads its columns
+            drive = tl.zeros((BL, HP), dtype=u.dtype)
+            out = tl.zeros((BL, NOP), dtype=u.dtype) + b_o
+            for j in tl.range(0, H, loop_unroll_factor=UNROLL):
+                c_j = tl.load(C + row * H + j, mask=ok, other=0.0)[:, None]
+                drive += c_j * tl.load(w_rec + h * H + j, mask=h_ok, other=0.0)[None, :]
+                out += c_j * tl.load(w_out + o * H + j, mask=o_ok, other=0.0)[None, :]
+            _put(OUT, lane * T + t, ok, o, out, NO)
         if KEEP_SUMS:
             _put(SUMS, lane * 2, ok, h, s1, H)
             _put(SUMS, lane * 2 + 1, ok, h, s2, H)
 
 
 @triton.jit
-def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, FLOOR,
+def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, FLOOR, PASS,
                  G_W_IN, G_W_REC, G_W_OUT, G_B_C, G_B_O, G_TAU, G_U0,
                  sW_REC, sW_OUT, sB_C, sTAU, sU0,
                  sG_W_IN, sG_W_REC, sG_W_OUT, sG_B_C, sG_B_O, sG_TAU, sG_U0,
@@ -230,28 +249,33 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
                  LEARN_EPS: tl.constexpr, ATTRACT: tl.constexpr):
     """Backward pass of one network's lanes given DO (L, T, NO) = ∂L/∂o_t: the network's
     gradients G_W_IN (H, NI), G_W_REC (H, H), G_W_OUT (NO, H), G_B_C (H), G_B_O (NO), G_TAU (H, when
-    LEARN_EPS; it then reads U) and each lane's G_U0 (H), written where ACTIVE[r]."""
+    LEARN_EPS; it then reads U) and each lane's G_U0 (H), written where ACTIVE[r]. As in the
+    forward kernel, the products with W_outᵀ and W_recᵀ go by columns: δo_t's from DO itself,
+    ε a_t's through PASS (L, 2, H) after a barrier, each an outer-product update with a row of
+    the weight matrix read from memory."""
     n, r, k = _network(NPR)
     h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
     on_h = tl.load(ACTIVE + r + 0 * h) != 0  # (a vector: the interpreter's masks need one)
-    w_rec = _tile(W_REC + r * sW_REC + k * (H * H), h, h, H, H)
-    w_out = _tile(W_OUT + r * sW_OUT + k * (NO * H), o, h, NO, H)
+    h_ok = h < H
+    w_rec = W_REC + r * sW_REC + k * (H * H)
+    w_out = W_OUT + r * sW_OUT + k * (NO * H)
     b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
     eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
-    n_w_in = tl.zeros((HP, NIP), dtype=w_rec.dtype)
-    n_w_rec = tl.zeros((HP, HP), dtype=w_rec.dtype)
-    n_w_out = tl.zeros((NOP, HP), dtype=w_rec.dtype)
-    n_b_c = tl.zeros((HP,), dtype=w_rec.dtype)
-    n_b_o = tl.zeros((NOP,), dtype=w_rec.dtype)
-    n_eps = tl.zeros((HP,), dtype=w_rec.dtype)
+    dtype = b_c.dtype
+    n_w_in = tl.zeros((HP, NIP), dtype=dtype)
+    n_w_rec = tl.zeros((HP, HP), dtype=dtype)
+    n_w_out = tl.zeros((NOP, HP), dtype=dtype)
+    n_b_c = tl.zeros((HP,), dtype=dtype)
+    n_b_o = tl.zeros((NOP,), dtype=dtype)
+    n_eps = tl.zeros((HP,), dtype=dtype)
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         ok = ok & (tl.load(ACTIVE + r + 0 * lane) != 0)
         u0 = load_rows(U0 + r * sU0, u0j, ok, h, H)
         c0 = stable_tanh(u0 + b_c)
-        zero_h = tl.zeros((BL, HP), dtype=w_rec.dtype)
+        zero_h = tl.zeros((BL, HP), dtype=dtype)
         a, back, g_b_c, g_eps = zero_h, zero_h, zero_h, zero_h
-        g_b_o = tl.zeros((BL, NOP), dtype=w_rec.dtype)
+        g_b_o = tl.zeros((BL, NOP), dtype=dtype)
         for step in range(T):
             t = T - 1 - step
             c = load_rows(C, lane * T + t, ok, h, H)
@@ -259,7 +283,10 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
             before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
             prev = tl.where(first, c0, load_rows(C, lane * T + t - 1, before, h, H))
             do = load_rows(DO, lane * T + t, ok, o, NO)
-            dq = (1.0 - c * c) * (_matvec_t(w_out, do) + back)
+            for j in tl.range(0, NO, loop_unroll_factor=UNROLL):  # back += W_outᵀ δo_t
+                do_j = tl.load(DO + (lane * T + t) * NO + j, mask=ok, other=0.0)[:, None]
+                back += do_j * tl.load(w_out + j * H + h, mask=h_ok, other=0.0)[None, :]
+            dq = (1.0 - c * c) * back
             g_b_c += dq
             a = (1.0 - eps) * a + dq
             ea = eps * a
@@ -272,7 +299,13 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
                 u = load_rows(U, lane * T + t, ok, h, H)
                 u_prev = tl.where(first, u0, load_rows(U, lane * T + t - 1, before, h, H))
                 g_eps += divide(a * (u - u_prev), eps)
-            back = _matvec_t(w_rec, ea)
+            row = lane * 2 + step % 2  # back = W_recᵀ ε a_t, by the columns of ε a_t
+            _put(PASS, row, ok, h, ea, H)
+            tl.debug_barrier()
+            back = tl.zeros((BL, HP), dtype=dtype)
+            for j in tl.range(0, H, loop_unroll_factor=UNROLL):
+                ea_j = tl.load(PASS + row * H + j, mask=ok, other=0.0)[:, None]
+                back += ea_j * tl.load(w_rec + j * H + h, mask=h_ok, other=0.0)[None, :]
         dq = (1.0 - c0 * c0) * back
         g_u0 = (1.0 - eps) * a + dq
         if ATTRACT:
