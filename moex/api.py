@@ -76,7 +76,7 @@ class Fitted:
             gating_rows=self.history[self.history["phase"] == "gating"].to_dict("records"),
             failed=[bool(f) for f in failed],
             data_scale={k: torch.as_tensor(v) for k, v in self.dataset.scale.as_dict().items()})
-        io.write_csv(path / io.HISTORY, self.history)
+        io.write_csv(path / io.HISTORY_CSV, self.history)
         record.save(path / checkpoint.NAME)
         if self.provenance is not None:
             provenance.save(path, self.provenance)
@@ -171,7 +171,7 @@ def load(run_dir) -> Fitted:
     returns: its config, data, parameters, learning history, backend and (the folder's last
     record) provenance."""
     run = load_run(RunFolder(run_dir=str(run_dir)))
-    history_file = Path(run_dir) / io.HISTORY
+    history_file = Path(run_dir) / io.HISTORY_CSV
     history = (pd.read_csv(history_file) if history_file.exists()
                else pd.DataFrame(run.saved.experts_rows + run.saved.gating_rows))
     records = provenance.read(Path(run_dir))

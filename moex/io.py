@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-HISTORY = "history.csv"
-METRICS = "metrics.csv"
+HISTORY_CSV = "history.csv"
+METRICS_CSV = "metrics.csv"
 SAMPLES = "samples.npz"
 FIGURES = "figures"
 SEGMENTS = "segments.csv"

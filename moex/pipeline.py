@@ -225,17 +225,17 @@ def finish_run(cfg: Config, dataset: Dataset, saved: checkpoint.Checkpoint, out_
     """The outputs of a trained run that its folder lacks: history.csv and the learning curves,
     then metrics.csv, samples.npz and the figures (with `eval.enabled`) or the run's page."""
     history_written = False
-    if not (out_dir / io.HISTORY).exists() and (saved.experts_rows or saved.gating_rows):
+    if not (out_dir / io.HISTORY_CSV).exists() and (saved.experts_rows or saved.gating_rows):
         history = pd.DataFrame(saved.experts_rows + saved.gating_rows)
         for r in np.flatnonzero(saved.failed):
             log.warning("run %d failed: its objective or parameters became non-finite; it was "
                         "frozen and its metrics are NaN", r)
-        io.write_csv(out_dir / io.HISTORY, history)
+        io.write_csv(out_dir / io.HISTORY_CSV, history)
         plotting.save_figure(plotting.plot_learning_curves(
             history, f"learning curves: task {cfg.task.name}, {numbered('run', cfg.num_runs)}"),
             out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
         history_written = True
-    if cfg.eval.enabled and not (out_dir / io.METRICS).exists():
+    if cfg.eval.enabled and not (out_dir / io.METRICS_CSV).exists():
         evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
                      saved.failed, backend, stop)
     elif not cfg.eval.enabled and history_written:
@@ -268,7 +268,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     metrics = metrics.astype({c: "Int64" for c in counts})
     metrics.loc[failed, metrics.columns.difference(["run"])] = np.nan
     metrics["failed"] = failed
-    io.write_csv(out_dir / io.METRICS, metrics)
+    io.write_csv(out_dir / io.METRICS_CSV, metrics)
     samples = in_data_units(samples, dataset)
     io.save_arrays(out_dir / io.SAMPLES, samples)
     if "label_stays" in samples:  # the closed loop's residence per label beside the data's

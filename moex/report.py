@@ -17,7 +17,6 @@ from moex.metrics.table import REPORTED
 from moex.progress import packed
 from moex.tasks.paper import PAPER_TABLES
 
-METRICS = REPORTED  # the metric table's columns of a report
 # settings the paper's tables and figures are keyed by: a column under its config key even where
 # every job agrees; every other setting that varies between jobs becomes a column too
 SETTINGS = ("task.name", "task.switch_prob", "task.num_series", "task.length",
@@ -93,13 +92,13 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
             folder = eval_config.parent
             evaluated = _flatten({"eval": _read(eval_config, yaml.safe_load, dict)})
             add(f"{name}/evaluate/{folder.name}", folder, {**config, **evaluated},
-                choices, {"status": "done"} if (folder / io.METRICS).exists() else {})
+                choices, {"status": "done"} if (folder / io.METRICS_CSV).exists() else {})
     varying = [k for k in varying_settings([settings for _, _, settings, _ in found])
                if k not in REPLICATES]
     runs, jobs, named = [], [], _columns(varying)
     for name, folder, settings, status in found:
         columns = {column: settings.get(key) for key, column in named.items()}
-        metrics_path = folder / io.METRICS
+        metrics_path = folder / io.METRICS_CSV
         # a job without status.json (an import, an older run) is done once its metrics exist
         state = status.get("status", "done" if metrics_path.exists() else "running or killed")
         if state == "done" and not metrics_path.exists():
@@ -195,7 +194,7 @@ def aggregate(runs: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     as missing."""
     ok = runs[~runs.get("failed", pd.Series(False, index=runs.index)).astype(bool)]
     grouped = ok.groupby(keys, dropna=False)
-    table = grouped[[m for m in METRICS if m in ok]].agg(["mean", "std"])
+    table = grouped[[m for m in REPORTED if m in ok]].agg(["mean", "std"])
     table.columns = [f"{m}_{s}" for m, s in table.columns]
     positives, count = grouped["max_lyapunov"].apply(lambda x: int((x > 0).sum())), grouped.size()
     _share(table, "positive", positives, count)

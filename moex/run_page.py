@@ -48,7 +48,7 @@ def trained_steps(out_dir: Path, cfg) -> str:
 
 def _has_experts(out_dir: Path) -> bool:
     """Whether the folder's history has phase-1 rows (True where there is no history)."""
-    history = Path(out_dir) / io.HISTORY
+    history = Path(out_dir) / io.HISTORY_CSV
     return not history.exists() or "experts" in set(pd.read_csv(history, usecols=["phase"])
                                                    ["phase"])
 

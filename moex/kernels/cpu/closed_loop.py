@@ -47,7 +47,7 @@ def closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, no
     exact Jacobian and re-orthonormalised (modified Gram-Schmidt) every step; growth (k) += ln of
     the norms when `count`. Records y, the gates that mixed it and u^g (if out_u is not empty)."""
     # one compiled function for the whole loop: a callee per block would be compiled twice
-    # (alone, then again inside its caller; BENCHMARKS.md)
+    # (alone, then again inside its caller; BENCHMARKS.md's history)
     E_w_in, E_w_rec, E_w_out, E_b_c, E_b_o, E_eps = E_all
     G_w_in, G_w_rec, G_w_out, G_b_c, G_b_o, G_eps = G_all
     EU, GU, XL, GL = state_all

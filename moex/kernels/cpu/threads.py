@@ -4,14 +4,14 @@ contiguous ranges, the calling thread taking the first.
 
 Why not numba's `prange`: each `prange` loop compiles into a function of its own that links and
 re-optimises everything it calls, and the function around it does so again; the phase-1 kernel's
-seven loops made a first run spend about 35 s compiling it (BENCHMARKS.md). The items and their
-arithmetic are the same whichever thread runs them, so results do not depend on the number of
-threads: `numba.get_num_threads()` (`NUMBA_NUM_THREADS`, `numba.set_num_threads`) sets it.
+seven loops made a first run spend about 35 s compiling it (BENCHMARKS.md's history). The items
+and their arithmetic are the same whichever thread runs them, so results do not depend on the
+number of threads: `numba.get_num_threads()` (`NUMBA_NUM_THREADS`, `numba.set_num_threads`) sets it.
 
 The first call on more than one thread sets PyTorch's intra-op threads to 1 for the process: the
 training loop's tensor operations are small, and after each one PyTorch's OpenMP threads spin
 for a while on the cores the kernel threads need (a 2-run training on 2 threads ran its phase 1
-at half speed beside them; BENCHMARKS.md).
+at half speed beside them; BENCHMARKS.md's history).
 """
 
 import logging
