@@ -36,7 +36,7 @@ def bench(runs: int, samples: int, steps: int, threads: int, backend: str, devic
     experts = {k: v.to(home) for k, v in init_experts(cfg.model, 10, 2, gens).items()}
     gating = {k: v.to(home) for k, v in init_gating(cfg.model, 10, 2, gens).items()}
     generator = torch.Generator().manual_seed(0)
-    state = random_state(experts, gating, samples, 2, 1, generator)
+    state = random_state(experts, gating, samples, num_features=2, delay=1, generator=generator)
     with torch.no_grad():  # warm-up at the timed length: every chunk size compiled before
         closed_loop_lyapunov(experts, gating, state, steps, 0, generator=generator, backend=backend)
         best = float("inf")

@@ -159,9 +159,10 @@ def record(size: str, evaluation: bool = True) -> list[Launch]:
         # they would read the kernels' unwritten outputs): the closed loop from the trained
         # states, then λ_max with its tangent over a transient and counted chunks, the symbols
         # of every chunk read on the device
-        state = trained_state(experts, gating, targets, series, cfg.model.delay)
+        state = trained_state(experts, gating, targets, series, delay=cfg.model.delay)
         generate(experts, gating, state, targets.shape[2], backend=backend)
-        start = random_state(experts, gating, 4, D, cfg.model.delay, gens[0])
+        start = random_state(experts, gating, 4, num_features=D, delay=cfg.model.delay,
+                             generator=gens[0])
         closed_loop_lyapunov(experts, gating, start, CHUNK, cfg.eval.transient, generator=gens[0],
                              on_chunk=lambda run: data.symbolize(run.outputs.numpy(),
                                                                  run.gates.numpy(),

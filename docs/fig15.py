@@ -49,8 +49,8 @@ def noise_floor(run_dir: Path) -> np.ndarray:
     estimates = []
     for repeat in range(REPEATS):
         generator = torch.Generator().manual_seed(repeat)
-        state = random_state(saved.experts, saved.gating, cfg.eval.track_samples, D,
-                             cfg.model.delay, generator)
+        state = random_state(saved.experts, saved.gating, cfg.eval.track_samples, num_features=D,
+                             delay=cfg.model.delay, generator=generator)
         with torch.no_grad():
             lam = closed_loop_lyapunov(saved.experts, saved.gating, state, cfg.eval.track_steps,
                                        min(cfg.eval.transient, cfg.eval.track_steps),

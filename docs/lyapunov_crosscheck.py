@@ -77,8 +77,9 @@ def crosscheck(out: Path) -> pd.DataFrame:
         ours = pd.read_csv(out / design / "moex" / "metrics.csv")
         uniform = pd.read_csv(out / design / "moex_uniform" / "metrics.csv")
         generator = torch.Generator().manual_seed(0)
-        state = random_state(saved.experts, saved.gating, SAMPLES, saved.series.shape[-1],
-                             int(saved.config["model"]["delay"]), generator)
+        state = random_state(saved.experts, saved.gating, SAMPLES,
+                             num_features=saved.series.shape[-1],
+                             delay=int(saved.config["model"]["delay"]), generator=generator)
         state = backend.closed_loop(saved.experts, saved.gating, state, TRANSIENT).state
         growth = two_trajectories(saved.experts, saved.gating, state, STEPS, backend, generator)
         tool = theirs[theirs["design"] == design].reset_index(drop=True)
@@ -100,8 +101,9 @@ def paired(out: Path, samples: int = PAIRED_SAMPLES, steps: int = STEPS) -> pd.D
     for design in DESIGNS:
         saved = checkpoint.load(out / design / "moex")
         generator = torch.Generator().manual_seed(0)
-        start = random_state(saved.experts, saved.gating, samples, saved.series.shape[-1],
-                             int(saved.config["model"]["delay"]), generator)
+        start = random_state(saved.experts, saved.gating, samples,
+                             num_features=saved.series.shape[-1],
+                             delay=int(saved.config["model"]["delay"]), generator=generator)
         exact = closed_loop_lyapunov(saved.experts, saved.gating, start.like(start.flat().clone()),
                                      steps, TRANSIENT, generator=generator, backend=backend)[..., 0]
         state = backend.closed_loop(saved.experts, saved.gating, start, TRANSIENT).state

@@ -126,8 +126,9 @@ class Fitted:
             check(method in METHODS, f"method={method!r}; choose one of {', '.join(METHODS)}")
             gates = responsibilities(self.experts, self.gating,
                                      torch.as_tensor(self.dataset.scale.to_model(series)),
-                                     delay, self.config.model.sigma_min, method,
-                                     gate_prior_std or self.config.train.experts.gate_prior_std
+                                     delay, sigma_min=self.config.model.sigma_min, method=method,
+                                     prior_std=(gate_prior_std
+                                                or self.config.train.experts.gate_prior_std)
                                      ).numpy()
         if labels is not None:
             labels = _labels(labels, (gates.shape[1], gates.shape[2] + delay))
@@ -143,14 +144,15 @@ class Fitted:
         generator = run_generators(seed, len(self.gating["w_out"]))  # run r's: (seed, r) alone
         delay = self.config.model.delay
         if from_series < 0:
-            state = random_state(self.experts, self.gating, num_samples, D, delay, generator)
+            state = random_state(self.experts, self.gating, num_samples, num_features=D,
+                                 delay=delay, generator=generator)
         else:
             k = [from_series] * num_samples
             targets = phase2_targets(self.beta, self.dataset, self.config.num_runs,
                                      self.gating["w_out"].dtype,
                                      self.config.train.gating.target_temperature)
             state = trained_state(self.experts, self.gating, targets,
-                                  torch.as_tensor(self.dataset.series), delay, k)
+                                  torch.as_tensor(self.dataset.series), delay=delay, rows=k)
         with torch.no_grad():
             out = run_closed_loop(self.experts, self.gating, state, steps, noise_std=noise_var**0.5,
                                   generator=generator, backend=self.backend)

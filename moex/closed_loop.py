@@ -14,7 +14,7 @@ from moex.model import ClosedLoopState
 CHUNK = 500  # closed-loop steps per call of the time loop (bounds the memory of the records)
 
 
-def trained_state(experts, gating, gate_targets, series, delay,
+def trained_state(experts, gating, gate_targets, series, *, delay,
                   rows: list[int] | None = None) -> ClosedLoopState:
     """The trained initial state of every series (N = S), or of series `rows[n]` for sample n:
     u_0, and data / ĝ in the delay lines.
@@ -100,4 +100,4 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
 
     with progress.bar(total=transient + steps, desc="lyapunov") as bar:
         return benettin(advance, initial_tangents(state.flat(), num_exponents, generator), steps,
-                        transient, CHUNK, should_stop)
+                        transient=transient, chunk=CHUNK, should_stop=should_stop)

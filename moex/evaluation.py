@@ -140,10 +140,12 @@ def track_metrics(experts, targets, gating, series, delay, *, cfg: EvalConfig, g
     KL and the maximum Lyapunov exponent on `track_samples` × `track_steps` with its standard
     error over those samples (NaN for one sample), per run (R,)."""
     with torch.no_grad():
-        closed = generate(experts, gating, trained_state(experts, gating, targets, series, delay),
+        closed = generate(experts, gating, trained_state(experts, gating, targets, series,
+                                                         delay=delay),
                           targets.shape[2], backend=backend)
-        state = random_state(experts, gating, cfg.track_samples, series.shape[-1], delay,
-                             generator)
+        state = random_state(experts, gating, cfg.track_samples, num_features=series.shape[-1],
+                             delay=delay,
+                             generator=generator)
         lam = closed_loop_lyapunov(experts, gating, state, cfg.track_steps,
                                    min(cfg.transient, cfg.track_steps), generator=generator,
                                    backend=backend)[..., 0]
@@ -154,7 +156,7 @@ def track_metrics(experts, targets, gating, series, delay, *, cfg: EvalConfig, g
             "max_lyapunov_se": se}
 
 
-def _teacher_forced(experts, beta, gating, series, delay, targets):
+def _teacher_forced(experts, beta, gating, series, *, delay, targets):
     """E (Sec. 3, with ĝ) per run, or None without experts, and E^g against the phase-2
     targets."""
     R, S, T, K = targets.shape
@@ -217,9 +219,9 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
     R, K = gating["w_out"].shape[:2]
     S, L, D = series.shape
     targets = phase2_targets(beta, dataset, R, series.dtype, target_temperature)
-    error, error_g = _teacher_forced(experts, beta, gating, series, delay, targets)
+    error, error_g = _teacher_forced(experts, beta, gating, series, delay=delay, targets=targets)
     # ---- closed loop from the trained initial states (Sec. 4.2)
-    closed = generate(experts, gating, trained_state(experts, gating, targets, series, delay),
+    closed = generate(experts, gating, trained_state(experts, gating, targets, series, delay=delay),
                       targets.shape[2], backend=backend, should_stop=should_stop)
     kl_train = _train_block_kl(targets, closed["gates"], cfg)
     # ---- random initial states: Lyapunov exponents and long symbol sequences
@@ -236,10 +238,11 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
             kept.append(tuple(a[:, 0].clone() for a in (run.outputs, run.gates, run.gating_u)))
 
     if cfg.initial_states == "trained":  # sample n from series n mod S's trained state
-        state = trained_state(experts, gating, targets, series, delay,
-                              [n % S for n in range(cfg.num_samples)])
+        state = trained_state(experts, gating, targets, series, delay=delay,
+                              rows=[n % S for n in range(cfg.num_samples)])
     else:
-        state = random_state(experts, gating, cfg.num_samples, D, delay, generator)
+        state = random_state(experts, gating, cfg.num_samples, num_features=D, delay=delay,
+                             generator=generator)
     uniform = cfg.jacobian_gates == "uniform"
     with torch.no_grad():  # the paper's λ_max is that of the noiseless loop; with noise (which
         # only judges periodicity, Sec. 4.3) a second pass from the same initial states records
@@ -254,7 +257,8 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
             experts, gating, state, cfg.lyapunov_steps, cfg.transient,
             noise_std=cfg.noise_var**0.5, on_chunk=on_chunk, **common).numpy()
         exponents = _decided(exponents, cfg, lambda: closed_loop_lyapunov(
-            experts, gating, random_state(experts, gating, cfg.num_samples, D, delay, generator),
+            experts, gating, random_state(experts, gating, cfg.num_samples, num_features=D,
+                                          delay=delay, generator=generator),
             cfg.lyapunov_steps, cfg.transient, **common).numpy())
     sampled, gate_winners = np.concatenate(recorded, -1), np.concatenate(winners, -1)
     test = _test_symbols(dataset, backend)
@@ -299,8 +303,9 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
         row.update(noise_var=cfg.noise_var, num_samples=cfg.num_samples,
                    lyapunov_samples=len(lam), lyapunov_steps=cfg.lyapunov_steps)
         rows.append(row)
-    scores, stays = segment.evaluation_scores(experts, beta, gating, dataset, delay, sigma_min,
-                                              gate_prior_std, gate_winners, cfg.block_kl)
+    scores, stays = segment.evaluation_scores(experts, beta, gating, dataset, delay=delay,
+                                              sigma_min=sigma_min, prior_std=gate_prior_std,
+                                              closed_winners=gate_winners, block_kl=cfg.block_kl)
     for row, more in zip(rows, scores, strict=True):
         row.update(more)
     samples = {name: torch.cat([k[i] for k in kept], 1)[:, -cfg.plot_steps:].numpy()

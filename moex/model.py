@@ -270,7 +270,7 @@ def _mv(w: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (w @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def _leaky(u, drive, d_drive, du, w_rec, eps, bias):
+def _leaky(u, drive, d_drive, du, *, w_rec, eps, bias):
     """One step of Eqs. 1-2 / 5-6 and, when `du` is given, its tangent (forward derivative)."""
     c = torch.tanh(u + bias)
     u_next = (1 - eps) * u + eps * (drive + _mv(w_rec, c))
@@ -304,7 +304,7 @@ class ClosedLoopRun(NamedTuple):
 
 
 def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
-                     state: ClosedLoopState, noise: torch.Tensor | None = None,
+                     state: ClosedLoopState, *, noise: torch.Tensor | None = None,
                      tangents: ClosedLoopState | None = None, uniform_gates: bool = False):
     """Advance the closed loop one step: x_m = y_{m-τ} (+ noise), experts, gating, mixture.
 
@@ -335,7 +335,8 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
         dxe = None if dx is None else _mv(w["w_in"], dx[..., None, :])
         experts_u, d_experts_u = _leaky(
             state.experts_u, _mv(w["w_in"], x[..., None, :]), dxe,
-            None if tangents is None else tangents.experts_u, w["w_rec"], 1 / w["tau"], w["b_c"])
+            None if tangents is None else tangents.experts_u, w_rec=w["w_rec"], eps=1 / w["tau"],
+            bias=w["b_c"])
         c = torch.tanh(experts_u + w["b_c"])
         outputs = torch.tanh(_mv(w["w_out"], c) + w["b_o"])  # (R, N, K, D)
         y = (g[..., None] * outputs).sum(-2)
@@ -347,8 +348,8 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
     w = {k: v.view((R, 1) + v.shape[1:]) for k, v in gating.items() if k != "u0"}
     d_drive = None if tangents is None else _mv(w["w_in"], torch.cat([dg, dx], -1))
     gating_u, d_gating_u = _leaky(state.gating_u, _mv(w["w_in"], torch.cat([g, x], -1)), d_drive,
-                                  None if tangents is None else tangents.gating_u, w["w_rec"],
-                                  1 / w["tau"], w["b_c"])
+                                  None if tangents is None else tangents.gating_u, w_rec=w["w_rec"],
+                                  eps=1 / w["tau"], bias=w["b_c"])
     c_g = torch.tanh(gating_u + w["b_c"])
     new_gates = torch.softmax(_mv(w["w_out"], c_g) + w["b_o"], -1)
 
@@ -367,7 +368,7 @@ def closed_loop_step(experts: dict[str, torch.Tensor], gating: dict[str, torch.T
     return Step(nxt, y, g, gating_u, d_nxt)
 
 
-def random_state(experts, gating, num_samples, num_features, delay,
+def random_state(experts, gating, num_samples, *, num_features, delay,
                  generator) -> ClosedLoopState:
     """Random initial states: u ~ U[-1, 1], x ~ U[-1, 1] and random probability vectors in the
     delay lines (Sec. 4; the C code fills the gate line with U(-1, 1) instead)."""

@@ -216,12 +216,12 @@ def run_train(cfg: Config, out_dir: Path,
     _warn_ignored(cfg, dataset)
     if saved is None or saved.phase != "done":
         [saved] = train_jobs([Job(cfg, dataset, out_dir, saved)], stop, backend)
-    finish_run(cfg, dataset, saved, out_dir, backend, stop)
+    finish_run(cfg, dataset, saved, out_dir, backend=backend, stop=stop)
     return saved
 
 
 def finish_run(cfg: Config, dataset: Dataset, saved: checkpoint.Checkpoint, out_dir: Path,
-               backend: Backend, stop=never) -> None:
+               *, backend: Backend, stop=never) -> None:
     """The outputs of a trained run that its folder lacks: history.csv and the learning curves,
     then metrics.csv, samples.npz and the figures (with `eval.enabled`) or the run's page."""
     history_written = False
@@ -236,13 +236,13 @@ def finish_run(cfg: Config, dataset: Dataset, saved: checkpoint.Checkpoint, out_
             out_dir / io.FIGURES / "learning_curves.png", cfg.plot.format)
         history_written = True
     if cfg.eval.enabled and not (out_dir / io.METRICS_CSV).exists():
-        evaluate_run(cfg, dataset, saved.experts, saved.beta, saved.gating, out_dir,
-                     saved.failed, backend, stop)
+        evaluate_run(cfg, dataset, saved.experts, saved.beta, gating=saved.gating, out_dir=out_dir,
+                     failed=saved.failed, backend=backend, stop=stop)
     elif not cfg.eval.enabled and history_written:
         run_page.write(out_dir, cfg, None, f"moex run {out_dir.name}")
 
 
-def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: Path,
+def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, *, gating, out_dir: Path,
                  failed: list[bool], backend: Backend, stop=never):
     """Run every metric, then write metrics.csv, samples.npz and the figures (nothing when
     `stop` interrupts it).
@@ -274,10 +274,10 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, gating, out_dir: 
     if "label_stays" in samples:  # the closed loop's residence per label beside the data's
         io.write_csv(out_dir / io.LABEL_STAYS, segment.label_stays_table(samples["label_stays"]))
     ok = metrics[~metrics["failed"]]
-    _plot_samples(samples, dataset, cfg, out_dir, metrics, cfg.eval.noise_var)
+    _plot_samples(samples, dataset, cfg, out_dir, metrics=metrics, noise_var=cfg.eval.noise_var)
     if beta is not None and dataset.series.shape[-1] > 0:  # which expert holds which stretch
-        write_segments(out_dir, gate_estimates(beta).numpy(), dataset.labels, cfg,
-                       "training series, ĝ = softmax(β) of phase 1",
+        write_segments(out_dir, gate_estimates(beta).numpy(), dataset.labels, cfg=cfg,
+                       what="training series, ĝ = softmax(β) of phase 1",
                        table=cfg.task.name == "csv", scores=False)
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
     for line in progress.packed(f"of {progress.counted(len(ok), 'run')}:",
@@ -339,7 +339,7 @@ def _run_title(row) -> str:
 
 
 def _plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
-                  metrics: pd.DataFrame | None = None, noise_var: float = 0.0) -> None:
+                  *, metrics: pd.DataFrame | None = None, noise_var: float = 0.0) -> None:
     """Figures of one run's closed-loop sample, and of every run (small multiples, residence
     times) when the metric table is there to title them; titles name the noise on x_n."""
     figures, fmt = out_dir / io.FIGURES, cfg.plot.format
@@ -428,7 +428,7 @@ def load_run(tool: RunFolder) -> TrainedRun:
     backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name, device=cfg.device, precision=cfg.precision,
                     run_dir=str(tool.run_dir))
-    dataset = held_out(cfg, task_of_run(cfg.task, cfg.seed, saved.series.numpy(), Scale(
+    dataset = held_out(cfg, task_of_run(cfg.task, cfg.seed, saved.series.numpy(), scale=Scale(
         **saved.scale_arrays()), min_length=cfg.model.delay + 2, labels=saved.labels.numpy()))
     return TrainedRun(cfg, saved, dataset, backend)
 
@@ -442,13 +442,14 @@ def run_evaluate(tool: EvaluateConfig, out_dir: Path, stop=never) -> pd.DataFram
     for line in progress.packed(f"re-evaluating {networks} of task {run.cfg.task.name}",
                                 [f"from {tool.run_dir}", f"into {out_dir}"], sep=""):
         log.info("%s", line)
-    metrics = evaluate_run(run.cfg, run.dataset, saved.experts, saved.beta, saved.gating,
-                           Path(out_dir), saved.failed, run.backend, stop)
+    metrics = evaluate_run(run.cfg, run.dataset, saved.experts, saved.beta, gating=saved.gating,
+                           out_dir=Path(out_dir), failed=saved.failed, backend=run.backend,
+                           stop=stop)
     io.write_yaml(Path(out_dir) / io.EVAL_SETTINGS, dataclasses.asdict(run.cfg.eval))
     return metrics
 
 
-def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, cfg: Config,
+def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, *, cfg: Config,
                    what: str, table: bool = True,
                    scores: bool = True) -> segment.Segmentation:
     """figures/segments.png of the run with the best adjusted Rand index (else run 0), with
@@ -506,11 +507,12 @@ def run_segment(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
              len(series), series.shape[1], progress.counted(cfg.num_runs, "run"), tool.method)
     prior_std = tool.gate_prior_std or cfg.train.experts.gate_prior_std
     gates = segment.responsibilities(saved.experts, saved.gating, torch.as_tensor(series),
-                                     cfg.model.delay, cfg.model.sigma_min, tool.method,
-                                     prior_std, tool.smooth_steps).numpy()
+                                     cfg.model.delay, sigma_min=cfg.model.sigma_min,
+                                     method=tool.method, prior_std=prior_std,
+                                     steps=tool.smooth_steps).numpy()
     how = (f"smoothed (ς = {prior_std:g})" if tool.method == "smooth"
            else "filtered with the gating network")
-    result = write_segments(Path(out_dir), gates, labels, cfg, f"{source}, {how}")
+    result = write_segments(Path(out_dir), gates, labels, cfg=cfg, what=f"{source}, {how}")
     if len(result.scores):
         for line in progress.packed("scores against the labels (median over runs):", [
                 f"{name} {result.scores[column].median():.3f}" for column, name in (
@@ -535,12 +537,14 @@ def run_generate(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
     generator = run_generators(tool.seed, len(gating["w_out"]))  # run r's samples: (seed, r)
     D = dataset.series.shape[2]
     if tool.from_series < 0:
-        state = random_state(experts, gating, tool.num_samples, D, cfg.model.delay, generator)
+        state = random_state(experts, gating, tool.num_samples, num_features=D,
+                             delay=cfg.model.delay, generator=generator)
     else:  # the trained initial state of one series, repeated for every (noisy) sample
         estimates = phase2_targets(saved.beta, dataset, cfg.num_runs,
                                    gating["w_out"].dtype, cfg.train.gating.target_temperature)
         k = [tool.from_series] * tool.num_samples
-        state = trained_state(experts, gating, estimates, saved.series, cfg.model.delay, k)
+        state = trained_state(experts, gating, estimates, saved.series, delay=cfg.model.delay,
+                              rows=k)
     with torch.no_grad():
         out = generate(experts, gating, state, tool.steps, noise_std=tool.noise_var**0.5,
                        generator=generator, backend=run.backend, should_stop=stop)
@@ -595,8 +599,9 @@ def run_import(cfg: ImportConfig, out_dir: Path, stop=never) -> checkpoint.Check
     record.save(out_dir / checkpoint.NAME)
     importer.write_sources(out_dir, folders)
     if run_cfg.eval.enabled:
-        evaluate_run(run_cfg, dataset, record.experts, record.beta, record.gating, out_dir,
-                     record.failed, get_backend(run_cfg.backend, run_cfg.device), stop)
+        evaluate_run(run_cfg, dataset, record.experts, record.beta, gating=record.gating,
+                     out_dir=out_dir, failed=record.failed,
+                     backend=get_backend(run_cfg.backend, run_cfg.device), stop=stop)
     else:
         run_page.write(out_dir, run_cfg, None, f"moex import {out_dir.name}")
     return record

@@ -180,7 +180,7 @@ def plot_trajectory(points: np.ndarray, gates: np.ndarray, ax=None, title: str =
 
 
 def plot_gate_series(outputs: np.ndarray, gates: np.ndarray, symbols: np.ndarray,
-                     names: list[str], axes=None, bad: np.ndarray | None = None):
+                     names: list[str], *, axes=None, bad: np.ndarray | None = None):
     """Outputs (T, D) over the gate openings (T, K), labelled with the symbol of each step
     (beyond 120 steps, of each run of one symbol that is not a brief flicker); steps flagged in
     `bad` (T,) are labelled in red (paper Figs. 4, 8 and 13), a symbol beyond `names` (the
@@ -393,7 +393,7 @@ def _column_label(column: str, sep: str = " ") -> str:
     return f"{label(base)}{sep}(mean over networks)" if base != column else label(column)
 
 
-def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, title: str = "", ax=None,
+def plot_heatmap(table: pd.DataFrame, x: str, y: str, value: str, *, title: str = "", ax=None,
                  limits: tuple[float, float] | None = None, colorbar: bool = True):
     """NT × LT phase plot of one column (paper Figs. 14 and 16), the value written in each cell;
     a missing cell stays blank and says "not run". `limits`: the colour range, shared by the
@@ -460,7 +460,7 @@ def plot_residence_panels(hists: dict[float, tuple[np.ndarray, np.ndarray | None
     return fig
 
 
-def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, reference=None,
+def plot_scatter_by(runs: pd.DataFrame, x: str, y: str, group: str, *, reference=None,
                     band: float = 0.0, log_y: bool = False):
     """One point per network, coloured by `group` (e.g. the P = 0.5 study's arms; networks
     without a value, as in a run that is not a study arm, form one group); with

@@ -27,7 +27,7 @@ def compile_later_phases(dtype: str) -> None:
     # whose RNN passes (`rnn.forward_pass`, `backward_pass`) the run's phase-1 kernel has cached
     # by then, so only its own functions are left (about 5 s): the run's phase 1 (compiling,
     # then training) ends about when they are ready
-    state = random_state(experts, gating, 1, 2, 1, generators[0])
+    state = random_state(experts, gating, 1, num_features=2, delay=1, generator=generators[0])
     tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
     tangents[..., 0, 0] = 1.0
     closed_loop(experts, gating, state, 2, None, tangents, True)

@@ -301,7 +301,7 @@ def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, 
     for name, table in paper_tables(summary, keys).items():
         _write_table(sweep_dir, name, table)
         out[name] = table
-    _figures(sweep_dir, runs, summary, jobs, keys, fmt)
+    _figures(sweep_dir, runs, summary, jobs=jobs, keys=keys, fmt=fmt)
     return out
 
 
@@ -349,7 +349,7 @@ def _panel_title(keys: list[str], values) -> str:
     return "\n".join(textwrap.wrap(text, 30))
 
 
-def _figures(sweep_dir: Path, runs, summary, jobs, keys, fmt: str = "png") -> None:
+def _figures(sweep_dir: Path, runs, summary, *, jobs, keys, fmt: str = "png") -> None:
     figures = sweep_dir / "figures"
     if {"task.num_series", "task.length"} <= set(summary):
         # one panel per value of every other setting that varies (NC, and the noise level when

@@ -55,7 +55,7 @@ def log_likelihoods(experts, series: torch.Tensor, delay: int,
 METHODS = ("smooth", "filter")
 
 
-def responsibilities(experts, gating, series: torch.Tensor, delay: int, sigma_min: float,
+def responsibilities(experts, gating, series: torch.Tensor, delay: int, *, sigma_min: float,
                      method: str = "smooth", prior_std: float = 10.0,
                      steps: int = 500) -> torch.Tensor:
     """Each expert's responsibility (R, S, T - τ, K) for the steps of series (S, T, D) in
@@ -136,7 +136,7 @@ def run_scores(gates: np.ndarray, labels: np.ndarray, delay: int,
     return [_numbers(run, suffix) for run in _scored(gates, labels, delay) or [{} for _ in gates]]
 
 
-def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: float,
+def evaluation_scores(experts, beta, gating, dataset, *, delay: int, sigma_min: float,
                       prior_std: float, closed_winners: np.ndarray | None = None,
                       block_kl=None) -> tuple[list[dict], np.ndarray | None]:
     """Per run, where the data have labels: the segmentation of the training series by ĝ
@@ -151,7 +151,8 @@ def evaluation_scores(experts, beta, gating, dataset, delay: int, sigma_min: flo
     rows = [_numbers(run) for run in found]
     test = dataset.test
     if test is not None and (test.labels >= 0).any():
-        gates = responsibilities(experts, gating, torch.as_tensor(test.series), delay, sigma_min,
+        gates = responsibilities(experts, gating, torch.as_tensor(test.series), delay,
+                                 sigma_min=sigma_min,
                                  prior_std=prior_std)
         for row, more in zip(rows, run_scores(gates.numpy(), test.labels, delay, "_test"),
                              strict=True):

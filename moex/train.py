@@ -304,7 +304,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         if tracked:
             stats = {**stats, **statistics(hooks.monitor(_host(net)))}
         if tracked or step % log_every == 0:  # (the last row: the trained parameters, below)
-            rows += _rows(phase, step, stats, lr_scale, retries, failed)
+            rows += _rows(phase, step, stats, lr_scale=lr_scale, retries=retries, failed=failed)
         if step == start:  # the rate leaves out the first step, which compiles the kernels
             started = time.perf_counter()
         elif (step + 1) % max(steps // 10, 1) == 0 and step < steps - 1:  # progress in the log
@@ -319,7 +319,8 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     final = statistics(problem.value(net, ~failed))  # the trained parameters, as evaluation sees
     for values in final.values():
         values[failed] = float("nan")  # not computed for frozen runs
-    rows += _rows(phase, steps, final, lr_scale, torch.zeros_like(lr_scale), failed)
+    rows += _rows(phase, steps, final, lr_scale=lr_scale, retries=torch.zeros_like(lr_scale),
+                  failed=failed)
     if steps > start:  # the last line states the trained parameters' value, as history.csv
         values = final[error or criterion][~failed]
         if len(values):
@@ -335,7 +336,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def _rows(phase, step, stats, lr_scale, retries, failed) -> list[dict]:
+def _rows(phase, step, stats, *, lr_scale, retries, failed) -> list[dict]:
     """One history row per run, read from the device at once."""
     values = {k: v.tolist() for k, v in stats.items()}
     lr, tries, bad = lr_scale.tolist(), retries.tolist(), failed.tolist()

@@ -27,11 +27,13 @@ def test_tangent_map_equals_autograd_jacobian():
     """The hand-written tangent of the full closed loop (all contexts, both delay lines, real
     gates) equals forward-mode autograd of the step, column by column."""
     _, experts, gating = _model()
-    state = random_state(experts, gating, 3, 2, 2, torch.Generator().manual_seed(0))
+    state = random_state(experts, gating, 3, num_features=2, delay=2,
+                         generator=torch.Generator().manual_seed(0))
     flat = state.flat()
     k = 4
     tangents = torch.randn((k,) + flat.shape, generator=torch.Generator().manual_seed(1))
-    d_next = closed_loop_step(experts, gating, state, None, state.like(tangents)).tangents
+    d_next = closed_loop_step(experts, gating, state, noise=None,
+                              tangents=state.like(tangents)).tangents
 
     def step(x):
         return closed_loop_step(experts, gating, state.like(x)).state.flat()
@@ -44,9 +46,10 @@ def test_tangent_map_equals_autograd_jacobian():
 def test_tangent_map_without_experts():
     cfg = ModelConfig(num_experts=4, delay=1)
     gating = init_gating(cfg, 1, 0, generators([0]))
-    state = random_state({}, gating, 2, 0, 1, torch.Generator().manual_seed(0))
+    state = random_state({}, gating, 2, num_features=0, delay=1,
+                         generator=torch.Generator().manual_seed(0))
     tangents = torch.randn((2,) + state.flat().shape)
-    d_next = closed_loop_step({}, gating, state, None, state.like(tangents)).tangents
+    d_next = closed_loop_step({}, gating, state, noise=None, tangents=state.like(tangents)).tangents
     for i in range(2):
         _, expected = torch.func.jvp(
             lambda x: closed_loop_step({}, gating, state.like(x)).state.flat(), (state.flat(),),
@@ -59,7 +62,7 @@ def test_closed_loop_equals_open_loop_fed_its_own_outputs(T=12, delay=2):
     S = 2
     series = torch.randn(S, delay, 2).tanh()
     gates = torch.softmax(torch.randn(2, S, delay, 3), -1)
-    state = trained_state(experts, gating, gates, series, delay)
+    state = trained_state(experts, gating, gates, series, delay=delay)
     out = generate(experts, gating, state, T, backend=get_backend())
     # rebuild the closed loop's input and gate sequences, then run the teacher-forced passes
     inputs = torch.cat([series[None].expand(2, -1, -1, -1), out["outputs"][:, :, : T - delay]], 2)
@@ -75,7 +78,8 @@ def test_closed_loop_equals_open_loop_fed_its_own_outputs(T=12, delay=2):
 
 def test_state_flattening_round_trip():
     _, experts, gating = _model()
-    state = random_state(experts, gating, 3, 2, 2, torch.Generator().manual_seed(0))
+    state = random_state(experts, gating, 3, num_features=2, delay=2,
+                         generator=torch.Generator().manual_seed(0))
     again = state.like(state.flat())
     for a, b in zip(vars(state).values(), vars(again).values(), strict=True):
         assert torch.equal(a, b)
@@ -107,7 +111,7 @@ def test_a_runs_random_states_and_noise_do_not_depend_on_the_runs_beside_it():
     def run0(runs: int) -> dict:
         first = tuple({k: v[:runs] for k, v in net.items()} for net in (experts, gating))
         gens = run_generators(5, runs)
-        state = random_state(*first, 3, 2, 2, gens)
+        state = random_state(*first, 3, num_features=2, delay=2, generator=gens)
         return generate(*first, state, 20, noise_std=0.1, generator=gens, backend=get_backend())
 
     alone, batch = run0(1), run0(2)

@@ -489,7 +489,8 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
     found = []
     for mixture, gates in ((experts, gating),
                            (chaotic, {**gating, "tau": torch.ones_like(gating["tau"])})):
-        state = random_state(mixture, gates, 1, 2, 1, torch.Generator().manual_seed(4))
+        state = random_state(mixture, gates, 1, num_features=2, delay=1,
+                             generator=torch.Generator().manual_seed(4))
         state = backend.closed_loop(mixture, gates, state, 500).state
         jacobian = closed_loop_lyapunov(mixture, gates, state, 5000, 0, backend=backend,
                                         generator=torch.Generator().manual_seed(5))[..., 0]

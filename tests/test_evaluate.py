@@ -183,7 +183,7 @@ def test_tracking_during_training(tmp_path):
     series = torch.as_tensor(data.series)
     targets = gate_estimates(saved.beta)
     closed = generate(saved.experts, saved.gating,
-                      trained_state(saved.experts, saved.gating, targets, series, 1),
+                      trained_state(saved.experts, saved.gating, targets, series, delay=1),
                       targets.shape[2], backend=get_backend())
     last = tracked[tracked["step"] == 4].sort_values("run")["block_kl_train"]
     np.testing.assert_allclose(last, _train_block_kl(targets, closed["gates"], cfg.eval))
@@ -213,7 +213,8 @@ def test_lyapunov_of_a_closed_loop_with_zero_weights_is_the_slowest_decay(backen
         for name, value in params.items():
             if name not in ("tau", "u0"):
                 params[name] = torch.zeros_like(value)
-    state = random_state(experts, gating, 3, 2, 1, torch.Generator().manual_seed(0))
+    state = random_state(experts, gating, 3, num_features=2, delay=1,
+                         generator=torch.Generator().manual_seed(0))
     # (a long transient: the experts' faster decay must leave the tangents first)
     lam = closed_loop_lyapunov(experts, gating, state, 200, 400,
                                generator=torch.Generator().manual_seed(1),
@@ -261,7 +262,7 @@ def test_trained_initial_states_start_each_sample_from_its_series():
                                  generator=torch.Generator().manual_seed(0),
                                  backend=get_backend()).rows)
     series = torch.as_tensor(data.series)
-    state = trained_state(experts, gating, gate_estimates(beta), series, 1, [0, 1, 0, 1])
+    state = trained_state(experts, gating, gate_estimates(beta), series, delay=1, rows=[0, 1, 0, 1])
     direct = closed_loop_lyapunov(experts, gating, state, cfg.lyapunov_steps, cfg.transient,
                                   generator=torch.Generator().manual_seed(0),
                                   backend=get_backend())

@@ -152,7 +152,7 @@ def test_cpu_kernels_give_the_same_bits_on_any_number_of_threads(R):
     model = ModelConfig(num_experts=3)
     gens = generators(range(R))
     experts, gating = init_experts(model, 3, 2, gens), init_gating(model, 3, 2, gens)
-    state = random_state(experts, gating, 5, 2, 1, gens[0])
+    state = random_state(experts, gating, 5, num_features=2, delay=1, generator=gens[0])
     tangents = initial_tangents(state.flat(), 1, torch.Generator().manual_seed(0))
     results = []
     before = numba.get_num_threads()
@@ -177,7 +177,7 @@ def test_cpu_kernels_give_the_same_bits_on_any_number_of_threads(R):
 
 def _trajectory_cases():
     """Every combination on each backend compared with the reference; on a backend interpreted
-    here (gpu in Triton's interpreter, ~30-70 s a case) two in the default suite, covering both
+    here (gpu in Triton's interpreter, ~20-40 s a case) two in the default suite, covering both
     forms, both rates and both precisions, the other six marked slow."""
     cases = []
     for param in backend_params(reference=False):
@@ -196,7 +196,7 @@ def _trajectory_cases():
 @pytest.mark.parametrize("backend, dtype, form, adaptive", _trajectory_cases(),
                          indirect=["backend"])
 def test_training_trajectories_of_both_phases_match(backend, dtype, form, adaptive):
-    steps, length = (6, 24) if backend.caps.interpreted else (12, 40)
+    steps, length = (4, 16) if backend.caps.interpreted else (12, 40)
     task = make_task(TaskConfig(num_series=2, length=length), seed=0)
     series = torch.as_tensor(task.series, dtype=dtype)
     model = ModelConfig(learn_time_constants=True)
@@ -262,9 +262,10 @@ def test_gpu_candidate_steps_in_one_call_train_as_one_by_one(monkeypatch):
         assert 5 in retries and retries & {1, 2, 3, 4}, retries
 
 
-def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(backend, steps=6):
+def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(backend):
     """With input noise in phase 2, both backends draw the same noise; run r sees the noise of
     its own seed whether trained in a batch or alone."""
+    steps = 3 if backend.caps.interpreted else 6
     task = make_task(TaskConfig(num_series=2, length=30), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
@@ -297,7 +298,8 @@ def _closed_loop_model(K, D, delay, dtype):
         for name in ("w_rec", "w_in"):
             if name in params:
                 params[name] = params[name] * 8
-    state = random_state(experts, gating, 3, D, delay, torch.Generator().manual_seed(5))
+    state = random_state(experts, gating, 3, num_features=D, delay=delay,
+                         generator=torch.Generator().manual_seed(5))
     return experts, gating, state
 
 
@@ -381,7 +383,8 @@ def fixed_point():
     model.experts.context_size, model.gating.context_size = 4, 5
     experts = init_experts(model, 2, 2, generators([1, 2]))
     gating = init_gating(model, 2, 2, generators([3, 4]))
-    start = random_state(experts, gating, 1, 2, 1, torch.Generator().manual_seed(5))
+    start = random_state(experts, gating, 1, num_features=2, delay=1,
+                         generator=torch.Generator().manual_seed(5))
     fixed = COMPILED.closed_loop(experts, gating, start, 3000).state
     jacobians = []
     for r in range(2):

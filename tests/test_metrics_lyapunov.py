@@ -75,11 +75,11 @@ def test_benettin_counts_the_steps_after_the_transient_in_chunks():
         return tangents, torch.full((1,), size * math.log(2))
 
     tangents = initial_tangents(torch.zeros(1, 1), 1)
-    lam = benettin(advance, tangents, 7, 2, 3)
+    lam = benettin(advance, tangents, 7, transient=2, chunk=3)
     assert calls == [(2, False, 0), (3, True, 0), (3, True, 3), (1, True, 6)]
     torch.testing.assert_close(lam, torch.full((1,), math.log(2)))
     with pytest.raises(Interrupted):
-        benettin(advance, tangents, 7, 2, 3, should_stop=lambda: True)
+        benettin(advance, tangents, 7, transient=2, chunk=3, should_stop=lambda: True)
 
 
 def _samples(step, x0, steps, transient=200):

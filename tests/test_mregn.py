@@ -68,7 +68,7 @@ def test_imported_mixture_has_the_errors_the_c_tools_logged():
     series = record.series
     targets = phase2_targets(record.beta, dataset, 1, series.dtype)
     error, error_g = _teacher_forced(record.experts, record.beta, record.gating, series,
-                                     cfg.model.delay, targets)
+                                     delay=cfg.model.delay, targets=targets)
     mre_log, gn_log = _last_log_row(DATA / "mixture/mre-error.log"), \
         _last_log_row(DATA / "mixture/gn-error.log")
     # the C code logs per series Σ½‖ŷ-t‖²/(L d), moex the mean over series of Σ‖ŷ-t‖²/(T d)/2
@@ -79,8 +79,8 @@ def test_imported_mixture_has_the_errors_the_c_tools_logged():
 def test_imported_gating_network_has_the_error_rnn_learn_logged():
     cfg, record, dataset = _imported("gating")
     targets = phase2_targets(None, dataset, 1, record.series.dtype)
-    _, error_g = _teacher_forced({}, None, record.gating, record.series, cfg.model.delay,
-                                 targets)
+    _, error_g = _teacher_forced({}, None, record.gating, record.series, delay=cfg.model.delay,
+                                 targets=targets)
     assert error_g.item() == pytest.approx(_last_log_row(DATA / "gating/error.log").mean(),
                                            rel=1e-5)
 
@@ -93,7 +93,7 @@ def test_imported_mixture_generates_what_mregn_generate_prints():
     k = [1]
     state = trained_state({n: v[:, k] if n == "u0" else v for n, v in record.experts.items()},
                           {n: v[:, k] if n == "u0" else v for n, v in record.gating.items()},
-                          targets[:, k], record.series[k], cfg.model.delay)
+                          targets[:, k], record.series[k], delay=cfg.model.delay)
     with torch.no_grad():
         outputs = generate(record.experts, record.gating, state, 40,
                            backend=get_backend())["outputs"][0, 0].numpy()
@@ -194,7 +194,7 @@ def test_imported_gating_network_generates_what_rnn_generate_prints():
     targets = phase2_targets(None, dataset, 1, record.series.dtype)
     state = trained_state({}, {n: v[:, [1]] if n == "u0" else v for n, v in
                                record.gating.items()}, targets[:, [1]], record.series[[1]],
-                          cfg.model.delay)
+                          delay=cfg.model.delay)
     with torch.no_grad():
         gates = generate({}, record.gating, state, 41, backend=get_backend())["gates"][0, 0].numpy()
     printed = np.loadtxt(DATA / "gating/generate_from_series1.txt")

@@ -109,7 +109,7 @@ def test_the_filter_is_bayes_with_the_gating_networks_opening_as_prior(two_curve
     series = torch.as_tensor(data.test.series[:2])
     flat = {**fitted.gating, "w_out": torch.zeros_like(fitted.gating["w_out"]),
             "b_o": torch.zeros_like(fitted.gating["b_o"])}
-    got = segment.responsibilities(fitted.experts, flat, series, 1, 0.05, "filter")
+    got = segment.responsibilities(fitted.experts, flat, series, 1, sigma_min=0.05, method="filter")
     log_p = segment.log_likelihoods(fitted.experts, series, 1, 0.05)
     torch.testing.assert_close(got, torch.softmax(log_p, -1))
 

@@ -32,7 +32,8 @@ def test_same_seed_same_data_and_shapes(name):
 def test_lissajous2_transition_and_residence(p, period=25, length=200_000):
     rng = np.random.default_rng(0)
     series, labels = generate_switching(lissajous.two_circles(),
-                                        lissajous.two_circles_transition(p), length, period, rng)
+                                        lissajous.two_circles_transition(p), length, period,
+                                        rng=rng)
     at_decisions = labels[::period]  # one primitive per period; switches only at the origin
     assert (labels.reshape(-1, period) == at_decisions[:, None]).all()
     empirical = _switch_stats(at_decisions)
@@ -52,7 +53,8 @@ def test_lissajous9_transitions_and_continuity(rule, period=32, length=400_000):
     prims = lissajous.nine_curves()
     transition = lissajous.nine_curves_transition(rule)
     assert np.allclose(transition.sum(1), 1)
-    series, labels = generate_switching(prims, transition, length, period, np.random.default_rng(1),
+    series, labels = generate_switching(prims, transition, length, period,
+                                        rng=np.random.default_rng(1),
                                         initial=0)
     # decisions happen when a primitive ends; recover the visited sequence
     visits, n = [], 0

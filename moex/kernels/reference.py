@@ -160,8 +160,9 @@ def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor
     record = []
     for t in range(steps):
         tg = None if tangents is None else state.like(tangents.movedim(-1, 0))
-        step = closed_loop_step(experts, gating, state, None if noise is None else noise[:, :, t],
-                                tg, uniform_gates)
+        step = closed_loop_step(experts, gating, state,
+                                noise=None if noise is None else noise[:, :, t], tangents=tg,
+                                uniform_gates=uniform_gates)
         state = step.state
         record.append((step.output, step.gates, step.gating_u))
         if tangents is not None:

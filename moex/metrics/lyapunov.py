@@ -36,7 +36,7 @@ def chunks(total: int, size: int):
         yield done, min(size, total - done)
 
 
-def benettin(advance: Advance, tangents: torch.Tensor, steps: int, transient: int, chunk: int,
+def benettin(advance: Advance, tangents: torch.Tensor, steps: int, *, transient: int, chunk: int,
              should_stop: Callable[[], bool] = never) -> torch.Tensor:
     """The first k exponents per trajectory (B..., k), per step (natural log): `transient` steps
     align the tangents, the log growth of the next `steps` is averaged.
@@ -60,7 +60,7 @@ def benettin(advance: Advance, tangents: torch.Tensor, steps: int, transient: in
 
 
 def lyapunov_exponents(step: Callable[[torch.Tensor], torch.Tensor], state: torch.Tensor,
-                       num_steps: int, num_exponents: int = 1, transient: int = 0,
+                       num_steps: int, *, num_exponents: int = 1, transient: int = 0,
                        reorth_every: int = 1,
                        generator: torch.Generator | None = None) -> torch.Tensor:
     """The first k Lyapunov exponents of any map x_{n+1} = f(x_n), per trajectory, through the
@@ -86,7 +86,7 @@ def lyapunov_exponents(step: Callable[[torch.Tensor], torch.Tensor], state: torc
         return reorthonormalise(tangents)
 
     return benettin(advance, initial_tangents(state, num_exponents, generator), num_steps,
-                    transient, reorth_every)
+                    transient=transient, chunk=reorth_every)
 
 
 CHAOTIC, NOT_CHAOTIC, UNDETERMINED = "chaotic", "not chaotic", "undetermined"

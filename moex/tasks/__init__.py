@@ -123,7 +123,8 @@ class Dataset:
 def _switching(primitives: list[Primitive], transition: np.ndarray, cfg: TaskConfig,
                rng: np.random.Generator, initial: int | None = None) -> Dataset:
     def sample(count):
-        pairs = [generate_switching(primitives, transition, cfg.length, cfg.period, rng, initial)
+        pairs = [generate_switching(primitives, transition, cfg.length, cfg.period, rng=rng,
+                                    initial=initial)
                  for _ in range(count)]
         return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
 
@@ -248,7 +249,7 @@ def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
     return TASKS[cfg.name](cfg, rng)
 
 
-def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, scale: Scale,
+def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, *, scale: Scale,
                 min_length: int = 3, labels: np.ndarray | None = None) -> Dataset:
     """The data a finished run was trained on: regenerated from its seed where the task is
     generated (held-out series included), the series (in model units) and scale stored in its

@@ -47,7 +47,7 @@ def check_transition(transition: np.ndarray, num_primitives: int, key: str) -> n
 
 
 def generate_switching(primitives: list[Primitive], transition: np.ndarray, length: int,
-                       period: float, rng: np.random.Generator,
+                       period: float, *, rng: np.random.Generator,
                        initial: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Sample one series of Markov switching between primitives.
 
