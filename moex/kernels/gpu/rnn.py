@@ -5,8 +5,9 @@ forward kernel, the phase's objective kernel and the backward kernel: three laun
 Layout (the same lanes as the CPU backend, `moex.kernels.cpu`): every independent recurrence is a
 *lane* — an (expert, series) pair of a run in phase 1, a series of a run in phase 2. Network n
 (expert k = n mod NPR of run r = n div NPR; NPR networks per run) owns the LPN lanes n·LPN + j.
-A program runs one network: its weights once in registers, its lanes in chunks of BL through the
-whole time loop. Lane l reads row XROW[l] of X (NX, T, NI) and row U0J[l] of its run's u_0.
+A program runs one network, its lanes in chunks of BL through the whole time loop; its products
+with the weight matrices go by columns (`rnn_forward`), the columns read from memory (L1) at each
+step. Lane l reads row XROW[l] of X (NX, T, NI) and row U0J[l] of its run's u_0.
 Parameters are read where the training loop keeps them: the (R, ...) groups of its flat buffer,
 run r at r·stride (each group's stride an argument), the rest contiguous. Sizes are padded to
 powers of two inside (masked).
