@@ -43,12 +43,13 @@ import triton.language as tl
 from triton.language.extra import libdevice
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"  # read when Triton is (set it before)
-# float32 on a GPU: Triton lowers exp, σ and `/` to ex2.approx / div.full (≤ 2 ulp each, and a
-# phase-2 ∂u_0 35x further from float64 than PyTorch's float32); libdevice's expf, logf, tanhf
-# and div.rn are accurate. The interpreter computes with NumPy and has no libdevice.
+# float32 on a GPU: Triton lowers exp, σ and `/` to ex2.approx / div.full (≤ 2 ulp each);
+# libdevice's expf, logf, tanhf and div.rn are accurate, at no cost measured on an H200 (they
+# were not what put a float32 gradient off there: see `lane_moments`). The interpreter computes
+# with NumPy and has no libdevice.
 ACCURATE_F32 = tl.constexpr(not INTERPRET)
-# the forward kernel's loops over the columns of c_t, unrolled by this much: at Table 2's H = 10
-# the same machine code as unrolling them whole; H = 50 whole took 50 s to compile (this: 2 s)
+# the forward and backward kernels' loops over columns, unrolled by this much: at Table 2's
+# H = 10 the same machine code as unrolling them whole; H = 50 whole took 50 s to compile (2 s)
 UNROLL = tl.constexpr(10)
 
 
