@@ -32,10 +32,10 @@ from moex.kernels.gpu.rnn import (  # noqa: E402
     _chunk,
     _network,
     _put,
-    _reciprocal,
     _vector,
     device,
     load_rows,
+    reciprocal,
     stable_tanh,
 )
 
@@ -70,7 +70,7 @@ def forward_by_rows(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C,
     w_out = _tile(W_OUT + r * sW_OUT + k * (NO * H), o, h, NO, H)
     b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
     b_o = _vector(B_O + r * sB_O + k * NO, o, NO, 0.0)[None, :]
-    eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
+    eps = reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         u = load_rows(U0 + r * sU0, u0j, ok, h, H)

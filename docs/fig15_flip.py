@@ -55,8 +55,7 @@ def estimates(saved, cfg, run: int, gating: dict, noise_var: float = 0.0) -> np.
     for repeat in range(REPEATS):
         generator = torch.Generator().manual_seed(1000 + repeat)
         state = random_state(experts, gating, SAMPLES, num_features=saved.series.shape[-1],
-                             delay=cfg.model.delay,
-                             generator=generator)
+                             delay=cfg.model.delay, generator=generator)
         with torch.no_grad():
             lam = closed_loop_lyapunov(experts, gating, state, STEPS, cfg.eval.transient,
                                        generator=generator, noise_std=noise_var ** 0.5,

@@ -144,8 +144,7 @@ def track_metrics(experts, targets, gating, series, delay, *, cfg: EvalConfig, g
                                                          delay=delay),
                           targets.shape[2], backend=backend)
         state = random_state(experts, gating, cfg.track_samples, num_features=series.shape[-1],
-                             delay=delay,
-                             generator=generator)
+                             delay=delay, generator=generator)
         lam = closed_loop_lyapunov(experts, gating, state, cfg.track_steps,
                                    min(cfg.transient, cfg.track_steps), generator=generator,
                                    backend=backend)[..., 0]

@@ -25,7 +25,7 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import OPTIONS, launched, pow2
-from moex.kernels.gpu.rnn import device, divide, exp, log, stable_tanh
+from moex.kernels.gpu.rnn import device, divide, exp, log, reciprocal, stable_tanh
 from moex.model import ClosedLoopRun
 
 
@@ -69,7 +69,7 @@ def _orthonormalise(veu, vgu, vxl, vgl, growth, SB: tl.constexpr, KT: tl.constex
         safe = tl.where(norm > 0, norm, 1.0)
         if COUNT:
             growth += tl.where(this, log(safe)[:, None], 0.0)
-        scale = divide(tl.full((1,), 1.0, safe.dtype), safe)
+        scale = reciprocal(safe)
         e_i, g_i = e_i * scale[:, None, None], g_i * scale[:, None]
         x_i, q_i = x_i * scale[:, None, None], q_i * scale[:, None, None]
         # every later vector loses its component along vector i; vector i is replaced by its unit

@@ -106,7 +106,7 @@ def divide(a, b):
 
 
 @device
-def _reciprocal(x):
+def reciprocal(x):
     """1/x rounded correctly in both precisions."""
     return divide(tl.full(x.shape, 1.0, x.dtype), x)
 
@@ -165,6 +165,18 @@ def _chunk(XROW, U0J, n, chunk, LPN: tl.constexpr, BL: tl.constexpr):
 
 
 @device
+def _add_by_columns(acc, V, row, ok, W, cols, cols_ok, N: tl.constexpr, SJ: tl.constexpr,
+                    SC: tl.constexpr):
+    """acc + Σ_{j<N} v_j w_j as outer-product updates, no sum across threads: v_j the lanes'
+    entry j of row `row` of V (·, N) in memory, w_j the (CP,) weights W[j·SJ + cols·SC] (a
+    column of W_rec with SJ = 1, SC = H; a row with SJ = H, SC = 1)."""
+    for j in tl.range(0, N, loop_unroll_factor=UNROLL):
+        v_j = tl.load(V + row * N + j, mask=ok, other=0.0)[:, None]
+        acc += v_j * tl.load(W + j * SJ + cols * SC, mask=cols_ok, other=0.0)[None, :]
+    return acc
+
+
+@device
 def _state_row(lane, t, T: tl.constexpr, KEEP_C: tl.constexpr):
     """The row of C where lane `lane` leaves c_t: its history row, or one of its two scratch
     rows (t mod 2: a row is rewritten only after the barrier of the step between)."""
@@ -200,7 +212,7 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
     w_out = W_OUT + r * sW_OUT + k * (NO * H)
     b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
     b_o = _vector(B_O + r * sB_O + k * NO, o, NO, 0.0)[None, :]
-    eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
+    eps = reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
     for chunk in range(CHUNKS):
         lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         u = load_rows(U0 + r * sU0, u0j, ok, h, H)
@@ -209,10 +221,8 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
         # c_{-1} passes through row 0, which c_0 then takes: a barrier on either side
         _put(C, _state_row(lane, 0, T, KEEP_C), ok, h, stable_tanh(u + b_c), H)
         tl.debug_barrier()
-        drive = tl.zeros((BL, HP), dtype=u.dtype)  # W_rec c_{t-1}, then + W_in x_t
-        for j in tl.range(0, H, loop_unroll_factor=UNROLL):
-            c_j = tl.load(C + _state_row(lane, 0, T, KEEP_C) * H + j, mask=ok, other=0.0)[:, None]
-            drive += c_j * tl.load(w_rec + h * H + j, mask=h_ok, other=0.0)[None, :]
+        drive = _add_by_columns(tl.zeros((BL, HP), dtype=u.dtype), C,  # W_rec c_{t-1}, + W_in x_t
+                                _state_row(lane, 0, T, KEEP_C), ok, w_rec, h, h_ok, H, 1, H)
         tl.debug_barrier()
         for t in range(T):
             for i in tl.static_range(NI):
@@ -230,7 +240,7 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
             tl.debug_barrier()  # every lane's c_t written before any thread reads its columns
             drive = tl.zeros((BL, HP), dtype=u.dtype)
             out = tl.zeros((BL, NOP), dtype=u.dtype) + b_o
-            for j in tl.range(0, H, loop_unroll_factor=UNROLL):
+            for j in tl.range(0, H, loop_unroll_factor=UNROLL):  # W_rec c_t and W_out c_t at once
                 c_j = tl.load(C + row * H + j, mask=ok, other=0.0)[:, None]
                 drive += c_j * tl.load(w_rec + h * H + j, mask=h_ok, other=0.0)[None, :]
                 out += c_j * tl.load(w_out + o * H + j, mask=o_ok, other=0.0)[None, :]
@@ -262,7 +272,7 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
     w_rec = W_REC + r * sW_REC + k * (H * H)
     w_out = W_OUT + r * sW_OUT + k * (NO * H)
     b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
-    eps = _reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
+    eps = reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
     dtype = b_c.dtype
     n_w_in = tl.zeros((HP, NIP), dtype=dtype)
     n_w_rec = tl.zeros((HP, HP), dtype=dtype)
@@ -285,9 +295,7 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
             before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
             prev = tl.where(first, c0, load_rows(C, lane * T + t - 1, before, h, H))
             do = load_rows(DO, lane * T + t, ok, o, NO)
-            for j in tl.range(0, NO, loop_unroll_factor=UNROLL):  # back += W_outᵀ δo_t
-                do_j = tl.load(DO + (lane * T + t) * NO + j, mask=ok, other=0.0)[:, None]
-                back += do_j * tl.load(w_out + j * H + h, mask=h_ok, other=0.0)[None, :]
+            back = _add_by_columns(back, DO, lane * T + t, ok, w_out, h, h_ok, NO, H, 1)  # W_outᵀδo
             dq = (1.0 - c * c) * back
             g_b_c += dq
             a = (1.0 - eps) * a + dq
@@ -304,10 +312,7 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
             row = lane * 2 + step % 2  # back = W_recᵀ ε a_t, by the columns of ε a_t
             _put(PASS, row, ok, h, ea, H)
             tl.debug_barrier()
-            back = tl.zeros((BL, HP), dtype=dtype)
-            for j in tl.range(0, H, loop_unroll_factor=UNROLL):
-                ea_j = tl.load(PASS + row * H + j, mask=ok, other=0.0)[:, None]
-                back += ea_j * tl.load(w_rec + j * H + h, mask=h_ok, other=0.0)[None, :]
+            back = _add_by_columns(zero_h, PASS, row, ok, w_rec, h, h_ok, H, H, 1)
         dq = (1.0 - c0 * c0) * back
         g_u0 = (1.0 - eps) * a + dq
         if ATTRACT:
