@@ -22,10 +22,9 @@ from moex.model import init_experts, init_gating, random_state
 from moex.run import run_seeds
 
 
-def bench(runs: int, samples: int, steps: int, threads: int, backend: str, device: str,
-          repeats: int = 3) -> float:
-    """Seconds per closed-loop step (with one tangent vector) for runs × samples trajectories,
-    the best of `repeats` blocks of `steps` steps."""
+def closed_loop(runs: int, samples: int, threads: int, backend: str, device: str):
+    """fn(steps): `closed_loop_lyapunov` with one tangent for runs × samples trajectories (no
+    transient), on `backend`, at the two-Lissajous sizes; and whether to synchronise CUDA."""
     backend = get_backend(backend, device)
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
     torch.set_num_threads(1 if backend.name == "cpu" else threads)
@@ -37,17 +36,29 @@ def bench(runs: int, samples: int, steps: int, threads: int, backend: str, devic
     gating = {k: v.to(home) for k, v in init_gating(cfg.model, 10, 2, gens).items()}
     generator = torch.Generator().manual_seed(0)
     state = random_state(experts, gating, samples, num_features=2, delay=1, generator=generator)
-    with torch.no_grad():  # warm-up at the timed length: every chunk size compiled before
-        closed_loop_lyapunov(experts, gating, state, steps, 0, generator=generator, backend=backend)
-        best = float("inf")
-        for _ in range(repeats):  # a shared machine's noise only ever adds time
-            start = time.perf_counter()
+
+    def fn(steps):
+        with torch.no_grad():
             closed_loop_lyapunov(experts, gating, state, steps, 0, generator=generator,
                                  backend=backend)
-            if device.startswith("cuda"):
-                torch.cuda.synchronize()
-            best = min(best, time.perf_counter() - start)
-        return best / steps
+
+    return fn, device.startswith("cuda")
+
+
+def bench(runs: int, samples: int, steps: int, threads: int, backend: str, device: str,
+          repeats: int = 3) -> float:
+    """Seconds per closed-loop step (with one tangent vector) for runs × samples trajectories,
+    the best of `repeats` blocks of `steps` steps."""
+    fn, cuda = closed_loop(runs, samples, threads, backend, device)
+    fn(steps)  # warm-up at the timed length: every chunk size compiled before
+    best = float("inf")
+    for _ in range(repeats):  # a shared machine's noise only ever adds time
+        start = time.perf_counter()
+        fn(steps)
+        if cuda:
+            torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - start)
+    return best / steps
 
 
 def main():

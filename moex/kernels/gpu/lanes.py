@@ -4,9 +4,9 @@ program runs one network's lanes in chunks (`moex.kernels.gpu.rnn`). `Net` holds
 lanes, buffers and the two launches; `launch` is every training kernel's launch.
 
 Three knobs for the GPU session's sweep, read once: MOEX_GPU_LANE_BUDGET (entries of the lanes'
-(BL, H, H) products per program, default 4096), MOEX_GPU_WARPS (warps per program, default
-Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive rate per launch, default 1; the
-result is the same for any value).
+(BL, H) tiles per program, default 1024: 64 lanes at H = 16, 16 at H = 64), MOEX_GPU_WARPS
+(warps per program, default Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive
+rate per launch, default 1; the result is the same for any value).
 """
 
 import os
@@ -16,7 +16,7 @@ import torch
 import triton
 
 from moex.errors import check
-from moex.kernels.gpu.rnn import rnn_backward, rnn_forward
+from moex.kernels.gpu.rnn import rnn_backward, rnn_forward, rnn_weight_gradients
 
 
 def _knob(name: str, default: str) -> int:
@@ -26,7 +26,7 @@ def _knob(name: str, default: str) -> int:
     return int(value)
 
 
-LANE_BUDGET = _knob("MOEX_GPU_LANE_BUDGET", "4096")
+LANE_BUDGET = _knob("MOEX_GPU_LANE_BUDGET", "1024")
 NUM_WARPS = _knob("MOEX_GPU_WARPS", "4")
 # k candidates are one call of k·R networks' forward passes, k times the work in one launch: on an
 # H200 at 90 networks k = 1 took 0.12 ms per network-epoch in phase 1 (adaptive), k = 4 0.16 and
@@ -39,6 +39,17 @@ PARAMS = ("w_in", "w_rec", "w_out", "b_c", "b_o", "tau", "u0")  # what the RNN k
 OPTIONS = {"enable_fp_fusion": True}
 
 
+def gradient_launch(HG: int) -> dict:
+    """`rnn_weight_gradients`' rows per matrix product (BR: the order of summation, and so the
+    bits, depend on it), warps and pipeline stages, by its padded width HG: the largest that
+    compile for an H200 without spilling (`benchmarks/gpu_aot.py`; at HG = 64 four warps spilled
+    372 B, eight with two stages 24 B); two stages let the next rows' loads run under a block's
+    products."""
+    wide = HG >= 64
+    return dict(BR=32 if HG <= 16 else 16, num_warps=8 if wide else NUM_WARPS,
+                num_stages=1 if wide else 2)
+
+
 def launched(name: str, kernel) -> None:
     """Keep a launch's compiled kernel (None in Triton's interpreter) for `kernel_report`."""
     if kernel is not None:
@@ -47,8 +58,8 @@ def launched(name: str, kernel) -> None:
 
 def launch(kernel, programs: int, *args, **meta) -> None:
     """One launch of a training kernel on `programs` programs."""
-    launched(kernel.fn.__name__, kernel[(programs,)](*args, num_warps=NUM_WARPS, **OPTIONS,
-                                                     **meta))
+    launched(kernel.fn.__name__, kernel[(programs,)](*args, **{"num_warps": NUM_WARPS,
+                                                               **OPTIONS, **meta}))
 
 
 def kernel_report() -> list[dict]:
@@ -92,23 +103,27 @@ class Net:
     def __init__(self, networks, per_run, lanes_per_net, T, NI, H, NO, xrow, u0j, learn_eps,
                  sums, dtype, device, keep=True):
         L = networks * lanes_per_net
-        self.networks, self.learn_eps, self.sums = networks, learn_eps, sums
+        self.networks, self.learn_eps, self.attract = networks, learn_eps, sums
 
         def index(x):
             return torch.as_tensor(np.asarray(x), dtype=torch.int64, device=device)
 
         self.xrow, self.u0j = index(xrow), index(u0j)
         HP = pow2(H)
-        block = max(1, min(pow2(lanes_per_net), LANE_BUDGET // HP ** 2))
+        block = max(1, min(pow2(lanes_per_net), LANE_BUDGET // HP))
         self.meta = dict(T=T, NI=NI, H=H, NO=NO, NIP=pow2(NI), HP=HP, NOP=pow2(NO), BL=block,
                          LPN=lanes_per_net, NPR=per_run,
                          CHUNKS=triton.cdiv(lanes_per_net, block))
+        wide = {name: max(16, pow2(size)) for name, size in (("IG", NI), ("HG", H), ("OG", NO))}
+        self.gradient_meta = dict(T=T, NI=NI, H=H, NO=NO, LPN=lanes_per_net, NPR=per_run,
+                                  **wide, **gradient_launch(wide["HG"]))
 
         def empty(*shape):
             return torch.zeros(shape, dtype=dtype, device=device)
 
         self.O = empty(L, T, NO)
         self.DO, self.C = (empty(L, T, NO), empty(L, T, H)) if keep else (empty(1), empty(1))
+        self.EA = empty(L, T, H) if keep else empty(1)  # ε a_t, from the backward recurrence
         self.passing = empty(L, 2, H)  # a forward without histories passes c_t through these
         self.U = empty(L, T, H) if learn_eps and keep else empty(1)
         self.S = torch.zeros(L, 2, H, dtype=torch.float64, device=device) if sums else empty(1)
@@ -119,16 +134,22 @@ class Net:
         launch(rnn_forward, self.networks, X, self.xrow, self.u0j, *p, self.O,
                self.C if keep else self.passing, self.U, self.S, *strides(params, PARAMS),
                KEEP_C=keep, KEEP_U=keep and self.learn_eps,
-               KEEP_SUMS=self.sums, **self.meta)
+               KEEP_SUMS=self.attract, **self.meta)
         return self.O
 
     def backward(self, X, params, grads, active, attract, floor):
         """The networks' gradients for ∂L/∂O = self.DO, written into `grads` where `active`;
-        `floor` (a device tensor, its first entry read): the attraction's variance floor σ̄²."""
+        `floor` (a device tensor, its first entry read): the attraction's variance floor σ̄².
+        Two launches: the backward recurrence, then the weight matrices' sums over lanes."""
         learn = "tau" in grads
         g = {k: grads[k] if k in grads else grads["b_c"] for k in PARAMS}  # (τ: not written)
         read = ("w_rec", "w_out", "b_c", "tau", "u0")
-        launch(rnn_backward, self.networks, self.DO, X, self.xrow, self.u0j,
-               *(params[k] for k in read), self.C, self.U, self.S, active, floor, self.passing,
-               *(g[k] for k in PARAMS), *strides(params, read), *strides(g, PARAMS),
-               LEARN_EPS=learn, ATTRACT=attract, **self.meta)
+        meta = {k: self.meta[k] for k in ("T", "H", "NO", "HP", "BL", "LPN", "NPR", "CHUNKS")}
+        launch(rnn_backward, self.networks, self.DO, self.xrow, self.u0j,
+               *(params[k] for k in read), self.C, self.U, self.S, active, floor, self.EA,
+               g["b_c"], g["tau"], g["u0"], *strides(params, read),
+               *strides(g, ("b_c", "tau", "u0")), LEARN_EPS=learn, ATTRACT=attract, **meta)
+        weights = ("w_in", "w_rec", "w_out", "b_o")
+        launch(rnn_weight_gradients, self.networks, self.EA, self.DO, self.C, X, self.xrow,
+               self.u0j, params["u0"], params["b_c"], active, *(g[k] for k in weights),
+               *strides(params, ("b_c", "u0")), *strides(g, weights), **self.gradient_meta)

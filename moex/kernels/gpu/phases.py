@@ -1,7 +1,7 @@
-"""The two training phases of the GPU backend (Triton), each step three launches: the forward
+"""The two training phases of the GPU backend (Triton), each step four launches: the forward
 kernel of `moex.kernels.gpu.rnn` over every lane of every run (`moex.kernels.gpu.lanes`), the
 phase's objective kernel here (one program per run: the statistics, ∂L/∂o_t for every lane and
-the gradients of the objective's own parameters), and the backward kernel, which sums each
+the gradients of the objective's own parameters), and the two backward kernels, which sum each
 network's lanes into the training loop's gradient buffer. A value without gradients (the
 adaptive rate's trial) is the first two. Nothing is synchronised with the host: the statistics
 are device tensors (R,) the host reads when it logs.

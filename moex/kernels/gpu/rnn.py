@@ -1,6 +1,7 @@
-"""The leaky RNN of Eqs. 1-3 / 5-8, teacher forced, as two Triton kernels: the forward pass and
-its backward pass (BPTT). A training step of either phase (`moex.kernels.gpu.phases`) is the
-forward kernel, the phase's objective kernel and the backward kernel: three launches.
+"""The leaky RNN of Eqs. 1-3 / 5-8, teacher forced, as three Triton kernels: the forward pass, the
+backward recurrence (BPTT) and the weight gradients' sums. A training step of either phase
+(`moex.kernels.gpu.phases`) is the forward kernel, the phase's objective kernel and the two
+backward kernels: four launches.
 
 Layout (the same lanes as the CPU backend, `moex.kernels.cpu`): every independent recurrence is a
 *lane* — an (expert, series) pair of a run in phase 1, a series of a run in phase 2. Network n
@@ -25,10 +26,12 @@ Backward, given δo_t = ∂L/∂o_t; with a_t = ∂L/∂u_t and q_t = u_t + b:
 and at the start, where c_{-1} = tanh(u_0 + b) feeds step 0 with r = W_recᵀ ε a_0:
     ∂u_0 = (1 - ε) a_0 + (1 - c_{-1}²) r,  ∂b += (1 - c_{-1}²) r.
 With the attraction, ∂u_0 += (μ - u_0) / v (μ, v: the lane's mean and floored variance of
-{u_0..u_T}, held constant). The program sums its lanes' gradients (in a fixed order: reruns are
-exact; the weight matrices' over the lanes at every step, so that one (H, H) sum, not one per
-lane, stays in registers through the time loop) and writes them, ∂τ = -ε² ∂ε included, into the
-training loop's gradient buffer; a run that is not active keeps what its gradients held.
+{u_0..u_T}, held constant). The backward recurrence (`rnn_backward`) runs a_t back through time
+and writes ε a_t for every step; the sums of the weight matrices' gradients over lanes and steps
+are a second kernel (`rnn_weight_gradients`), so that the recurrence's time loop holds no
+(lanes, H, H) product and sums nothing across threads. Both sum in a fixed order (reruns are
+exact) and write into the training loop's gradient buffer, ∂τ = -ε² ∂ε included; a run that is
+not active keeps what its gradients held.
 
 Real-valued constants are never kernel arguments: a Python float reaches a GPU kernel as a
 float32 scalar (ε = 0.2 became 0.2000000030 in float64 runs), so they are read from memory.
@@ -251,22 +254,21 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
 
 
 @triton.jit
-def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, FLOOR, PASS,
-                 G_W_IN, G_W_REC, G_W_OUT, G_B_C, G_B_O, G_TAU, G_U0,
-                 sW_REC, sW_OUT, sB_C, sTAU, sU0,
-                 sG_W_IN, sG_W_REC, sG_W_OUT, sG_B_C, sG_B_O, sG_TAU, sG_U0,
-                 T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
-                 NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
-                 LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
+def rnn_backward(DO, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, FLOOR, EA,
+                 G_B_C, G_TAU, G_U0, sW_REC, sW_OUT, sB_C, sTAU, sU0, sG_B_C, sG_TAU, sG_U0,
+                 T: tl.constexpr, H: tl.constexpr, NO: tl.constexpr, HP: tl.constexpr,
+                 BL: tl.constexpr, LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
                  LEARN_EPS: tl.constexpr, ATTRACT: tl.constexpr):
-    """Backward pass of one network's lanes given DO (L, T, NO) = ∂L/∂o_t: the network's
-    gradients G_W_IN (H, NI), G_W_REC (H, H), G_W_OUT (NO, H), G_B_C (H), G_B_O (NO), G_TAU (H, when
-    LEARN_EPS; it then reads U) and each lane's G_U0 (H), written where ACTIVE[r]. As in the
-    forward kernel, the products with W_outᵀ and W_recᵀ go by columns: δo_t's from DO itself,
-    ε a_t's through PASS (L, 2, H) after a barrier, each an outer-product update with a row of
-    the weight matrix read from memory."""
+    """Backward recurrence of one network's lanes given DO (L, T, NO) = ∂L/∂o_t: writes ε a_t of
+    every lane and step into EA (L, T, H) for `rnn_weight_gradients`, and the gradients that are
+    sums over a lane's own steps: G_B_C (H), G_TAU (H, when LEARN_EPS; it then reads U) and each
+    lane's G_U0 (H), where ACTIVE[r]. As in the forward kernel, the products with W_outᵀ and
+    W_recᵀ go by columns: δo_t's from DO itself, ε a_t's from EA after a barrier, each an
+    outer-product update with a row of the weight matrix read from memory. The weight matrices'
+    gradients, sums over lanes, are not formed here: summing them at every step ran across the
+    threads that hold the lanes (shuffles, and a (lanes, H, H) product that set the lane budget)."""
     n, r, k = _network(NPR)
-    h, i, o = tl.arange(0, HP), tl.arange(0, NIP), tl.arange(0, NOP)
+    h = tl.arange(0, HP)
     on_h = tl.load(ACTIVE + r + 0 * h) != 0  # (a vector: the interpreter's masks need one)
     h_ok = h < H
     w_rec = W_REC + r * sW_REC + k * (H * H)
@@ -274,45 +276,30 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
     b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
     eps = reciprocal(_vector(TAU + r * sTAU + k * H, h, H, 1.0))[None, :]
     dtype = b_c.dtype
-    n_w_in = tl.zeros((HP, NIP), dtype=dtype)
-    n_w_rec = tl.zeros((HP, HP), dtype=dtype)
-    n_w_out = tl.zeros((NOP, HP), dtype=dtype)
     n_b_c = tl.zeros((HP,), dtype=dtype)
-    n_b_o = tl.zeros((NOP,), dtype=dtype)
     n_eps = tl.zeros((HP,), dtype=dtype)
     for chunk in range(CHUNKS):
-        lane, ok, xrow, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
+        lane, ok, _, u0j = _chunk(XROW, U0J, n, chunk, LPN, BL)
         ok = ok & (tl.load(ACTIVE + r + 0 * lane) != 0)
         u0 = load_rows(U0 + r * sU0, u0j, ok, h, H)
         c0 = stable_tanh(u0 + b_c)
         zero_h = tl.zeros((BL, HP), dtype=dtype)
         a, back, g_b_c, g_eps = zero_h, zero_h, zero_h, zero_h
-        g_b_o = tl.zeros((BL, NOP), dtype=dtype)
         for step in range(T):
             t = T - 1 - step
             c = load_rows(C, lane * T + t, ok, h, H)
-            first = t == 0
-            before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
-            prev = tl.where(first, c0, load_rows(C, lane * T + t - 1, before, h, H))
-            do = load_rows(DO, lane * T + t, ok, o, NO)
             back = _add_by_columns(back, DO, lane * T + t, ok, w_out, h, h_ok, NO, H, 1)  # W_outᵀδo
             dq = (1.0 - c * c) * back
             g_b_c += dq
             a = (1.0 - eps) * a + dq
-            ea = eps * a
-            g_b_o += do
-            n_w_out += tl.sum(do[:, :, None] * c[:, None, :], axis=0)
-            x_t = load_rows(X, xrow * T + t, ok, i, NI)
-            n_w_in += tl.sum(ea[:, :, None] * x_t[:, None, :], axis=0)
-            n_w_rec += tl.sum(ea[:, :, None] * prev[:, None, :], axis=0)
             if LEARN_EPS:
+                before = ok & (lane * 0 + t > 0)  # a step before t exists (a tensor: a mask's type)
                 u = load_rows(U, lane * T + t, ok, h, H)
-                u_prev = tl.where(first, u0, load_rows(U, lane * T + t - 1, before, h, H))
+                u_prev = tl.where(t == 0, u0, load_rows(U, lane * T + t - 1, before, h, H))
                 g_eps += divide(a * (u - u_prev), eps)
-            row = lane * 2 + step % 2  # back = W_recᵀ ε a_t, by the columns of ε a_t
-            _put(PASS, row, ok, h, ea, H)
+            _put(EA, lane * T + t, ok, h, eps * a, H)  # back = W_recᵀ ε a_t, by its columns
             tl.debug_barrier()
-            back = _add_by_columns(zero_h, PASS, row, ok, w_rec, h, h_ok, H, H, 1)
+            back = _add_by_columns(zero_h, EA, lane * T + t, ok, w_rec, h, h_ok, H, H, 1)
         dq = (1.0 - c0 * c0) * back
         g_u0 = (1.0 - eps) * a + dq
         if ATTRACT:
@@ -320,14 +307,54 @@ def rnn_backward(DO, X, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIV
             g_u0 += divide(mean - u0, var)
         _put(G_U0 + r * sG_U0, u0j, ok, h, g_u0, H)
         n_b_c += tl.sum(g_b_c + dq, axis=0)
-        n_b_o += tl.sum(g_b_o, axis=0)
         n_eps += tl.sum(g_eps, axis=0)
-    tl.store(G_B_C + r * sG_B_C + k * H + h, n_b_c, mask=on_h & (h < H))
-    on_o = tl.load(ACTIVE + r + 0 * o) != 0
-    tl.store(G_B_O + r * sG_B_O + k * NO + o, n_b_o, mask=on_o & (o < NO))
+    tl.store(G_B_C + r * sG_B_C + k * H + h, n_b_c, mask=on_h & h_ok)
     if LEARN_EPS:  # ∂/∂τ = -ε² ∂/∂ε
         eps_h = tl.sum(eps, axis=0)
-        tl.store(G_TAU + r * sG_TAU + k * H + h, -n_eps * (eps_h * eps_h), mask=on_h & (h < H))
+        tl.store(G_TAU + r * sG_TAU + k * H + h, -n_eps * (eps_h * eps_h), mask=on_h & h_ok)
+
+
+@triton.jit
+def rnn_weight_gradients(EA, DO, C, X, XROW, U0J, U0, B_C, ACTIVE,
+                         G_W_IN, G_W_REC, G_W_OUT, G_B_O, sB_C, sU0,
+                         sG_W_IN, sG_W_REC, sG_W_OUT, sG_B_O,
+                         T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
+                         IG: tl.constexpr, HG: tl.constexpr, OG: tl.constexpr,
+                         BR: tl.constexpr, LPN: tl.constexpr, NPR: tl.constexpr):
+    """One network's weight gradients, sums over its lanes and steps (LPN·T rows, BR at a time):
+        ∂W_in = Σ (ε a_t) x_tᵀ,  ∂W_rec = Σ (ε a_t) c_{t-1}ᵀ,  ∂W_out = Σ δo_t c_tᵀ,  ∂b_o = Σ δo_t
+    from EA (`rnn_backward`), DO and C (with c_{-1} = tanh(u_0 + b)), written where ACTIVE[r].
+    Each block of rows is a matrix product (`tl.dot`: an H200's fp64 tensor cores, DMMA; sizes
+    padded to at least 16 as it requires), summed in a fixed order: reruns are exact."""
+    n, r, k = _network(NPR)
+    h, i, o, q = tl.arange(0, HG), tl.arange(0, IG), tl.arange(0, OG), tl.arange(0, BR)
+    on_h = tl.load(ACTIVE + r + 0 * h) != 0
+    on_o = tl.load(ACTIVE + r + 0 * o) != 0
+    b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
+    dtype = b_c.dtype
+    n_w_in = tl.zeros((HG, IG), dtype=dtype)
+    n_w_rec = tl.zeros((HG, HG), dtype=dtype)
+    n_w_out = tl.zeros((OG, HG), dtype=dtype)
+    n_b_o = tl.zeros((OG,), dtype=dtype)
+    for block in range(tl.cdiv(LPN * T, BR)):
+        at = block * BR + q
+        ok = at < LPN * T
+        t = at % T
+        lane = n * LPN + at // T
+        first, later = ok & (t == 0), ok & (t > 0)
+        ea = load_rows(EA, lane * T + t, ok, h, H)
+        do = load_rows(DO, lane * T + t, ok, o, NO)
+        u0 = load_rows(U0 + r * sU0, tl.load(U0J + lane, mask=first, other=0), first, h, H)
+        prev = tl.where(first[:, None], stable_tanh(u0 + b_c),
+                        load_rows(C, lane * T + t - 1, later, h, H))
+        x = load_rows(X, tl.load(XROW + lane, mask=ok, other=0) * T + t, ok, i, NI)
+        eat = tl.trans(ea)
+        n_w_in += tl.dot(eat, x, input_precision="ieee")
+        n_w_rec += tl.dot(eat, prev, input_precision="ieee")
+        n_w_out += tl.dot(tl.trans(do), load_rows(C, lane * T + t, ok, h, H),
+                          input_precision="ieee")
+        n_b_o += tl.sum(do, axis=0)
+    tl.store(G_B_O + r * sG_B_O + k * NO + o, n_b_o, mask=on_o & (o < NO))
     _put_tile(G_W_IN + r * sG_W_IN + k * (H * NI), h, i, n_w_in, on_h, H, NI)
     _put_tile(G_W_REC + r * sG_W_REC + k * (H * H), h, h, n_w_rec, on_h, H, H)
     _put_tile(G_W_OUT + r * sG_W_OUT + k * (NO * H), o, h, n_w_out, on_o, NO, H)
