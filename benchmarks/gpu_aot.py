@@ -36,7 +36,7 @@ SIZES = {  # name: (Hydra overrides, what it is)
     "lissajous9": (["task=lissajous9"], "Figs. 10-13: 24 experts, NC 30, τ 5, 1 x 10 000 steps"),
 }
 TRAINING = ("rnn_forward", "rnn_backward", "rnn_weight_gradients", "mixture_objective",
-            "softmax_objective")
+            "softmax_objective", "momentum_kernel")
 # the most each kernel may use at any size above (registers per thread, SHFL and BAR
 # instructions in its machine code); a training kernel may not spill at all (BENCHMARKS.md,
 # "Compiled for an H200", states these and the redesign's goals beside them)
@@ -44,6 +44,7 @@ BUDGET = {  # the counts at the sizes above on 2026-12-04 (4 warps), rounded up:
     "rnn_forward": {"registers": 96, "shuffles": 0, "barriers": 4},  # by columns (2026-12-04)
     "rnn_backward": {"registers": 255, "shuffles": 32, "barriers": 24},  # by columns too
     "rnn_weight_gradients": {"registers": 255, "shuffles": 330, "barriers": 30},
+    "momentum_kernel": {"registers": 96, "shuffles": 8, "barriers": 4},
     "mixture_objective": {"registers": 255, "shuffles": 330, "barriers": 30},
     "softmax_objective": {"registers": 112, "shuffles": 330, "barriers": 2},
     "closed_loop_kernel": {"registers": 255, "shuffles": 2048, "barriers": 170},

@@ -159,8 +159,8 @@ def _host(arrays: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
-            rates: dict[str, float], problem, *, criterion: str, steps: int, momentum: float,
-            adaptive: bool, rule: TrainConfig, phase: str, log_every: int,
+            rates: dict[str, float], problem, *, backend: Backend, criterion: str, steps: int,
+            momentum: float, adaptive: bool, rule: TrainConfig, phase: str, log_every: int,
             hooks: Hooks | None = None, error: str | None = None
             ) -> tuple[dict[str, torch.Tensor], list[dict]]:
     """Momentum gradient ascent (Eqs. 17-18), optionally with the adaptive rate of Sec. 2.1.4.
@@ -169,7 +169,8 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     preallocated (R, P) tensors on the problem's device (`problem.device`); a step is one
     `problem.value_and_grad` call, in-place updates, and with the adaptive rate one
     `problem.value` call per trial, or one `problem.value_of_candidates` call per `trials`
-    trials where the backend evaluates several at once (gpu). The host reads one flag per such
+    trials where the backend evaluates several at once (gpu); the update is the backend's
+    `momentum_step` (one compiled call or launch on cpu and gpu). The host reads one flag per such
     call and per-run statistics when it logs. A run whose objective or gradient becomes
     non-finite is marked failed and frozen; the other runs go on untouched. Without the adaptive
     rate, a step that makes a run's parameters non-finite is rolled back and the run marked failed.
@@ -178,6 +179,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         params: learned parameters (R, ...) per group; fixed: the others (e.g. τ).
         rates: the scaled learning rate of each group (C code).
         problem: a backend's `ExpertProblem` or `GatingProblem` (`moex.kernels.Problem`).
+        backend: whose `momentum_step` and `apply_step` update the buffers.
         criterion: statistic whose ratio r drives the adaptive rate (E or the KL).
         rule: supplies the adaptive thresholds and the momentum form.
         hooks: tracking, checkpointing and resuming (see `Hooks`).
@@ -221,6 +223,8 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         rows, start = state["rows"], state["step"]
     rate = layout.per_entry(rates)
     paper_form = rule.momentum_form == "paper"
+    tau = layout.bounds.get("tau")  # (its columns: ε <= 1 kept, as in the C code)
+    no_retries = torch.zeros(R, dtype=torch.int64, device=device)
 
     def save(step):
         hooks.save({"step": step, "params": _host(views), "velocity": _host(moments),
@@ -237,26 +241,20 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         # ---- gradient of ln L at the current parameters (a noisy objective draws its noise)
         problem.resample(step)
         stats = statistics(problem.value_and_grad(net, grads, ~failed))
-        failed |= ~(torch.isfinite(stats["objective"]) & torch.isfinite(grad.sum(1)))
-        grad.masked_fill_(failed[:, None], 0.0)  # (masks, never boolean indexing: no host sync)
-        # ---- the step Δθ: Eq. 17 keeps Δθ in the buffer, the C code the sum of raw gradients
-        if paper_form:
-            torch.mul(velocity, momentum, out=scratch)
-            torch.mul(grad, rate, out=delta)
-            delta *= lr_scale[:, None]
-            delta += scratch
-        else:
-            velocity *= momentum
-            velocity += grad
-            torch.mul(velocity, rate, out=delta)
-            delta *= lr_scale[:, None]
-        retries = torch.zeros(R, dtype=torch.int64, device=device)
+        # ---- the step Δθ (Eq. 17 keeps Δθ in the buffer, the C code the sum of raw gradients),
+        # failed runs frozen; at a fixed rate also taken (non-finite results rolled back)
+        backend.momentum_step(theta, grad, velocity, delta, rate=rate, lr_scale=lr_scale,
+                              objective=stats["objective"], failed=failed, momentum=momentum,
+                              paper_form=paper_form, apply=not adaptive, tau=tau)
+        retries = no_retries
         # ---- adaptive rate: each run shrinks its own step until r <= r_th (Sec. 2.1.4). The
         # backend evaluates k candidate steps Δθ·α_dec^j (j < k) per call, each run takes its
         # first accepted one, as trying them one by one would; the host reads one flag per
         # call (whether any run rejected all k), nothing else
-        pending = ~failed if adaptive else torch.zeros_like(failed)
+        pending = ~failed if adaptive else None
         base, left = stats[criterion], rule.adaptive.max_retries if adaptive else 0
+        if left > 0:
+            retries = torch.zeros(R, dtype=torch.int64, device=device)
         while left > 0:
             n = min(batch, left)
             torch.add(theta, delta, out=scratch)
@@ -286,19 +284,9 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
                 # term left whole (a strict reading of Sec. 2.1.4) r can stay above r_th for
                 # every α, and the rate collapsed to 0.7^1000 in a measured two-Lissajous run
                 delta.mul_(torch.where(pending, dec, one).to(delta.dtype)[:, None])
-        # ---- update; give up the step of runs still rejected, roll back non-finite runs
-        if not adaptive:
-            torch.add(theta, delta, out=scratch)
-            failed |= ~torch.isfinite(scratch.sum(1))
-        frozen = (pending | failed)[:, None]
-        delta.masked_fill_(frozen, 0.0)
-        theta += delta
-        if paper_form:
-            velocity.copy_(delta)
-        else:
-            velocity.masked_fill_(frozen, 0.0)
-        if "tau" in views:
-            views["tau"].clamp_(min=1.0)  # ε <= 1, as in the C code
+        if adaptive:  # ---- the update; runs still rejected give up their step
+            backend.apply_step(theta, delta, velocity, pending | failed, paper_form=paper_form,
+                               tau=tau)
         tracked = hooks.monitor_every > 0 and step >= hooks.monitor_from and (
             step % hooks.monitor_every == 0 or step == steps - 1)
         if tracked:
@@ -377,9 +365,10 @@ def train_experts(experts: dict[str, torch.Tensor], series: torch.Tensor, model:
     rates = {k: alpha / (S * T * D) for k in params}
     rates.update(u0=alpha / D, beta=alpha)
     problem = backend.expert_problem(inputs, targets, model, cfg, R)
-    trained, rows = _ascend(params, fixed, rates, problem, criterion="E", steps=cfg.steps,
-                            momentum=cfg.momentum, adaptive=cfg.adaptive_lr, rule=rule,
-                            phase="experts", log_every=cfg.log_every, hooks=hooks, error="E")
+    trained, rows = _ascend(params, fixed, rates, problem, backend=backend, criterion="E",
+                            steps=cfg.steps, momentum=cfg.momentum, adaptive=cfg.adaptive_lr,
+                            rule=rule, phase="experts", log_every=cfg.log_every, hooks=hooks,
+                            error="E")
     beta = trained.pop("beta")
     return {**trained, **fixed}, beta, rows
 
@@ -421,7 +410,8 @@ def train_gating(gating: dict[str, torch.Tensor], gate_targets: torch.Tensor,
     rates["u0"] = cfg.learning_rate / K
     problem = backend.gating_problem(gate_targets.detach(), inputs.detach(), model, cfg,
                                      list(range(R)) if seeds is None else seeds)
-    trained, rows = _ascend(params, fixed, rates, problem, criterion="kl", steps=cfg.steps,
-                            momentum=cfg.momentum, adaptive=cfg.adaptive_lr, rule=rule,
-                            phase="gating", log_every=cfg.log_every, hooks=hooks, error="E_g")
+    trained, rows = _ascend(params, fixed, rates, problem, backend=backend, criterion="kl",
+                            steps=cfg.steps, momentum=cfg.momentum, adaptive=cfg.adaptive_lr,
+                            rule=rule, phase="gating", log_every=cfg.log_every, hooks=hooks,
+                            error="E_g")
     return {**trained, **fixed}, rows

@@ -224,7 +224,8 @@ def test_adaptive_retries_shrink_the_momentum_too():
     0.7^1000); shrinking the whole step recovers."""
     from moex.train import _ascend
 
-    trained, rows = _ascend({"x": torch.ones((1, 1))}, {}, {"x": 0.9}, _Parabola(), criterion="kl",
+    trained, rows = _ascend({"x": torch.ones((1, 1))}, {}, {"x": 0.9}, _Parabola(),
+                            backend=get_backend("reference"), criterion="kl",
                             steps=30, momentum=0.9, adaptive=True, rule=TrainConfig(),
                             phase="toy", log_every=1)
     assert rows[-1]["lr_scale"] > 1e-6  # the strict reading ends near 1e-155
@@ -266,7 +267,8 @@ def test_candidate_steps_in_one_call_train_as_one_by_one(k):
     rule = TrainConfig(adaptive=AdaptiveLRConfig(max_retries=5, max_ratio=1.01))
     out = []
     for problem in (_Parabola(), _Parabola(k)):
-        out.append((*_ascend({"x": start["x"].clone()}, {}, {"x": 1.7}, problem, criterion="kl",
+        out.append((*_ascend({"x": start["x"].clone()}, {}, {"x": 1.7}, problem,
+                             backend=get_backend("reference"), criterion="kl",
                              steps=25, momentum=0.9, adaptive=True, rule=rule, phase="toy",
                              log_every=1), problem.calls))
     (one, rows_one, calls_one), (batched, rows, calls) = out

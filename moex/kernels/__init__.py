@@ -10,6 +10,8 @@ device the `Backend` binds it to:
 - `closed_loop(experts, gating, state, steps, noise, tangents, count, ..., device)`: the
   autonomous mixture (Sec. 2.2) with Lyapunov tangent vectors;
 - `nearest_symbols(points, prototypes, prototype_symbols, device)`: the symbol of each point;
+- `momentum_step(...)`, `apply_step(...)`: the training loop's update of its (R, P) buffers
+  (Eqs. 17-18), the reference's PyTorch operators as one compiled call (cpu) or launch (gpu);
 - `warm_up(precision)`: before a first training, start compiling what comes later (cpu only).
 
 The problems take data shared by all runs, (S, T, D), or data of each run's own, (R, S, T, D):
@@ -89,6 +91,12 @@ class BackendModule(Protocol):
     def warm_up(self, precision: str) -> None:
         """Before a first training: start compiling what the run needs later (or nothing)."""
 
+    def momentum_step(self, theta, grad, velocity, delta, *, rate, lr_scale, objective, failed,
+                      momentum: float, paper_form: bool, apply: bool, tau=None) -> None: ...
+
+    def apply_step(self, theta, delta, velocity, frozen, *, paper_form: bool,
+                   tau=None) -> None: ...
+
 
 @dataclass(frozen=True)
 class Backend:
@@ -122,6 +130,15 @@ class Backend:
     def warm_up(self, precision: str) -> None:
         """Start compiling the kernels a first training needs after its first phase."""
         self.module.warm_up(precision)
+
+    def momentum_step(self, theta, grad, velocity, delta, **kwargs) -> None:
+        """The ascent's step Δθ on the training loop's buffers, and with `apply` the step taken
+        (`moex.kernels.reference.momentum_step`: the arguments and the bits)."""
+        self.module.momentum_step(theta, grad, velocity, delta, **kwargs)
+
+    def apply_step(self, theta, delta, velocity, frozen, **kwargs) -> None:
+        """θ += Δθ for the runs not frozen (`moex.kernels.reference.apply_step`)."""
+        self.module.apply_step(theta, delta, velocity, frozen, **kwargs)
 
 
 def _gpu_module():

@@ -185,3 +185,44 @@ def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
 
 def warm_up(precision: str) -> None:
     """Nothing to compile (PyTorch's eager operators)."""
+
+
+def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, failed,
+                  momentum: float, paper_form: bool, apply: bool, tau=None) -> None:
+    """The step Δθ of momentum ascent (Eqs. 17-18), in place on the training loop's (R, P)
+    buffers: a run whose objective or gradient is not finite joins `failed` (R,) and its gradient
+    is zeroed; then Δθ = α ∘ g·s_r + η Δθ_prev in `delta` (paper form: `velocity` holds Δθ_prev)
+    or, the C code's form, v ← η v + g and Δθ = α ∘ v·s_r, where α is `rate` (P,) and s_r the
+    run's adaptive factor `lr_scale` (R,, float64). With `apply` (a fixed rate) the step is also
+    taken (`apply_step`), a run whose θ + Δθ would not be finite joining `failed` first.
+    `tau`: the (start, end) columns of τ, kept >= 1. The other backends' versions give these
+    bits exactly (each operation rounded as here)."""
+    failed |= ~(torch.isfinite(objective) & torch.isfinite(grad).all(1))
+    grad.masked_fill_(failed[:, None], 0.0)
+    if paper_form:
+        kept = velocity * momentum
+        torch.mul(grad, rate, out=delta)
+        delta *= lr_scale[:, None]
+        delta += kept
+    else:
+        velocity *= momentum
+        velocity += grad
+        torch.mul(velocity, rate, out=delta)
+        delta *= lr_scale[:, None]
+    if apply:
+        failed |= ~torch.isfinite(theta + delta).all(1)
+        apply_step(theta, delta, velocity, failed, paper_form=paper_form, tau=tau)
+
+
+def apply_step(theta, delta, velocity, frozen, *, paper_form: bool, tau=None) -> None:
+    """θ += Δθ for the runs not `frozen` (R,) (their Δθ zeroed); the paper form keeps Δθ as the
+    next step's momentum, the C code's form zeroes a frozen run's v; τ's columns kept >= 1 (ε <=
+    1, as in the C code)."""
+    delta.masked_fill_(frozen[:, None], 0.0)
+    theta += delta
+    if paper_form:
+        velocity.copy_(delta)
+    else:
+        velocity.masked_fill_(frozen[:, None], 0.0)
+    if tau is not None:
+        theta[:, tau[0]:tau[1]].clamp_(min=1.0)

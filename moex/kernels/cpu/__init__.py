@@ -12,12 +12,12 @@ are summed over the lanes of each network at the end.
 
 Modules: `cache` (numba's cache keyed on every source here), `simd` (lanes, exp/log/tanh, fma),
 `threads` (the kernels' thread pool), `rnn` (the leaky RNN's forward pass and BPTT over a block
-of lanes, with the derivation), `lanes`
-(parameters to lanes and back, work arrays), `phases` (phase 1 and phase 2: the objectives, the
-problem classes), `closed_loop` (the autonomous mixture with Lyapunov tangents), `symbols`
-(nearest-point readout), `warm` and `helper` (a first run's helper process that compiles the
-later kernels while the run trains: the run's side and the process). The GPU backend
-(`moex.kernels.gpu`) mirrors it module for module.
+of lanes, with the derivation), `lanes` (parameters to lanes and back, work arrays), `phases`
+(phase 1 and phase 2: the objectives, the problem classes), `closed_loop` (the autonomous mixture
+with Lyapunov tangents), `symbols` (nearest-point readout), `update` (the training loop's
+momentum step), `warm` and `helper` (a first run's helper process that compiles the later kernels
+while the run trains: the run's side and the process). The GPU backend (`moex.kernels.gpu`)
+mirrors it module for module.
 """
 
 from moex.kernels.cpu.cache import install
@@ -27,8 +27,10 @@ install()  # numba's cache keyed on all of this package's sources, before any ke
 from moex.kernels.cpu.closed_loop import closed_blocks, closed_loop  # noqa: E402
 from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, gating_items  # noqa: E402
 from moex.kernels.cpu.symbols import nearest_symbols  # noqa: E402
+from moex.kernels.cpu.update import apply_step, momentum_step  # noqa: E402
 
-__all__ = ["ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up"]
+__all__ = ["ExpertProblem", "GatingProblem", "apply_step", "closed_loop", "momentum_step",
+           "nearest_symbols", "warm_up"]
 LATER = (closed_blocks, gating_items)  # the helper's two large kernels (`warm.cached`)
 
 

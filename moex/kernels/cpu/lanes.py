@@ -300,16 +300,33 @@ class Staging:
     def __init__(self, shapes: dict, dtype):
         self.params = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
         self.grads = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
+        # (tensor, its numpy view or None) per (group, copy_in): the training loop hands the
+        # same views every step, whose numpy views need not be made and checked again
+        self.seen: dict[tuple[str, bool], tuple] = {}
 
     def load(self, params: dict) -> dict:
         """The arrays holding `params` for the kernels to read."""
-        return {name: _direct(value, self.params[name], True) for name, value in params.items()}
+        return {name: self._direct(name, value, self.params[name], True)
+                for name, value in params.items()}
 
     def outputs(self, grads: dict | None) -> dict:
         """The arrays the kernels write the gradients into: the `grads` views themselves where
         they can, else this class's (`store` copies those out); scratch for groups not given."""
-        return {name: _direct(grads[name], own, False) if grads and name in grads else own
-                for name, own in self.grads.items()}
+        return {name: self._direct(name, grads[name], own, False) if grads and name in grads
+                else own for name, own in self.grads.items()}
+
+    def _direct(self, name: str, value, own: np.ndarray, copy_in: bool) -> np.ndarray:
+        """`_direct(value, own, copy_in)`, remembering the last tensor of each group."""
+        seen = self.seen.get((name, copy_in))
+        if seen is None or seen[0] is not value:
+            x = to_host(value)
+            seen = (value, x if _usable(x, own) else None, x)
+            self.seen[name, copy_in] = seen
+        if seen[1] is not None:
+            return seen[1]
+        if copy_in:
+            np.copyto(own, seen[2])
+        return own
 
     def store(self, grads: dict | None, written: dict) -> None:
         """Copy the gradients the kernels wrote into `written` out to `grads` where they differ."""
@@ -318,16 +335,11 @@ class Staging:
                 np.copyto(to_host(value), self.grads[name])
 
 
-def _direct(value, own: np.ndarray, copy_in: bool) -> np.ndarray:
-    """The numpy view of `value` where the kernels can take it as it is (C-contiguous, writeable,
-    aligned, of the staged shape and dtype), else `own`, with the value copied in if `copy_in`."""
-    x = to_host(value)
-    if (x.flags.c_contiguous and x.flags.writeable and x.flags.aligned and x.shape == own.shape
-            and x.dtype == own.dtype):
-        return x
-    if copy_in:
-        np.copyto(own, x)
-    return own
+def _usable(x: np.ndarray, own: np.ndarray) -> bool:
+    """Whether the kernels can take `x` as it is, instead of `own` (C-contiguous, writeable,
+    aligned, of the staged shape and dtype)."""
+    return (x.flags.c_contiguous and x.flags.writeable and x.flags.aligned
+            and x.shape == own.shape and x.dtype == own.dtype)
 
 
 def to_host(x) -> np.ndarray:

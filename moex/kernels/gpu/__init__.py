@@ -4,7 +4,8 @@
 - `lanes`: the lane layout, the kernels' launches and their compiled registers and spills;
 - `phases`: `ExpertProblem` (phase 1) and `GatingProblem` (phase 2) around those kernels;
 - `closed_loop`: the autonomous mixture with its Lyapunov tangents, one launch per chunk;
-- `symbols`: the nearest-prototype symbol of generated points, one launch.
+- `symbols`: the nearest-prototype symbol of generated points, one launch;
+- `update`: the training loop's momentum step, one launch.
 
 With `TRITON_INTERPRET=1` (set before this package is imported) Triton runs every kernel on the
 CPU, slowly: that is how the tests check them without a GPU.
@@ -17,9 +18,10 @@ from moex.kernels.gpu.lanes import kernel_report
 from moex.kernels.gpu.phases import ExpertProblem, GatingProblem
 from moex.kernels.gpu.rnn import INTERPRET
 from moex.kernels.gpu.symbols import nearest_symbols
+from moex.kernels.gpu.update import apply_step, momentum_step
 
-__all__ = ["ExpertProblem", "GatingProblem", "available", "closed_loop", "kernel_report",
-           "nearest_symbols", "warm_up"]
+__all__ = ["ExpertProblem", "GatingProblem", "apply_step", "available", "closed_loop",
+           "kernel_report", "momentum_step", "nearest_symbols", "warm_up"]
 
 
 def warm_up(precision: str) -> None:

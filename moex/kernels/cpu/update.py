@@ -1,0 +1,91 @@
+"""The training loop's momentum step (`moex.kernels.reference.momentum_step`, `apply_step`) as
+one compiled call per thread over the runs: a run's row of the (R, P) buffers is read and
+written in two passes (the finiteness checks need the whole row first) instead of a dozen
+PyTorch operators, each a pass over every run. Each operation rounds as the reference's does
+(no fused multiply-add, float32 steps scaled in float64 as PyTorch does), so the bits are the
+reference's; and no fast-math flag, since the checks look for NaN and infinity (`nnan`/`ninf`
+would let LLVM assume there are none)."""
+
+import numpy as np
+from numba import njit
+
+from moex.kernels.cpu import threads
+from moex.kernels.cpu.lanes import to_host
+
+JIT = dict(nogil=True, error_model="numpy", cache=True)
+
+
+@njit(**JIT)
+def _finite(row) -> bool:
+    for x in row:
+        if not np.isfinite(x):
+            return False
+    return True
+
+
+@njit(**JIT)
+def _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
+    zero = delta.dtype.type(0.0)
+    for p in range(theta.shape[1]):
+        if frozen:
+            delta[r, p] = zero
+        theta[r, p] += delta[r, p]
+        if paper_form:
+            velocity[r, p] = delta[r, p]
+        elif frozen:
+            velocity[r, p] = zero
+    for p in range(tau_start, tau_end):
+        if theta[r, p] < 1.0:  # (NaN stays NaN, as torch.clamp_ leaves it)
+            theta[r, p] = 1.0
+
+
+@njit(**JIT)
+def _steps(lo, hi, theta, grad, velocity, delta, rate, lr_scale, objective, failed, momentum,
+           paper_form, apply, tau_start, tau_end):
+    """Runs lo..hi-1: their Δθ, and with `apply` the step taken."""
+    zero = grad.dtype.type(0.0)
+    for r in range(lo, hi):
+        bad = failed[r] or not (np.isfinite(objective[r]) and _finite(grad[r]))
+        failed[r] = bad
+        scale = lr_scale[r]
+        for p in range(grad.shape[1]):
+            if bad:
+                grad[r, p] = zero
+            if paper_form:
+                kept = velocity[r, p] * momentum
+                step = grad[r, p] * rate[p]
+                delta[r, p] = step * scale  # (float64, then rounded to the buffer's type)
+                delta[r, p] += kept
+            else:
+                velocity[r, p] = velocity[r, p] * momentum
+                velocity[r, p] += grad[r, p]
+                delta[r, p] = velocity[r, p] * rate[p] * scale
+        if apply:
+            if not bad:
+                for p in range(grad.shape[1]):
+                    if not np.isfinite(theta[r, p] + delta[r, p]):
+                        bad = True
+                        break
+            failed[r] = bad
+            _apply(r, theta, delta, velocity, bad, paper_form, tau_start, tau_end)
+
+
+@njit(**JIT)
+def _applies(lo, hi, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
+    for r in range(lo, hi):
+        _apply(r, theta, delta, velocity, frozen[r], paper_form, tau_start, tau_end)
+
+
+def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, failed,
+                  momentum: float, paper_form: bool, apply: bool, tau=None) -> None:
+    """`moex.kernels.reference.momentum_step`, bit for bit."""
+    arrays = [to_host(x) for x in (theta, grad, velocity, delta, rate, lr_scale, objective,
+                                   failed)]
+    threads.over(_steps, len(arrays[0]), *arrays, arrays[0].dtype.type(momentum),
+                 bool(paper_form), bool(apply), *(tau or (0, 0)))
+
+
+def apply_step(theta, delta, velocity, frozen, *, paper_form: bool, tau=None) -> None:
+    """`moex.kernels.reference.apply_step`, bit for bit."""
+    arrays = [to_host(x) for x in (theta, delta, velocity, frozen)]
+    threads.over(_applies, len(arrays[0]), *arrays, bool(paper_form), *(tau or (0, 0)))

@@ -1,0 +1,74 @@
+"""The training loop's momentum step on every backend (`momentum_step`, `apply_step`): the
+reference's PyTorch operators give the bits, and the compiled call (cpu) and the launch (gpu)
+must give the same bits, with failed runs, non-finite gradients and objectives, a step that
+overflows, τ's clamp, both momentum forms and both precisions."""
+
+import pytest
+import torch
+
+from moex.kernels import get_backend
+from tests.conftest import backend_params
+
+R, P, TAU = 6, 1500, (10, 20)  # P spans two of the gpu kernel's 1024-entry tiles
+
+
+def _buffers(dtype) -> dict:
+    gen = torch.Generator().manual_seed(3)
+    big = torch.finfo(dtype).max
+
+    def randn(*shape):
+        return torch.randn(*shape, generator=gen, dtype=torch.float64).to(dtype)
+
+    theta, grad, velocity = randn(R, P), randn(R, P), randn(R, P)
+    theta[:, TAU[0]:TAU[1]] = 0.5 + randn(R, TAU[1] - TAU[0]).abs()  # some below 1
+    theta[:, 5] = -0.0  # -0 + 0 = +0, as PyTorch adds
+    grad[1, 1400] = float("nan")  # run 1: a NaN gradient
+    objective = randn(R)
+    objective[2] = float("inf")  # run 2: an infinite objective
+    failed = torch.zeros(R, dtype=torch.bool)
+    failed[3] = True  # run 3: failed before
+    theta[4, 7], grad[4, 7] = big, big  # run 4: θ + Δθ overflows (at a fixed rate: rolled back)
+    return dict(theta=theta, grad=grad, velocity=velocity, delta=torch.zeros(R, P, dtype=dtype),
+                rate=(0.01 + torch.rand(P, generator=gen, dtype=torch.float64)).to(dtype),
+                lr_scale=0.7 ** torch.arange(R, dtype=torch.float64),
+                objective=objective, failed=failed)
+
+
+def _same(a: dict, b: dict) -> None:
+    for name in a:
+        torch.testing.assert_close(b[name].cpu(), a[name], rtol=0, atol=0, equal_nan=True,
+                                   msg=lambda m, name=name: f"{name}: {m}")
+
+
+@pytest.mark.parametrize("backend", backend_params(reference=False), indirect=True)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("paper_form", [True, False])
+@pytest.mark.parametrize("apply", [True, False])
+def test_a_momentum_step_gives_the_references_bits(backend, dtype, paper_form, apply):
+    want, got = _buffers(dtype), _buffers(dtype)
+    got = {k: v.to(backend.device) for k, v in got.items()}
+    for chosen, b in ((get_backend("reference"), want), (backend, got)):
+        chosen.momentum_step(b["theta"], b["grad"], b["velocity"], b["delta"], rate=b["rate"],
+                             lr_scale=b["lr_scale"], objective=b["objective"],
+                             failed=b["failed"], momentum=0.9, paper_form=paper_form,
+                             apply=apply, tau=TAU)
+    _same(want, got)
+    assert want["failed"].tolist() == [False, True, True, True, apply, False]
+    assert (want["grad"][1:4] == 0).all() and want["grad"][0].ne(0).any()
+    if apply:  # the step was taken: τ kept >= 1 (in every run), failed runs' θ unchanged
+        assert (want["theta"][:, TAU[0]:TAU[1]] >= 1).all()
+        assert torch.equal(want["theta"][4, TAU[1]:], _buffers(dtype)["theta"][4, TAU[1]:])
+
+
+@pytest.mark.parametrize("backend", backend_params(reference=False), indirect=True)
+@pytest.mark.parametrize("paper_form", [True, False])
+def test_an_adaptive_steps_update_gives_the_references_bits(backend, paper_form):
+    want, got = _buffers(torch.float64), _buffers(torch.float64)
+    got = {k: v.to(backend.device) for k, v in got.items()}
+    frozen = torch.tensor([False, True, False, True, False, False])
+    for chosen, b in ((get_backend("reference"), want), (backend, got)):
+        chosen.apply_step(b["theta"], b["grad"], b["velocity"], frozen.to(b["theta"].device),
+                          paper_form=paper_form, tau=TAU)
+    _same(want, got)
+    assert (want["grad"][frozen] == 0).all()
+    assert torch.equal(want["theta"][1, 30:], _buffers(torch.float64)["theta"][1, 30:])
