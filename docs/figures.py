@@ -17,7 +17,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from moex import plotting
-from moex.report import NEAR, _limits, aggregate
+from moex.report import NEAR, aggregate, heat_limits
 
 DOCS = Path(__file__).resolve().parent
 NETWORKS = "10 networks per cell, P = 0.5, the paper's training"
@@ -47,7 +47,7 @@ def capacity() -> None:
     fig, axes = plt.subplots(len(FIG14), ncs, figsize=(4.2 * ncs, 3.5 * len(FIG14)),
                              constrained_layout=True, squeeze=False)
     for row, column in zip(axes, FIG14, strict=True):
-        _heat_row(row, quiet, column, _limits(quiet[column], column), "")
+        _heat_row(row, quiet, column, heat_limits(quiet[column], column), "")
     fig.suptitle(f"Fig. 14: closed-loop error and chaotic networks\n{NETWORKS}")
     plotting.save_figure(fig, DOCS / "capacity_fig14.png")
     fig, axes = plt.subplots(len(noises), ncs, figsize=(4.2 * ncs, 3.5 * len(noises)),

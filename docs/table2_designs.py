@@ -20,7 +20,7 @@ import pandas as pd
 
 DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS))
-from table2_onehot import _one, at_p, markdown  # noqa: E402
+from table2_onehot import at_p, design_row, markdown  # noqa: E402
 
 from moex.tasks.paper import PAPER_TABLE2  # noqa: E402
 
@@ -57,7 +57,7 @@ def table() -> tuple[pd.DataFrame, pd.DataFrame]:
         for name, runs in (("one data set", theirs), ("a data set per network", mine)):
             rows.append({"P": p, "design": name, "paper": f"{paper['paper_switch_prob']:.3f}",
                          "data (mean)": f"{runs['data_switch_prob'].mean():.3f}",
-                         **_one(runs, paper["paper_switch_prob"])})
+                         **design_row(runs, paper["paper_switch_prob"])})
         a, b = mine["switch_prob"].to_numpy(), theirs["switch_prob"].to_numpy()
         se = np.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
         added = a.var(ddof=1) - b.var(ddof=1)

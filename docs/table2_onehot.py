@@ -29,7 +29,8 @@ def sign_flip_p(difference: np.ndarray, draws: int = 100_000) -> float:
     return float((1 + (flipped >= abs(difference.mean()) - 1e-15).sum()) / (draws + 1))
 
 
-def _one(runs: pd.DataFrame, paper: float) -> dict:
+def design_row(runs: pd.DataFrame, paper: float) -> dict:
+    """One design's row: its runs' switching probability and chaotic share against the paper's."""
     switching, n = runs["switch_prob"], len(runs)
     chaotic = int((runs["max_lyapunov"] > 0).sum())
     low, high = wilson_interval(chaotic, n)
@@ -64,7 +65,7 @@ def table() -> tuple[pd.DataFrame, pd.DataFrame]:
         for name, runs in (("soft", theirs), ("one-hot", mine)):
             rows.append({"P": p, "targets": name, "paper": f"{paper['paper_switch_prob']:.3f}",
                          "data": f"{runs['data_switch_prob'].mean():.3f}",
-                         **_one(runs, paper["paper_switch_prob"])})
+                         **design_row(runs, paper["paper_switch_prob"])})
         both = mine.merge(theirs, on="run", suffixes=("_onehot", "_soft"))
         difference = both["switch_prob_onehot"] - both["switch_prob_soft"]
         pairs.append({"P": p, "pairs": len(both),

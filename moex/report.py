@@ -329,7 +329,7 @@ def short_summary(summary: pd.DataFrame, keys: list[str], width: int = 100) -> s
     return "\n".join(lines)
 
 
-def _limits(values: pd.Series, column: str) -> tuple[float, float]:
+def heat_limits(values: pd.Series, column: str) -> tuple[float, float]:
     """One colour range for every panel of a column: shares on their full scale."""
     if column.endswith("_percent"):
         return 0.0, 100.0
@@ -368,7 +368,7 @@ def _figures(sweep_dir: Path, runs, summary, *, jobs, keys, fmt: str = "png") ->
                       and group["task.length"].nunique() > 1 and group[column].notna().any()]
             if panels:
                 fig = plotting.plot_heatmaps(panels, "task.num_series", "task.length", column,
-                                             _limits(summary[column], column))
+                                             heat_limits(summary[column], column))
                 plotting.save_figure(fig, figures / f"heatmap_{column}.png", fmt)
     if "p05_arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
         # coloured by the study arm, else by the first setting that varies (e.g. P), never one

@@ -11,10 +11,11 @@ if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from moex.config import Config
-from moex.kernels import REGISTRY, Backend, available
+from moex.kernels import Backend, available
 from moex.model import ExpertsConfig, GatingConfig, ModelConfig
 from moex.tasks import TaskConfig
 from moex.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
+from tests.helpers import backend_params
 
 torch.set_default_dtype(torch.float64)
 
@@ -30,24 +31,6 @@ def tiny_cfg() -> Config:
                           gating=GatingPhaseConfig(steps=10, log_every=5)),
         num_runs=2,
     )
-
-
-def generators(seeds):
-    return [torch.Generator().manual_seed(s) for s in seeds]
-
-
-# the backends that run slowly here (gpu without CUDA: Triton's interpreter), by capability
-INTERPRETED = tuple(name for name in REGISTRY
-                    if (here := available(name)[0]) is not None and here.caps.interpreted)
-
-
-def backend_params(reference: bool = True, slow_interpreted: bool = False) -> list:
-    """Params of the `backend` fixture (with `indirect=True`): every backend of the registry
-    (`moex.kernels.REGISTRY`), the reference too unless a test compares against it; with
-    `slow_interpreted`, a backend interpreted here (gpu without CUDA) is marked slow."""
-    return [pytest.param(name, id=name, marks=pytest.mark.slow
-                         if slow_interpreted and name in INTERPRETED else ())
-            for name in REGISTRY if reference or name != "reference"]
 
 
 @pytest.fixture

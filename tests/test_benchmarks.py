@@ -112,14 +112,18 @@ def test_the_adaptive_rate_benchmark_prints_its_rows(tmp_path):
 
 def test_the_gpu_profile_names_where_each_phase_spends_its_epoch():
     """benchmarks/gpu_profile.py on the CPU (its CI path): a line per phase with the epoch's wall
-    time and the host's operators, and a table of them."""
+    time and the host's operators, and a table of them; the same for the closed loop's chunks."""
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_profile.py"),
                            "--device", "cpu", "--backend", "cpu", "--runs", "1", "--epochs", "2",
-                           "--top", "3"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+                           "--samples", "2", "--chunks", "1", "--top", "3"],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-2000:]
     for phase in ("phase 1, fixed rate", "phase 1, adaptive rate", "phase 2, adaptive rate"):
         assert re.search(rf"{phase}, 1 networks: \d+\.\d+ ms wall per epoch", done.stdout), phase
     assert done.stdout.count("| on the host (self CPU time) | ms per epoch |") == 3
+    assert re.search(r"closed loop, one tangent, 1 networks: \d+\.\d+ ms wall per chunk of 500 "
+                     r"steps", done.stdout)
+    assert "| on the host (self CPU time) | ms per chunk of 500 steps |" in done.stdout
 
 
 def test_the_sizes_benchmark_reports_time_and_memory_per_number_of_networks():

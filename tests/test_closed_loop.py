@@ -12,7 +12,7 @@ from moex.model import (
     init_gating,
     random_state,
 )
-from tests.conftest import generators
+from tests.helpers import generators
 
 
 def _model(delay=2, K=3, D=2, S=2):

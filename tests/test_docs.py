@@ -477,7 +477,7 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
     from moex.closed_loop import closed_loop_lyapunov
     from moex.kernels import get_backend
     from moex.model import ModelConfig, init_experts, init_gating, random_state
-    from tests.conftest import generators
+    from tests.helpers import generators
 
     check = _script("lyapunov_crosscheck")
     backend = get_backend("cpu")

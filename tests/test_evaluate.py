@@ -28,7 +28,7 @@ from moex.train import (
     train_experts,
     train_gating,
 )
-from tests.conftest import backend_params
+from tests.helpers import backend_params
 
 QUICK = EvalConfig(num_samples=3, lyapunov_steps=400, transient=50, plot_steps=100)
 

@@ -22,7 +22,7 @@ from moex.train import (
     train_experts,
     train_gating,
 )
-from tests.conftest import INTERPRETED, backend_params, generators
+from tests.helpers import INTERPRETED, backend_params, generators
 
 REFERENCE, COMPILED = get_backend("reference"), get_backend("cpu")
 TOLERANCE = {torch.float64: 1e-10, torch.float32: 1e-5}

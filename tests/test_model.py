@@ -8,7 +8,7 @@ from moex.model import (
     init_gating,
     leaky_scan,
 )
-from tests.conftest import generators
+from tests.helpers import generators
 
 
 def _scan_by_hand(drive, w_rec, eps, bias, u0):

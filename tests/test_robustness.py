@@ -22,7 +22,7 @@ from moex.model import ModelConfig, init_experts, init_gating
 from moex.run import run_seeds
 from moex.tasks import TaskConfig, make_task
 from moex.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig, train_experts
-from tests.conftest import generators
+from tests.helpers import generators
 
 MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
 ARGS = ["train", "task=lissajous2", "task.num_series=2", "task.length=40",

@@ -26,7 +26,7 @@ from moex.train import (
     train_experts,
     train_gating,
 )
-from tests.conftest import generators
+from tests.helpers import generators
 
 SYNCS = ("_local_scalar_dense", "nonzero", "boolean mask")
 

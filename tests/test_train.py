@@ -18,7 +18,7 @@ from moex.train import (
     train_experts,
     train_gating,
 )
-from tests.conftest import generators
+from tests.helpers import generators
 
 
 def _tiny(S=2, T=6, D=2, K=2, learn_tau=True, attraction=True):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from moex.kernels import get_backend
-from tests.conftest import backend_params
+from tests.helpers import backend_params
 
 R, P, TAU = 6, 1500, (10, 20)  # P spans two of the gpu kernel's 1024-entry tiles
 
