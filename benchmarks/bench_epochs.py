@@ -23,9 +23,9 @@ import numba
 import torch
 
 from moex.config import Config
+from moex.data import load_task
 from moex.kernels import get_backend
 from moex.model import init_experts, init_gating
-from moex.pipeline import load_task
 from moex.run import run_seeds
 from moex.tasks import TaskConfig
 from moex.train import train_experts, train_gating

@@ -23,10 +23,10 @@ import torch
 from bench_epochs import trainers, warm_up
 
 from moex.config import Config
+from moex.data import load_task
 from moex.kernels.cpu import phases, threads
 from moex.kernels.cpu.phases import _BACKWARD, _FORWARD, _MIXTURE, _RUNS, _expert_items
 from moex.model import init_experts
-from moex.pipeline import load_task
 from moex.run import run_seeds
 from moex.tasks import TaskConfig
 from moex.train import ExpertPhaseConfig

@@ -27,8 +27,8 @@ from pathlib import Path
 from bench_epochs import marginal, ratios, trainers, warm_up
 
 from moex.config import Config
+from moex.data import load_task
 from moex.mregn_format import write_targets
-from moex.pipeline import load_task
 from moex.tasks import TaskConfig
 
 ROOT = Path(__file__).resolve().parent.parent

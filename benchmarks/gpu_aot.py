@@ -131,9 +131,9 @@ def record(size: str, evaluation: bool = True) -> list[Launch]:
     """The launches of one phase-1 step at each rate, one phase-2 step and (`evaluation`) an
     evaluation."""
     from moex.closed_loop import CHUNK, closed_loop_lyapunov, generate, trained_state
+    from moex.data import load_task
     from moex.kernels import get_backend
     from moex.model import init_experts, init_gating, random_state
-    from moex.pipeline import load_task
     from moex.run import run_seeds
     from moex.train import phase2_targets, train_experts, train_gating
 

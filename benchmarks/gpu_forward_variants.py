@@ -27,7 +27,7 @@ import triton.language as tl
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from moex.kernels.gpu.lanes import OPTIONS, PARAMS, Net, strides  # noqa: E402
+from moex.kernels.gpu.lanes import OPTIONS, PARAMS, Net, pow2, strides  # noqa: E402
 from moex.kernels.gpu.rnn import (  # noqa: E402
     _chunk,
     _network,
@@ -113,7 +113,8 @@ def variant(net: Net, X, params):
     p = [params[k] for k in PARAMS]
     forward_by_rows[(net.networks,)](X, net.xrow, net.u0j, *p, net.O, net.C, net.U, net.S,
                                         *strides(params, PARAMS), KEEP_C=True, KEEP_U=False,
-                                        KEEP_SUMS=False, num_warps=4, **OPTIONS, **net.meta)
+                                        KEEP_SUMS=False, num_warps=4, **OPTIONS, **net.meta,
+                                        NIP=pow2(net.meta["NI"]))
     return net.O
 
 

@@ -22,9 +22,9 @@ import torch
 from moex import checkpoint
 from moex.closed_loop import closed_loop_lyapunov
 from moex.config import config_from_dict
+from moex.data import load_task
 from moex.kernels import get_backend
 from moex.model import random_state
-from moex.pipeline import load_task
 from moex.report import to_markdown
 from moex.run import initial_parameters, run_seeds
 from moex.train import phase2_targets, train_gating

@@ -18,10 +18,11 @@ _HOMES = {
     "moex.metrics.lyapunov": ("lyapunov_exponents",),
     "moex.model": ("ModelConfig", "expert_forward", "gate_estimates", "gating_forward",
                    "init_experts", "init_gating", "leaky_scan", "random_state"),
-    "moex.pipeline": ("run_train",),
     "moex.tasks": ("Dataset", "TaskConfig", "make_task"),
     "moex.train": ("TrainConfig", "train_experts", "train_gating"),
+    "moex.verbs.train": ("run_train",),
 }
+_NAMED = {"run_train": "run"}  # a public name whose module calls it otherwise (the verb's `run`)
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
 __all__ = sorted(_HOME_OF)
 
@@ -29,7 +30,7 @@ __all__ = sorted(_HOME_OF)
 def __getattr__(name: str):
     if name not in _HOME_OF:
         raise AttributeError(f"module 'moex' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_HOME_OF[name]), name)
+    value = getattr(importlib.import_module(_HOME_OF[name]), _NAMED.get(name, name))
     globals()[name] = value
     return value
 

@@ -16,16 +16,18 @@ from moex import checkpoint, io, provenance
 from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import trained_state
 from moex.config import Config, RunFolder
+from moex.data import in_data_units, settled
 from moex.errors import check
 from moex.evaluation import EvalConfig, evaluate
 from moex.kernels import Backend, get_backend
 from moex.model import gate_estimates, random_state
-from moex.pipeline import evaluation_generators, in_data_units, load_run, settled
 from moex.run import Job, run_generators, train_jobs
 from moex.segment import METHODS, Segmentation, responsibilities, segmentation
 from moex.tasks import Dataset, TaskConfig, user_data
 from moex.tasks.scaling import fit_scale
 from moex.train import phase2_targets
+from moex.verbs.train import evaluation_generators
+from moex.verbs.trained import load_run
 
 
 @dataclass

@@ -33,7 +33,7 @@ from omegaconf import OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from moex import config, folders, packing, pipeline, provenance, report
+from moex import config, folders, packing, provenance, report, verbs
 from moex.config import (
     Config,
     EvaluateConfig,
@@ -42,6 +42,7 @@ from moex.config import (
     SegmentConfig,
 )
 from moex.errors import ConfigError, Interrupted, check, closest_first
+from moex.stop import StopRequest
 
 log = logging.getLogger("moex")
 CONF_DIR = str(config.CONF_DIR)
@@ -304,7 +305,7 @@ def _job(run, verb: str):
             _sweeps.add(Path(hydra_cfg.sweep.dir).resolve())
             folders.write_job_index(Path(hydra_cfg.sweep.dir))
         try:
-            with logging_redirect_tqdm(), pipeline.StopRequest() as stop, provenance.recorded(
+            with logging_redirect_tqdm(), StopRequest() as stop, provenance.recorded(
                     out_dir, verb, getattr(cfg, "backend", None), getattr(cfg, "device", None),
                     getattr(cfg, "precision", None)):
                 run(cfg, out_dir, stop)
@@ -344,16 +345,8 @@ def _job(run, verb: str):
     return task_function
 
 
-VERBS = {
-    "train": ("config", _job(pipeline.run_train, "train")),
-    "evaluate": ("evaluate", _job(pipeline.run_evaluate, "evaluate")),
-    "generate": ("generate", _job(pipeline.run_generate, "generate")),
-    "import": ("import", _job(pipeline.run_import, "import")),
-    "segment": ("segment", _job(pipeline.run_segment, "segment")),
-}
-VERBS_CHECK = {"config": pipeline.load_task, "evaluate": pipeline.load_run,
-               "generate": pipeline.load_run, "import": pipeline.check_import,
-               "segment": pipeline.segment_input}
+VERBS = {name: (module.CONFIG, _job(module.run, name)) for name, module in verbs.VERBS.items()}
+VERBS_CHECK = {module.CONFIG: module.check for module in verbs.VERBS.values()}
 
 
 def _latest_run(task: str) -> Path:

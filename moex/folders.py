@@ -12,9 +12,10 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from moex import checkpoint, pipeline
+from moex import checkpoint
 from moex.errors import ConfigError, check
 from moex.io import atomic_write, write_csv
+from moex.resume import check_same_training
 
 LOCK = ".moex.lock"
 JOBS_INDEX = "jobs.csv"
@@ -96,7 +97,7 @@ def claim(args: list[str], multirun: bool, verb: str, cfg) -> int | None:
     shown = "out_dir" if verb != "train" and not multirun else key
     check(not folder.exists() or folder.is_dir(), f"{shown}={folder} is a file, not a folder")
     if verb == "train" and not multirun and (folder / checkpoint.NAME).exists():
-        pipeline.check_same_training(checkpoint.load(folder / checkpoint.NAME).config, cfg,
+        check_same_training(checkpoint.load(folder / checkpoint.NAME).config, cfg,
                                      folder / checkpoint.NAME)
     try:
         folder.mkdir(parents=True, exist_ok=True)

@@ -19,9 +19,11 @@ from pathlib import Path
 
 from moex import budget, provenance
 from moex.config import Config
+from moex.data import load_task
 from moex.errors import ConfigError, Interrupted
-from moex.pipeline import StopRequest, load_task, open_checkpoint
+from moex.resume import open_checkpoint
 from moex.run import Job, packing_key, saved_position, train_jobs
+from moex.stop import StopRequest
 
 log = logging.getLogger(__name__)
 # seconds of a packed batch's training each job's share (its networks / the batch's), by job

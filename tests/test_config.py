@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from moex.cli import CONF_DIR, _override_variants, register_configs
 from moex.config import Config, config_from_dict
-from moex.pipeline import load_task
+from moex.data import load_task
 from moex.run import phase1_cache
 
 TASKS = sorted(p.stem for p in (Path(CONF_DIR) / "task").glob("*.yaml"))
@@ -115,11 +115,11 @@ def test_a_generated_data_set_is_built_once_per_process(monkeypatch, tmp_path):
     settings give the same `Dataset` object, also after other settings (a packed sweep checks
     every job, then trains them), as long as they fit the cache's bound; other settings a new
     one; a task read from files is read again (the files may have changed)."""
-    from moex import pipeline
+    from moex import data
 
     built = []
-    make = pipeline.make_task
-    monkeypatch.setattr(pipeline, "make_task", lambda *a, **k: built.append(a) or make(*a, **k))
+    make = data.make_task
+    monkeypatch.setattr(data, "make_task", lambda *a, **k: built.append(a) or make(*a, **k))
     cfg = Config()
     cfg.task.num_series, cfg.task.length = 2, 50
     first = load_task(cfg)
@@ -127,7 +127,7 @@ def test_a_generated_data_set_is_built_once_per_process(monkeypatch, tmp_path):
     other = dataclasses.replace(cfg, seed=cfg.seed + 1)
     assert load_task(other) is not first and len(built) == 2
     assert load_task(cfg) is first and len(built) == 2  # a packed sweep: every job's, then each
-    monkeypatch.setattr(pipeline, "_BUILT_BYTES", 1)  # over the bound: only the newest is kept
+    monkeypatch.setattr(data, "_BUILT_BYTES", 1)  # over the bound: only the newest is kept
     load_task(dataclasses.replace(cfg, seed=cfg.seed + 2))
     assert len(built) == 3
     assert load_task(cfg) is not first and len(built) == 4

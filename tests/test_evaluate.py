@@ -12,12 +12,12 @@ import torch
 from moex import objectives
 from moex.closed_loop import closed_loop_lyapunov, generate, trained_state
 from moex.config import Config
+from moex.data import load_task
 from moex.evaluation import EvalConfig, _decided, _train_block_kl, evaluate
 from moex.kernels import get_backend
 from moex.metrics.lyapunov import chaos_label, standard_error
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward, random_state
-from moex.pipeline import load_task, run_train
 from moex.run import initial_parameters
 from moex.tasks import Dataset, TaskConfig, make_task
 from moex.train import (
@@ -28,6 +28,7 @@ from moex.train import (
     train_experts,
     train_gating,
 )
+from moex.verbs.train import run as run_train
 from tests.helpers import backend_params
 
 QUICK = EvalConfig(num_samples=3, lyapunov_steps=400, transient=50, plot_steps=100)
@@ -93,7 +94,7 @@ def test_a_networks_evaluation_is_the_same_alone_and_in_a_batch():
     draws the same initial states, tangents and noise as alone: its metrics agree (the closed
     loop of a batch equals its runs alone to rounding); with one generator shared by the batch
     (before 2026-12-04) its random initial states depended on the batch."""
-    from moex.pipeline import evaluation_generators
+    from moex.verbs.train import evaluation_generators
 
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -301,7 +302,7 @@ def test_figures_of_a_noisy_evaluation_say_so(tiny_cfg, tmp_path, monkeypatch):
     assert titles["runs"].count("a fixed point") == sum(still)
     # re-evaluated from the trained initial states: the page says so
     from moex.config import EvalOverrides, EvaluateConfig
-    from moex.pipeline import run_evaluate
+    from moex.verbs.evaluate import run as run_evaluate
 
     run_evaluate(EvaluateConfig(run_dir=str(tmp_path / "clean"),
                                 eval=EvalOverrides(initial_states="trained")),
@@ -343,7 +344,7 @@ def test_eval_test_series_draws_more_held_out_data_that_begins_with_the_runs_own
         EvalConfig(test_series=-1)
     # `moex evaluate` of a finished run: only the test KL moves
     from moex.config import EvalOverrides, EvaluateConfig
-    from moex.pipeline import run_evaluate
+    from moex.verbs.evaluate import run as run_evaluate
 
     tiny_cfg.eval = dataclasses.replace(QUICK, block_length=2)
     run_train(tiny_cfg, tmp_path / "run")

@@ -15,7 +15,7 @@ import torch
 
 from moex import checkpoint
 from moex.config import EvaluateConfig
-from moex.pipeline import load_run
+from moex.verbs.trained import load_run
 from tests.test_cli import MOEX, TINY, _moex
 
 

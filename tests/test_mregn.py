@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
-from moex import checkpoint, pipeline
+from moex import checkpoint
 from moex.closed_loop import generate, trained_state
 from moex.config import ImportConfig
 from moex.errors import ConfigError
@@ -22,6 +22,7 @@ from moex.model import ModelConfig
 from moex.mregn_format import read_save, read_targets, write_save, write_targets
 from moex.tasks import TaskConfig, make_task
 from moex.train import phase2_targets
+from moex.verbs import importing
 
 DATA = Path(__file__).parent / "data" / "mregn"
 TASKS = {"mixture": TaskConfig(name="lissajous2", num_series=2, length=60),
@@ -145,7 +146,7 @@ def test_moex_import_writes_a_run_folder_of_every_network(tmp_path):
         shutil.copytree(DATA / "mixture", tmp_path / f"net{i}")
     cfg = ImportConfig(task=TASKS["mixture"], source=[str(tmp_path / "net*")])
     cfg.eval.enabled = False
-    record = pipeline.run_import(cfg, tmp_path / "run")
+    record = importing.run(cfg, tmp_path / "run")
     saved = checkpoint.load(tmp_path / "run")
     assert saved.config["num_runs"] == 2 and saved.phase == "done"
     assert torch.equal(saved.gating["w_rec"][0], saved.gating["w_rec"][1])

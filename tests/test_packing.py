@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from moex import checkpoint
+from moex.data import load_task
 from moex.packing import Planned, groups, prepare
-from moex.pipeline import load_task
 from moex.run import Job, train_jobs
 from moex.train import TrainingInterrupted
 from tests.test_cli import TINY, _moex

@@ -7,7 +7,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from moex.cli import CONF_DIR, register_configs
-from moex.pipeline import run_train
+from moex.verbs.train import run as run_train
 
 
 @pytest.mark.slow

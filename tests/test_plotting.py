@@ -122,7 +122,7 @@ def test_scatter_ticks_cover_exponents_that_all_lie_near_zero():
 
 def test_titles_count_in_words_a_reader_expects():
     """No "runs 0-0", "series 0-0 of 1" or "each of the 1 runs" in a title."""
-    from moex.pipeline import numbered
+    from moex.figures import numbered
 
     assert [numbered("run", 1), numbered("run", 5), numbered("series", 1, 1),
             numbered("series", 3, 10), numbered("series", 2, 2)] == [

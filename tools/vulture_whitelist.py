@@ -24,7 +24,7 @@ read_targets  # moex.mregn_format.read_targets: their target files, the reader o
 accepts  # moex.tasks.reber.accepts: the grammar's acceptor, which the Reber generator obeys
 is_known  # moex.metrics.table.is_known: whether a column is in the one table of metrics
 
-# the backend seam's declarations, which the tests size themselves from (tests/conftest.py)
+# the backend seam's declarations, which the tests size themselves from (tests/helpers.py)
 REGISTRY  # moex.kernels.REGISTRY: every backend, for the `backend` fixture
 _.caps  # Backend.caps
 _.float32  # Capabilities.float32

@@ -111,7 +111,7 @@ class Net:
         self.xrow, self.u0j = index(xrow), index(u0j)
         HP = pow2(H)
         block = max(1, min(pow2(lanes_per_net), LANE_BUDGET // HP))
-        self.meta = dict(T=T, NI=NI, H=H, NO=NO, NIP=pow2(NI), HP=HP, NOP=pow2(NO), BL=block,
+        self.meta = dict(T=T, NI=NI, H=H, NO=NO, HP=HP, NOP=pow2(NO), BL=block,
                          LPN=lanes_per_net, NPR=per_run,
                          CHUNKS=triton.cdiv(lanes_per_net, block))
         wide = {name: max(16, pow2(size)) for name, size in (("IG", NI), ("HG", H), ("OG", NO))}

@@ -194,7 +194,7 @@ def _state_row(lane, t, T: tl.constexpr, KEEP_C: tl.constexpr):
 def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, SUMS,
                 sW_IN, sW_REC, sW_OUT, sB_C, sB_O, sTAU, sU0,
                 T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
-                NIP: tl.constexpr, HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
+                HP: tl.constexpr, NOP: tl.constexpr, BL: tl.constexpr,
                 LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
                 KEEP_C: tl.constexpr, KEEP_U: tl.constexpr, KEEP_SUMS: tl.constexpr):
     """Forward pass of one network's lanes: OUT (L, T, NO) always; U (L, T, H) and SUMS

@@ -1,0 +1,40 @@
+"""Whether a run folder's checkpoint may be continued: only by the config that wrote it (its
+evaluation settings aside)."""
+
+import dataclasses
+from pathlib import Path
+
+from moex import checkpoint
+from moex.config import Config, config_from_dict
+from moex.errors import ConfigError
+
+
+def check_same_training(saved: dict, cfg: Config, path: Path) -> None:
+    """A checkpoint may only be resumed by the config that wrote it (eval settings aside)."""
+    now = dataclasses.asdict(cfg)
+    saved = dataclasses.asdict(config_from_dict(saved))
+    for key in ("task", "model", "train", "seed", "num_runs", "precision"):
+        if saved[key] != now[key]:
+            differ = _first_difference(saved[key], now[key], key)
+            raise ConfigError(f"{path} was trained with {differ[0]}={differ[1]}, not "
+                              f"{differ[2]}; use another output folder or the same overrides")
+
+
+def _first_difference(then, now, key: str) -> tuple[str, object, object]:
+    """The first dotted key whose value differs between two config trees, with both values."""
+    if isinstance(then, dict) and isinstance(now, dict):
+        for k in then:
+            if then[k] != now.get(k):
+                return _first_difference(then[k], now.get(k), f"{key}.{k}")
+    return key, then, now
+
+
+def open_checkpoint(cfg: Config, out_dir: Path) -> checkpoint.Checkpoint | None:
+    """The checkpoint of a run folder, checked against the config that would continue it (a
+    `ConfigError` if it was trained with another); None for a new folder."""
+    path = Path(out_dir) / checkpoint.NAME
+    if not path.exists():
+        return None
+    saved = checkpoint.load(path)
+    check_same_training(saved.config, cfg, path)
+    return saved
