@@ -32,7 +32,7 @@ from moex.mregn_format import write_targets
 from moex.tasks import TaskConfig
 
 ROOT = Path(__file__).resolve().parent.parent
-# the paper's settings (Sec. 3.2.1), as docs/mregn_control.py trains Table 2's control
+# the paper's settings (Sec. 3.2.1), as studies/mregn_control.py trains Table 2's control
 PHASE1 = "{bin}/mre-learn -s 1 -z 2 -n 10 -t 5 -d 1 -k 1 -g 10 -e {epochs} -x 0.01 -m 0.9 " \
          "-l {epochs} -o mre.dat {data}"
 PHASE2 = "{bin}/gn-learn -s 1 -n 15 -t 25 -e {epochs} -x 0.01 -m 0.9 -a -l {epochs} -o gn.dat " \

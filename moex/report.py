@@ -11,6 +11,7 @@ import pandas as pd
 import yaml
 
 from moex import io, plotting, provenance
+from moex.config import CONF_DIR
 from moex.errors import ConfigError, check
 from moex.metrics.lyapunov import CHAOS_LABELS, chaos_labels
 from moex.metrics.table import REPORTED
@@ -25,7 +26,11 @@ SETTINGS = ("task.name", "task.switch_prob", "task.num_series", "task.length",
 # replicates, not settings: jobs that differ only in these pool into one row (they still tell
 # networks apart, `_network_key`)
 REPLICATES = ("seed", "task.data_seed", "source")  # source: the C tools' folders an import read
-CHOICES = ("p05_arm",)  # config groups whose chosen option is a setting (column: the group)
+# config groups whose chosen option is a study's arm (conf/<study>_arm/, the arms an experiment
+# sweeps): a setting (column: the group), its arms kept in the sweep's order, and a table
+# tables/<study>_study of their outcomes
+ARMS = tuple(sorted(p.name for p in Path(CONF_DIR).iterdir()
+                    if p.is_dir() and p.name.endswith("_arm")))
 # keys that are no setting of a network: where a job writes, how often it logs, what it plots,
 # and how many networks it trains (run r is seeded by (seed, r) alone: run 0 of one run and of
 # five is one network)
@@ -165,11 +170,11 @@ def varying_settings(jobs: list[dict]) -> list[str]:
 
 
 def _columns(varying: list[str]) -> dict[str, str]:
-    """Column name of each setting: its config key, for SETTINGS and CHOICES (always present) and
+    """Column name of each setting: its config key, for SETTINGS and ARMS (always present) and
     every other key that varies (a choice under its group's name; one named like a setting's
     column gets the suffix `_choice`)."""
     columns = {key: key for key in SETTINGS}
-    columns.update({f"choice:{group}": group for group in CHOICES})
+    columns.update({f"choice:{group}": group for group in ARMS})
     for key in varying:
         if key not in columns:
             name = key.removeprefix("choice:")
@@ -253,14 +258,14 @@ def paper_tables(summary: pd.DataFrame, keys: list[str]) -> dict[str, pd.DataFra
         tables[paper.name] = (paper.numbers.merge(ours[cols], on=paper.key, how="outer")
                               .sort_values(paper.key, ascending=not paper.descending,
                                            ignore_index=True))
-    if "p05_arm" in summary:
-        cols = ["p05_arm", *_others(keys, "p05_arm"), "switch_prob_mean", "switch_prob_std",
+    for arm in (a for a in ARMS if a in summary):
+        cols = [arm, *_others(keys, arm), "switch_prob_mean", "switch_prob_std",
                 "data_switch_prob_mean",
                 "near_data_percent", "max_lyapunov_mean", "positive_percent", "positive_ci_low",
                 "positive_ci_high", "chaotic_percent", "undetermined_count",
                 "nonperiodic_fraction_mean", "E_mean", "E_g_mean",
                 "E_closed_mean", "num_runs", "failed_runs"]
-        tables["p05_study"] = summary[[c for c in cols if c in summary]]  # in sweep order
+        tables[f"{arm.removesuffix('_arm')}_study"] = summary[[c for c in cols if c in summary]]
     return tables
 
 
@@ -290,9 +295,10 @@ def report(folders, out_dir: Path | None = None, fmt: str = "png") -> dict[str, 
         _write_table(sweep_dir, "repeats", repeats)
     io.write_csv(sweep_dir / "summary.csv", runs)
     summary = aggregate(runs, keys or ["task.name"])
-    if "p05_arm" in summary:  # arms in the sweep's order, not alphabetical
-        first = {arm: i for i, arm in enumerate(pd.unique(runs["p05_arm"]))}
-        summary = summary.sort_values("p05_arm", key=lambda a: a.map(first), ignore_index=True)
+    for arm in (a for a in ARMS if a in summary):  # arms in the sweep's order, not alphabetical
+        first = {name: i for i, name in enumerate(pd.unique(runs[arm]))}
+        summary = summary.sort_values(arm, key=lambda a, first=first: a.map(first),
+                                      ignore_index=True)
     for k in ("task.name", "task.switch_prob", "model.gating.context_size"):  # paper tables
         if k not in summary:
             summary[k] = runs[k].iloc[0]
@@ -370,11 +376,13 @@ def _figures(sweep_dir: Path, runs, summary, *, jobs, keys, fmt: str = "png") ->
                 fig = plotting.plot_heatmaps(panels, "task.num_series", "task.length", column,
                                              heat_limits(summary[column], column))
                 plotting.save_figure(fig, figures / f"heatmap_{column}.png", fmt)
-    if "p05_arm" in runs and {"switch_prob", "max_lyapunov"} <= set(runs):
+    present = [a for a in ARMS if a in runs]
+    if present and {"switch_prob", "max_lyapunov"} <= set(runs):
         # coloured by the study arm, else by the first setting that varies (e.g. P), never one
         # colour over settings whose data differ
+        arm = next((a for a in present if runs[a].notna().any()), present[0])
         data_keys = [k for k in keys if k in DATA_KEYS]  # what sets the data's switching
-        group = "p05_arm" if runs["p05_arm"].notna().any() or not data_keys else "setting"
+        group = arm if runs[arm].notna().any() or not data_keys else "setting"
         if group == "setting":  # one group (and data line) per data setting, named by its keys
             runs = runs.assign(setting=[", ".join(f"{k} {v}" for k, v in zip(
                 data_keys, row, strict=True)) for row in runs[data_keys].itertuples(index=False)])

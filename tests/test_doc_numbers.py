@@ -11,7 +11,7 @@ equal, to the digits it prints, one of:
 - a number of a table the docs scripts compute from those CSVs (the verdict tables, the
   capacity grid's, the control's, ...) or of a table `moex report` wrote that the page names
   (docs/<name>.md);
-- one of the paper's values (moex.tasks.paper, docs/fig15.py's PAPER_FLIP);
+- one of the paper's values (moex.tasks.paper, studies/fig15.py's PAPER_FLIP);
 - an entry of `ELSEWHERE` below: a fact with no CSV (a version, a wall time, a value the paper
   prints in its text), named with its source.
 A guard, not a proof: a stale number can still equal some other value by chance (the pages'
@@ -72,10 +72,8 @@ ELSEWHERE = {
 
 
 def _script(name):
-    spec = importlib.util.spec_from_file_location(name, DOCS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """A study of the reproduction (`studies/`), imported as the package's module."""
+    return importlib.import_module(f"studies.{name}")
 
 
 def parse(text: str) -> tuple[float, float]:

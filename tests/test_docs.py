@@ -21,10 +21,8 @@ def _page(name: str) -> str:
 
 
 def _script(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "docs" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """A study of the reproduction (`studies/`), imported as the package's module."""
+    return importlib.import_module(f"studies.{name}")
 
 
 def test_the_verdict_table_is_the_one_the_csvs_give():
@@ -73,7 +71,7 @@ def test_the_tally_counts_each_kind_of_verdict_once():
                                       "differs, cause open", "inconclusive",
                                       "inconclusive (2 networks carry it)"]})
     assert verdicts.tally(frame) == (
-        "Of the table's 7 rows, by one rule (docs/verdicts.py): 2 reproduced; 3 differ, 1 with "
+        "Of the table's 7 rows, by one rule (studies/verdicts.py): 2 reproduced; 3 differ, 1 with "
         "the cause found, 1 with a candidate cause and 1 with the cause open; 2 inconclusive; 2 "
         "of them rest on one or two networks.")
 
@@ -241,8 +239,8 @@ def test_adding_a_network_twice_exits_2_with_one_line_and_leaves_the_csv(tmp_pat
     grid = ROOT / "docs" / "capacity_grid_summary.csv"
     before = grid.read_bytes()
     pd.read_csv(grid).head(1).to_csv(tmp_path / "summary.csv", index=False)
-    done = subprocess.run([sys.executable, str(ROOT / "docs" / "capacity_cells.py"), "add",
-                           str(tmp_path)], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "studies.capacity_cells", "add", str(tmp_path)],
+                          capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.count("\n") == 1 and "networks appear twice" in done.stderr
     assert grid.read_bytes() == before
@@ -324,7 +322,7 @@ def test_stays_drawn_from_the_geometric_law_are_at_zero_distance_from_it():
 
 
 def test_the_control_table_is_the_one_the_csvs_give():
-    """The authors' C tools trained on moex's data and scored by moex (docs/mregn_control.py):
+    """The authors' C tools trained on moex's data and scored by moex (studies/mregn_control.py):
     docs/mregn_control.md quotes the table the per-network CSVs give."""
     control = _script("mregn_control")
     rows = control.table()
@@ -437,7 +435,7 @@ def test_their_lyapunov_tool_is_the_one_for_the_networks_file(tmp_path):
 
 
 def test_paired_estimates_agree_with_themselves():
-    """docs/lyapunov_crosscheck.py's per-network summary of paired samples: a gap of 0 and every
+    """studies/lyapunov_crosscheck.py's per-network summary of paired samples: a gap of 0 and every
     sign the same when both estimates are equal; one sample of opposite sign counted."""
     check = _script("lyapunov_crosscheck")
     frame = pd.DataFrame({"design": "d", "network": ["a"] * 3 + ["b"] * 2,
@@ -450,7 +448,7 @@ def test_paired_estimates_agree_with_themselves():
 
 
 def test_the_pooled_mean_counts_an_initial_network_once_however_many_data_sets_it_ran_on():
-    """docs/verdicts.py `pooled`, on cases with known answers: 5 initial networks each run on 6
+    """studies/verdicts.py `pooled`, on cases with known answers: 5 initial networks each run on 6
     data sets with no data effect (the same value 6 times) and 25 networks run once give the
     plain mean and sd/√30 of the 30 networks' values (not /√55); a unit's data sets are averaged
     before units are."""
@@ -470,7 +468,7 @@ def test_the_pooled_mean_counts_an_initial_network_once_however_many_data_sets_i
 
 
 def test_two_trajectories_give_the_exponent_the_jacobian_gives():
-    """docs/lyapunov_crosscheck.py's Jacobian-free check (two trajectories 10⁻⁸ apart,
+    """studies/lyapunov_crosscheck.py's Jacobian-free check (two trajectories 10⁻⁸ apart,
     renormalised) recovers the largest exponent moex's Benettin estimator finds on the same
     closed loop: a contracting mixture (as initialised) and a chaotic one (experts without leak,
     τ = 1, recurrent weights 16 times larger)."""
@@ -503,7 +501,7 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
 
 def test_the_training_length_arm_pairs_networks_by_seed_and_names_what_each_does(tmp_path,
                                                                                   monkeypatch):
-    """docs/lissajous9_length.py: a network is "like the paper's example" (λ_max > 0, held-out
+    """studies/lissajous9_length.py: a network is "like the paper's example" (λ_max > 0, held-out
     block KL < 2), "chaotic elsewhere" or "not chaotic"; the paired differences of arms equal to
     each other are 0; arms of other seeds are refused."""
     length = _script("lissajous9_length")
@@ -540,7 +538,7 @@ def test_the_training_length_tables_are_the_ones_the_csvs_give():
 
 
 def test_the_fig15_detector_finds_a_flip_it_can_see_and_not_one_inside_its_floor():
-    """docs/fig15.py `power`: a flip far beyond the noise floor is found every time, the paper's
+    """studies/fig15.py `power`: a flip far beyond the noise floor is found every time, the paper's
     flip (−5.4e-5 → +9.95e-4) at a floor of 1e-5 almost always, at the end-of-training floors
     (≥ 2.2e-4) almost never; docs/fig15_power.csv is what the summary's floors give."""
     fig15 = _script("fig15")

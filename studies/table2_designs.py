@@ -1,7 +1,7 @@
 """Table 2 in two designs: 30 networks on one data set (Table 2 at full scale, seed 0) against
 30 networks each on a data set of its own (`experiment=paper_table2_own_data`, seeds 100-129).
 
-    python docs/table2_designs.py       # prints the Markdown table and the comparison
+    python -m studies.table2_designs       # prints the Markdown table and the comparison
 
 Reads docs/table2_summary.csv and docs/table2_own_data_summary.csv (`moex report` over the
 own-data sweeps). The two designs share no seed, so they are compared unpaired: the difference
@@ -9,20 +9,16 @@ of the mean switching probability with its Welch standard error and a permutatio
 labels shuffled), and the ratio of the variances with a permutation p. If networks on one data
 set spread by the initialisation alone and networks on their own data sets by the
 initialisation and the data, the variance the data adds is the difference of the two variances.
-"stay" / "alternate" / "chaotic" as in docs/table2_onehot.py.
+"stay" / "alternate" / "chaotic" as in studies/table2_onehot.py.
 """
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-DOCS = Path(__file__).resolve().parent
-sys.path.insert(0, str(DOCS))
-from table2_onehot import at_p, design_row, markdown  # noqa: E402
-
-from moex.tasks.paper import PAPER_TABLE2  # noqa: E402
+from moex.tasks.paper import PAPER_TABLE2
+from studies.common import DOCS
+from studies.table2_onehot import at_p, design_row, markdown
 
 DRAWS = 20000
 

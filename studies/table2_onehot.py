@@ -1,6 +1,6 @@
 """Table 2 with one-hot phase-2 targets against the paper and the soft targets, 30 networks per P.
 
-    python docs/table2_onehot.py        # prints the Markdown table and the paired comparison
+    python -m studies.table2_onehot        # prints the Markdown table and the paired comparison
 
 Reads docs/table2_onehot30_summary.csv (one-hot targets: `experiment=paper_table2_chaotic`, one
 job of 30 networks per P) and docs/table2_summary.csv (the paper's soft targets ĝ, Table 2 at full
@@ -9,15 +9,14 @@ data), trained on another CPU, so the comparison is paired by network, round-off
 switching probability below 0.02; "alternate": above 0.8; "chaotic": λ_max > 0.
 """
 
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from moex.report import wilson_interval
 from moex.tasks.paper import PAPER_TABLE2
+from studies.common import DOCS
 
-DOCS = Path(__file__).resolve().parent
 STAY, ALTERNATE, NEAR = 0.02, 0.8, 0.05
 
 

@@ -1,9 +1,9 @@
 """Figs. 14 and 16 cell by cell, at ρ² = 0, 10⁻⁴ and 10⁻³: the retrained grid and the NT 20 cells.
 
-    python docs/capacity_cells.py grid REPORT_DIR      # REPORT_DIR/summary.csv, `moex report`'s
-    python docs/capacity_cells.py add REPORT_DIR       # its new cells into that CSV
-    python docs/capacity_cells.py nt20 EVAL_ROOT [LT]  # EVAL_ROOT/nc<NC>_noise<ρ²>/metrics.csv
-    python docs/capacity_cells.py window WINDOW_ROOT   # <sweep>_<job>_noise<ρ²>/metrics.csv
+    python -m studies.capacity_cells grid REPORT_DIR      # REPORT_DIR/summary.csv, `moex report`'s
+    python -m studies.capacity_cells add REPORT_DIR       # its new cells into that CSV
+    python -m studies.capacity_cells nt20 EVAL_ROOT [LT]  # EVAL_ROOT/nc<NC>_noise<ρ²>/metrics.csv
+    python -m studies.capacity_cells window WINDOW_ROOT   # <sweep>_<job>_noise<ρ²>/metrics.csv
 
 `grid` reads the per-network table `moex report` wrote for the grid's sweeps (each job trained,
 then `moex evaluate run_dir=<job> eval.noise_var=<ρ²>` for ρ² > 0) and writes
@@ -34,11 +34,9 @@ import numpy as np
 import pandas as pd
 
 from moex.report import to_markdown
+from studies.common import DOCS
+from studies.junction import spearman
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from junction import spearman  # noqa: E402
-
-DOCS = Path(__file__).resolve().parent
 COLUMNS = ["run", "E_closed", "max_lyapunov", "max_lyapunov_se", "switch_prob",
            "nonperiodic_fraction"]
 CELL = ["context_size", "num_series", "length"]

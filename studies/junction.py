@@ -5,7 +5,7 @@ ends, the data continues on either curve with probability P, and the two curves 
 same point, so ĝ there has to carry the switch. If phase 1 leaves ĝ ambiguous (≈ 0.5) around the
 lap boundaries, phase 2 has a weak target there, and a network might learn to stay.
 
-    python docs/junction.py RUN_DIR        # a phase-1-trained Table 2 P = 0.5 run (checkpoint.pt)
+    python -m studies.junction RUN_DIR    # a phase-1-trained Table 2 P = 0.5 run (checkpoint.pt)
 
 Per network, from the checkpoint's β and labels (no training, no evaluation):
     ambiguity_boundary  mean min_k ĝ_k over the first 3 steps of every lap (0: crisp, 0.5: none)
@@ -26,7 +26,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-DOCS = Path(__file__).resolve().parent
+from studies.common import DOCS
+
 STAYS, LAP, FIRST = 0.03, 25, 3
 
 

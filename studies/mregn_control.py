@@ -1,11 +1,11 @@
 """The authors' own C tools (mregn, rnn-learn) as a control: trained on moex's data files at the
 paper's settings, then imported into moex run folders (`moex import`) and scored by moex.
 
-    python docs/mregn_control.py run <bin folder> <out folder> [--networks 20] [--workers 2]
+    python -m studies.mregn_control run <bin folder> <out folder> [--networks 20] [--workers 2]
 
-    python docs/mregn_control.py lyapunov <bin folder> <out folder>   # their own λ_max tool
+    python -m studies.mregn_control lyapunov <bin folder> <out folder>   # their own λ_max tool
 
-    python docs/mregn_control.py compare <out folder>     # after `moex import` of each design
+    python -m studies.mregn_control compare <out folder>     # after `moex import` of each design
 
 <bin folder> holds the tools built by `bash tools/build_mregn.sh <mregn checkout> <bin folder>`
 (their Makefile's defines: "the C code's default build"); a design that needs another build
@@ -42,6 +42,7 @@ from moex.config import CONF_DIR
 from moex.errors import check
 from moex.mregn_format import write_targets
 from moex.tasks import TaskConfig, make_task
+from studies.common import DOCS
 
 _REBER = ("{bin}/rnn-learn -s {seed} -n NC -t 10 -k 1 -d 1 -e 10000 -x 0.01 -m 0.9 -a -l 1000 "
           "-o rnn.dat {data}")
@@ -157,7 +158,6 @@ COMPARED = {
     "table2_p025_paper": ("table2_summary.csv", ("task.switch_prob", 0.25), ("Table 2", 0.25),
                           ("switch_prob", "max_lyapunov")),
 }
-DOCS = Path(__file__).resolve().parent
 
 
 def _difference(a, b, permutations: int = 20000) -> tuple[float, float, float]:

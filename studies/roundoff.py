@@ -4,7 +4,7 @@ only the floating-point rounding differs (another CPU, or another number of netw
 by side, which changes how the kernels pack and sum lanes). Every difference between a network
 and its twin is round-off amplified by 40 000 training steps and by the closed loop.
 
-    python docs/roundoff.py      # writes docs/roundoff_pairs.csv, prints the summary table
+    python -m studies.roundoff      # writes docs/roundoff_pairs.csv, prints the summary table
 
 The pairs (A against B; what differs):
     soft, P = 0.5: Table 2's networks 0-9 (R = 30, AMD EPYC) against the P = 0.5 study's
@@ -15,14 +15,13 @@ The pairs (A against B; what differs):
         `targets_onehot` arm (R = 10, AMD EPYC); R and CPU.
 """
 
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from moex.report import to_markdown
+from studies.common import DOCS
 
-DOCS = Path(__file__).resolve().parent
 COLUMNS = ["run", "E", "switch_prob", "max_lyapunov", "nonperiodic_fraction"]
 MOVED = 0.05  # a switching probability that moved more than this counts as a changed outcome
 

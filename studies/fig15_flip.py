@@ -1,6 +1,6 @@
 """Is a tracked flip of λ_max real? A controlled check of one Fig. 15-like jump.
 
-    python docs/fig15_flip.py outputs/paper_fig15/<date> RUN STEP
+    python -m studies.fig15_flip outputs/paper_fig15/<date> RUN STEP
 
 Network RUN of a `paper_fig15` run is retrained alone, phase 2 only (phase 1's β and experts come
 from the run's checkpoint; a run trains identically alone and in a batch), to the parameters the
@@ -28,6 +28,7 @@ from moex.model import random_state
 from moex.report import to_markdown
 from moex.run import initial_parameters, run_seeds
 from moex.train import phase2_targets, train_gating
+from studies.common import DOCS
 
 REPEATS, SAMPLES, STEPS = 8, 25, 20000
 NOISE_VAR = 1e-4  # ρ² of Fig. 15c
@@ -88,7 +89,7 @@ def main() -> None:
                          "estimates": f"{REPEATS} x {SAMPLES} samples x {STEPS} steps"})
     table = pd.DataFrame(rows)
     print(to_markdown(table))
-    table.to_csv(Path(__file__).parent / "fig15_flip.csv", index=False)
+    table.to_csv(DOCS / "fig15_flip.csv", index=False)
 
 
 if __name__ == "__main__":

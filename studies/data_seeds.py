@@ -1,8 +1,8 @@
 """How much the data realisation decides (open question 0): the data-seed experiments' variance
 splits, recomputed from the per-network CSVs `moex report` wrote over each sweep.
 
-    python docs/data_seeds.py            # every experiment: per-data-set tables and the splits
-    python docs/data_seeds.py overview   # only the overview table REPRODUCTION.md quotes
+    python -m studies.data_seeds            # every experiment: per-data-set tables and the splits
+    python -m studies.data_seeds overview   # only the overview table REPRODUCTION.md quotes
 
 Each experiment (EXPERIMENTS) trains the same initial networks (seed 0: Table 1's or Table 2's
 networks 0, 1, ...) on several data sets (`task.data_seed`), a crossed design. For each metric:
@@ -16,14 +16,13 @@ networks 0, 1, ...) on several data sets (`task.data_seed`), a crossed design. F
 """
 
 import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from moex.report import to_markdown
+from studies.common import DOCS
 
-DOCS = Path(__file__).resolve().parent
 KEY = "task.data_seed"
 STAYS = 0.03  # a network below this switching probability stays on one curve
 PERMUTATIONS = 20000

@@ -3,9 +3,9 @@ of a `paper_lissajous9` run kept as docs/lissajous9_history.csv, the tracked tab
 docs/reproduction/lissajous9.md, and each network's changes of λ_max between tracking points
 judged against their errors.
 
-    python docs/lissajous9_tracking.py RUN_DIR     # writes docs/lissajous9_history.csv and
+    python -m studies.lissajous9_tracking RUN_DIR     # writes docs/lissajous9_history.csv and
                                                    # lissajous9_rerun_summary.csv, prints
-    python docs/lissajous9_tracking.py             # prints from docs/lissajous9_history.csv
+    python -m studies.lissajous9_tracking             # prints from docs/lissajous9_history.csv
 
 A change between consecutive tracking points is *beyond its error* when |Δλ| > 2 √(se₁² + se₂²);
 a sign change is *resolved* when both values lie beyond 2 se of zero, on opposite sides.
@@ -18,8 +18,8 @@ import numpy as np
 import pandas as pd
 
 from moex.report import to_markdown
+from studies.common import DOCS
 
-DOCS = Path(__file__).resolve().parent
 HISTORY = DOCS / "lissajous9_history.csv"
 COLUMNS = ["run", "step", "E_g", "block_kl_train", "max_lyapunov", "max_lyapunov_se"]
 SHOWN = (0, 500, 1000, 2000, 3000, 4000, 5000, 6000, 8000, 9999)  # the table's steps

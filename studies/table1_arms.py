@@ -3,9 +3,9 @@ Table 1's 50 networks at one NC trained again with one change each against the s
 baseline: the C code's initialisation (`model.init=mregn`), learned time constants
 (`model.learn_time_constants=true`), the u_0 attraction term (`train.gating.attraction=true`).
 
-    python docs/table1_arms.py NC baseline=RUN_DIR init_mregn=RUN_DIR ...   # run folders
-    python docs/table1_arms.py NC --add init_tau=RUN_DIR ...   # more arms beside those in the CSV
-    python docs/table1_arms.py NC                              # the table from the CSV alone
+    python -m studies.table1_arms NC baseline=RUN_DIR init_mregn=RUN_DIR ...  # run folders
+    python -m studies.table1_arms NC --add init_tau=RUN_DIR ...  # more arms beside the CSV's
+    python -m studies.table1_arms NC                             # the table from the CSV alone
 
 Writes docs/table1_nc<NC>_arms.csv (one row per arm and network) and prints, per arm, each
 metric's mean ± sd and its paired change against the baseline (mean ± standard error over the
@@ -19,8 +19,8 @@ import numpy as np
 import pandas as pd
 
 from moex.report import to_markdown
+from studies.common import DOCS
 
-DOCS = Path(__file__).resolve().parent
 METRICS = ["E_g", "block_kl_train", "block_kl_test", "max_lyapunov"]
 
 

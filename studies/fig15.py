@@ -1,8 +1,8 @@
 """Fig. 15 looked for: flips of the tracked λ_max between consecutive tracking points, against the
 noise floor of the tracking estimate, from a `paper_fig15` run folder.
 
-    python docs/fig15.py outputs/paper_fig15/<date> [NOISY_EVAL_DIR]
-    python docs/fig15.py --power     # the detector's power to see the paper's flip
+    python -m studies.fig15 outputs/paper_fig15/<date> [NOISY_EVAL_DIR]
+    python -m studies.fig15 --power     # the detector's power to see the paper's flip
 
 writes docs/fig15_summary.csv (per network: the noise floor, flips, and the evaluation's λ_max and
 switching, with ρ² = 10⁻⁴ beside them when NOISY_EVAL_DIR, a `moex evaluate ... eval.noise_var=
@@ -25,7 +25,7 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 import torch
@@ -36,6 +36,7 @@ from moex.config import config_from_dict
 from moex.kernels import get_backend
 from moex.model import random_state
 from moex.report import to_markdown
+from studies.common import DOCS
 
 REPEATS = 20
 FLOOR_FACTOR = 2
@@ -130,9 +131,8 @@ def plot(history: pd.DataFrame, table: pd.DataFrame, path: Path, ev) -> None:
 
 def main() -> None:
     if sys.argv[1:] == ["--power"]:  # the detector's power at the end-of-training floors
-        docs = Path(__file__).parent
-        table = power_table(pd.read_csv(docs / "fig15_end_summary.csv"))
-        table.to_csv(docs / "fig15_power.csv", index=False)
+        table = power_table(pd.read_csv(DOCS / "fig15_end_summary.csv"))
+        table.to_csv(DOCS / "fig15_power.csv", index=False)
         print(to_markdown(table))
         return
     run_dir = Path(sys.argv[1])
@@ -146,11 +146,10 @@ def main() -> None:
             ["run", "max_lyapunov_noisy", "switch_prob", "nonperiodic_fraction"]]
         table = table.merge(noisy, on="run", suffixes=("", "_noise1e-4"))
     print(to_markdown(table))
-    docs = Path(__file__).parent
     ev = config_from_dict(checkpoint.load(run_dir).config).eval
     name = "fig15_end" if ev.track_from else "fig15"  # the end of training only: its own files
-    table.to_csv(docs / f"{name}_summary.csv", index=False)
-    plot(history, table, docs / f"{name}_tracked.png", ev)
+    table.to_csv(DOCS / f"{name}_summary.csv", index=False)
+    plot(history, table, DOCS / f"{name}_tracked.png", ev)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ as long in both phases (60000 + 20000), and that run's own gating network at its
 
     moex train experiment=paper_lissajous9 train.experts.steps=60000 train.gating.steps=20000 \\
         hydra.run.dir=outputs/paper_lissajous9/long_n5
-    python docs/lissajous9_length.py outputs/paper_lissajous9/long_n5_gating10k \\
+    python -m studies.lissajous9_length outputs/paper_lissajous9/long_n5_gating10k \\
         outputs/paper_lissajous9/long_n5
 
 Writes docs/lissajous9_long_summary.csv (both runs' metrics.csv, column `gating_steps`) and
@@ -32,10 +32,8 @@ import numpy as np
 import pandas as pd
 
 from moex.report import to_markdown, wilson_interval
-
-DOCS = Path(__file__).resolve().parent
-sys.path.insert(0, str(DOCS))
-from capacity_cells import fisher_p  # noqa: E402
+from studies.capacity_cells import fisher_p
+from studies.common import DOCS
 
 LONG = DOCS / "lissajous9_long_summary.csv"
 COLUMNS = ["run", "E", "E_g", "E_closed", "block_kl_train", "block_kl_test", "max_lyapunov",

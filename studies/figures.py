@@ -1,7 +1,7 @@
 """Redraw the committed figures of docs/ that come from per-network CSVs, in the current figure
 style (the same functions `moex report` and `moex train` use):
 
-    python docs/figures.py
+    python -m studies.figures
 
 capacity_fig14.png (E^closed and the share with λ_max > 0, the paper's criterion, as NT × LT
 heat maps, one panel per NC) and capacity_fig16.png (the nonperiodic share, one row per noise
@@ -11,15 +11,14 @@ lissajous2}.png. The figures of single closed-loop samples (trajectories, gates,
 times) need the run folders and are not redrawn here.
 """
 
-from pathlib import Path
 
 import matplotlib.pyplot as plt
 import pandas as pd
 
 from moex import plotting
 from moex.report import NEAR, aggregate, heat_limits
+from studies.common import DOCS
 
-DOCS = Path(__file__).resolve().parent
 NETWORKS = "10 networks per cell, P = 0.5, the paper's training"
 # Fig. 14: one row per quantity without noise; Fig. 16: one row per noise level ρ²
 FIG14 = ["E_closed_mean", "positive_percent"]

@@ -1,21 +1,21 @@
 """λ_max of the authors' Table 2 control networks four ways: moex's estimator (Benettin's method
 on the closed loop's Jacobian, `moex evaluate`); the same with the gates held at 1/K in the
 Jacobian, as the authors' tool differentiates the mixture (`eval.jacobian_gates=uniform`); the
-authors' `mregn-lyapunov` itself (docs/mregn_control.py lyapunov); and a check that uses no
+authors' `mregn-lyapunov` itself (studies/mregn_control.py lyapunov); and a check that uses no
 Jacobian at all: two closed-loop trajectories 10⁻⁸ apart, their distance measured and
 renormalised every `CHUNK` steps, its mean log growth per step (Benettin's two-trajectory method
 on the nonlinear map itself).
 
     moex evaluate run_dir=<out>/<design>/moex eval.jacobian_gates=uniform \
         out_dir=<out>/<design>/moex_uniform                # for each design, then
-    python docs/lyapunov_crosscheck.py <out folder>        # <out>/<design>/moex, as imported
+    python -m studies.lyapunov_crosscheck <out folder>        # <out>/<design>/moex, as imported
 
 writes docs/lyapunov_crosscheck.csv, one row per network, and prints it. The other direction,
 moex-trained networks scored by the authors' tool:
 
     moex evaluate run_dir=<run> eval=paper out_dir=<run>/exact        # and, with the gates at 1/K,
     moex evaluate run_dir=<run> eval=paper eval.jacobian_gates=uniform out_dir=<run>/uniform
-    python docs/lyapunov_crosscheck.py moex <run> <C network folder> <bin folder> <out folder>
+    python -m studies.lyapunov_crosscheck moex <run> <C network folder> <bin folder> <out folder>
 
 exports each network of the moex run to the C tools' files (`moex.importer.export_run`, over the
 files of a C-trained network of the same sizes), scores it with `mregn-lyapunov` and writes
@@ -25,7 +25,7 @@ The two estimates of the same trajectories, sample by sample (each network's 50 
 the same transient, then the exact-Jacobian estimate and the two-trajectory check from the same
 point):
 
-    python docs/lyapunov_crosscheck.py paired <out folder>
+    python -m studies.lyapunov_crosscheck paired <out folder>
 
 writes docs/lyapunov_crosscheck_paired.csv (one row per network and sample) and prints, per
 network, how far the two are apart and in how many samples they agree in sign.
@@ -43,11 +43,9 @@ from moex.importer import export_run
 from moex.kernels import get_backend
 from moex.model import random_state
 from moex.mregn_format import read_save
+from studies.common import DOCS
+from studies.mregn_control import their_lyapunov
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from mregn_control import their_lyapunov  # noqa: E402
-
-DOCS = Path(__file__).resolve().parent
 DESIGNS = ("table2_p05", "table2_p025")
 SAMPLES, TRANSIENT, STEPS, CHUNK, EPS = 4, 1000, 100_000, 10, 1e-8
 PAIRED_SAMPLES = 50  # as moex's evaluation draws (eval.num_samples)

@@ -1,7 +1,7 @@
 """Fig. 9 in numbers: the residence times of Table 2's networks against the data's geometric law.
 
-    python docs/residence.py collect SWEEP...   # writes docs/table2_own_data_residence.csv
-    python docs/residence.py                    # prints the table REPRODUCTION.md quotes
+    python -m studies.residence collect SWEEP...   # writes docs/table2_own_data_residence.csv
+    python -m studies.residence                    # prints the table REPRODUCTION.md quotes
 
 `collect` reads every job's samples.npz (`residence_hist` and `residence_censored_hist`: per
 network, the stays of k = 1 … 99 repetitions of one curve, and of 100 or more in the last bin,
@@ -21,8 +21,8 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from moex.report import to_markdown
+from studies.common import DOCS
 
-DOCS = Path(__file__).resolve().parent
 CSV = DOCS / "table2_own_data_residence.csv"
 REACH = (5, 10, 20, 40)  # the stay lengths k of the table's "reaches k laps" columns
 LONG = 100  # the histogram's last bin: stays of 100 laps or more

@@ -10,7 +10,7 @@ arm; `c_code` all of them together), with the baseline on the same seeds:
         task.num_series=2 task.length=250 model.gating.context_size=10 \\
         cache_dir=outputs/fig16_cause/phase1_cache hydra.sweep.dir=outputs/fig16_cause/nc10
     moex evaluate run_dir=<job> eval.noise_var=0.001 out_dir=<job>/evaluate/noise0.001   # each job
-    python docs/fig16_arms.py outputs/fig16_cause/nc10 outputs/fig16_cause/nc30
+    python -m studies.fig16_arms outputs/fig16_cause/nc10 outputs/fig16_cause/nc30
 
 Writes docs/fig16_arms.csv (one row per arm, NC, ρ² and network) and prints, per arm and NC: the
 networks with a majority of nonperiodic samples at ρ² = 0 → 10⁻³ (the paper: few at both), those
@@ -24,11 +24,9 @@ from pathlib import Path
 import pandas as pd
 
 from moex.report import to_markdown
+from studies.capacity_cells import STAY, arms_at_noise, chaotic, mostly_nonperiodic
+from studies.common import DOCS
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from capacity_cells import STAY, arms_at_noise, chaotic, mostly_nonperiodic  # noqa: E402
-
-DOCS = Path(__file__).resolve().parent
 NOISE = 1e-3
 COLUMNS = ["run", "E_closed", "max_lyapunov", "switch_prob", "nonperiodic_fraction",
            "periodicity_samples"]

@@ -1,14 +1,14 @@
 """The verdict table at the top of REPRODUCTION.md, recomputed from the per-network CSVs in docs/.
 
-    python docs/verdicts.py              # the Markdown table of REPRODUCTION.md
-    python docs/verdicts.py --evidence   # with the evidence column (docs/verdicts.md)
+    python -m studies.verdicts              # the Markdown table of REPRODUCTION.md
+    python -m studies.verdicts --evidence   # with the evidence column (docs/verdicts.md)
 
 Each row: the paper's number; ours as mean ± sd (n) over the table's own batch (one data set,
 independent networks), with its median and the number of networks beyond 3 robust SDs; where
 the same design ran on more data sets, the mean over independent units (`pooled`: an initial
 network reused on several data sets is one unit; evidence beside the verdict); the difference
 moex − paper with its 95 % interval; the authors' code trained on the same data and scored by
-moex (docs/mregn_control.py), where run; and the verdict of ONE RULE (`decide`):
+moex (studies/mregn_control.py), where run; and the verdict of ONE RULE (`decide`):
   - the interval of moex − paper (z 1.96) counts the paper's own sampling error: its n networks
     (50 in Table 1, 30 in Table 2) assumed to spread as a typical moex network (robust SD, 1.4826
     × the median absolute deviation, so that moex's outliers do not widen the tolerance); a share
@@ -25,16 +25,13 @@ tests/test_docs.py checks that REPRODUCTION.md and docs/verdicts.md quote this t
 """
 
 import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from moex.report import to_markdown, wilson_interval
 from moex.tasks.paper import PAPER_TABLE1, PAPER_TABLE2
-
-DOCS = Path(__file__).resolve().parent
-sys.path.insert(0, str(DOCS))  # the sibling scripts (table2_onehot)
+from studies.common import DOCS
 
 
 def _distance(values: pd.Series, paper: float, digits: str = ".3f") -> str:
@@ -58,8 +55,8 @@ def _onehot(p: float) -> str:
 
 
 def _paired_targets(p: float) -> str:
-    """The paired one-hot − soft difference of switching at P (docs/table2_onehot.py)."""
-    from table2_onehot import at_p, sign_flip_p
+    """The paired one-hot − soft difference of switching at P (studies/table2_onehot.py)."""
+    from studies.table2_onehot import at_p, sign_flip_p
 
     onehot, soft = (at_p(pd.read_csv(DOCS / f), p) for f in ("table2_onehot30_summary.csv",
                                                              "table2_summary.csv"))
@@ -413,7 +410,7 @@ def tally(frame: pd.DataFrame) -> str:
     kinds = frame.verdict.map(lambda v: next(k for k in KINDS if v.startswith(k)))
     n = kinds.value_counts().reindex(KINDS, fill_value=0)
     carried = int(frame.verdict.str.contains(r"carr(?:y|ies) it").sum())
-    return (f"Of the table's {len(frame)} rows, by one rule (docs/verdicts.py): {n.iloc[0]} "
+    return (f"Of the table's {len(frame)} rows, by one rule (studies/verdicts.py): {n.iloc[0]} "
             f"reproduced; {n.iloc[1:4].sum()} differ, {n.iloc[1]} with the cause found, "
             f"{n.iloc[2]} with a candidate cause and {n.iloc[3]} with the cause open; "
             f"{n.iloc[4]} inconclusive; {carried} of them rest on one or two networks.")
