@@ -46,9 +46,9 @@ def _noise(state: ClosedLoopState, steps: int, noise_std: float, generator):
 
 
 def generate(experts, gating, state: ClosedLoopState, steps: int, *, backend: Backend,
-             noise_std: float = 0.0, generator=None, should_stop=never
+             noise_std: float = 0.0, generator=None, stop=never
              ) -> dict[str, torch.Tensor]:
-    """Run the closed loop for `steps` steps on `backend`; `should_stop` is
+    """Run the closed loop for `steps` steps on `backend`; `stop` is
     asked between chunks (`Interrupted` when it says so).
 
     Returns:
@@ -56,7 +56,7 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, *, backend: Ba
     """
     parts = []
     for _, size in chunks(steps, CHUNK):  # (well under a second each)
-        stop_if_asked(should_stop, "the closed loop was")
+        stop_if_asked(stop, "the closed loop was")
         run = backend.closed_loop(experts, gating, state, size,
                                   _noise(state, size, noise_std, generator))
         state = run.state
@@ -68,7 +68,7 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, *, backend: Ba
 def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, transient: int, *,
                          generator, backend: Backend, num_exponents: int = 1,
                          noise_std: float = 0.0, uniform_gates: bool = False, on_chunk=None,
-                         keep_potentials: int = 0, should_stop=never) -> torch.Tensor:
+                         keep_potentials: int = 0, stop=never) -> torch.Tensor:
     """The first k Lyapunov exponents (R, N, k) of the whole closed loop (Benettin's method).
 
     Tangent vectors start random and orthonormal, are propagated by the exact Jacobian and
@@ -83,7 +83,7 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
         keep_potentials: record u^g in the chunks that reach into the last so many steps (None
             in the others: at the paper's scale it would be gigabytes).
         backend: where the closed loop runs (`moex.kernels.get_backend`).
-        should_stop: asked between chunks; `Interrupted` is raised when it returns True.
+        stop: asked between chunks; `Interrupted` is raised when it returns True.
     """
 
     def advance(tangents, size, counted, done):
@@ -100,4 +100,4 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
 
     with progress.bar(total=transient + steps, desc="lyapunov") as bar:
         return benettin(advance, initial_tangents(state.flat(), num_exponents, generator), steps,
-                        transient=transient, chunk=CHUNK, should_stop=should_stop)
+                        transient=transient, chunk=CHUNK, stop=stop)

@@ -14,13 +14,13 @@ class Interrupted(Exception):
 
 
 def never() -> bool:
-    """A `should_stop` that never asks to stop."""
+    """A `stop` that never asks to stop."""
     return False
 
 
-def stop_if_asked(should_stop, what: str) -> None:
-    """Between chunks of long work: `Interrupted` when `should_stop()` says a signal came."""
-    if should_stop():
+def stop_if_asked(stop, what: str) -> None:
+    """Between chunks of long work: `Interrupted` when `stop()` says a signal came."""
+    if stop():
         raise Interrupted(f"{what} stopped by a signal before finishing")
 
 

@@ -199,7 +199,7 @@ def _switching_columns(symbols, winners, dataset: Dataset, cfg: EvalConfig) -> t
 
 def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalConfig,
              generator: Generators, backend: Backend, target_temperature: float = 1.0,
-             should_stop=never, sigma_min: float = 0.05, gate_prior_std: float = 10.0
+             stop=never, sigma_min: float = 0.05, gate_prior_std: float = 10.0
              ) -> Evaluation:
     """All metrics of R trained networks, one row per run, and arrays for the figures.
 
@@ -210,7 +210,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
             noise (a list of one per run: run r's then do not depend on the other runs).
         backend: where the closed loop runs; target_temperature: that of the phase-2 targets
             (E^g is measured against the targets the gating RNN was fitted to).
-        should_stop: asked between chunks of the closed loop (`Interrupted` when True).
+        stop: asked between chunks of the closed loop (`Interrupted` when True).
         sigma_min, gate_prior_std: σ̄ and ς of the trained model (the held-out series'
             segmentation, `moex.segment`).
     """
@@ -221,7 +221,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
     error, error_g = _teacher_forced(experts, beta, gating, series, delay=delay, targets=targets)
     # ---- closed loop from the trained initial states (Sec. 4.2)
     closed = generate(experts, gating, trained_state(experts, gating, targets, series, delay=delay),
-                      targets.shape[2], backend=backend, should_stop=should_stop)
+                      targets.shape[2], backend=backend, stop=stop)
     kl_train = _train_block_kl(targets, closed["gates"], cfg)
     # ---- random initial states: Lyapunov exponents and long symbol sequences
     recorded, winners = [], []  # per-step symbols and winning gates, (R, N, steps) per chunk
@@ -248,7 +248,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
         # the symbols: the first pass draws exactly what an evaluation without noise draws
         common = dict(generator=generator, num_exponents=cfg.num_exponents,
                       uniform_gates=uniform, keep_potentials=cfg.plot_steps, backend=backend,
-                      should_stop=should_stop)
+                      stop=stop)
         exponents = closed_loop_lyapunov(
             experts, gating, state.like(state.flat().clone()), cfg.lyapunov_steps, cfg.transient,
             on_chunk=None if cfg.noise_var > 0 else on_chunk, **common).numpy()

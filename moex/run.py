@@ -193,7 +193,7 @@ def train_jobs(jobs: list[Job], stop=never, backend: Backend | None = None
             resume = _joined([job.saved.train_state for job in jobs], starts)
             if saved.track_rng is not None:
                 track_rng.set_state(saved.track_rng)
-        return Hooks(save=save, save_every=cfg.train.checkpoint_every, should_stop=stop,
+        return Hooks(save=save, save_every=cfg.train.checkpoint_every, stop=stop,
                      resume=resume, **extra)
 
     # ---- phase 1 (skipped for symbolic tasks, or when a checkpoint holds its result)

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from moex import progress
-from moex.errors import Interrupted, check, check_positive, check_range
+from moex.errors import Interrupted, check, check_positive, check_range, never
 from moex.kernels import Backend
 from moex.model import ModelConfig, gate_estimates
 from moex.tasks import Dataset
@@ -115,7 +115,7 @@ class Hooks:
     monitor_from: int = 0  # the first step the monitor sees
     save: Callable[[dict], None] | None = None  # receives the resumable state of the phase
     save_every: int = 0
-    should_stop: Callable[[], bool] = lambda: False  # e.g. a SIGTERM arrived
+    stop: Callable[[], bool] = never  # e.g. a SIGTERM arrived (`moex.stop.StopRequest`)
     resume: dict | None = None  # a state from `save`, to continue from
 
 
@@ -235,7 +235,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         return {k: torch.as_tensor(v, device=device) for k, v in values.items()}
 
     for step in progress.steps(start, steps, desc=phase):
-        if hooks.should_stop() and hooks.save is not None:
+        if hooks.stop() and hooks.save is not None:
             save(step)
             raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
         # ---- gradient of ln L at the current parameters (a noisy objective draws its noise)

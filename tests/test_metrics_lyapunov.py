@@ -79,7 +79,7 @@ def test_benettin_counts_the_steps_after_the_transient_in_chunks():
     assert calls == [(2, False, 0), (3, True, 0), (3, True, 3), (1, True, 6)]
     torch.testing.assert_close(lam, torch.full((1,), math.log(2)))
     with pytest.raises(Interrupted):
-        benettin(advance, tangents, 7, transient=2, chunk=3, should_stop=lambda: True)
+        benettin(advance, tangents, 7, transient=2, chunk=3, stop=lambda: True)
 
 
 def _samples(step, x0, steps, transient=200):

@@ -291,7 +291,7 @@ def test_stopped_and_resumed_training_is_bit_identical(backend):
     whole, rows = train_gating(init, ghat, series[:, :-1], model, phase, rule=TrainConfig(),
                                backend=backend)
     saved, calls = [], iter(range(100))
-    stop = Hooks(save=saved.append, save_every=2, should_stop=lambda: next(calls) == 3)
+    stop = Hooks(save=saved.append, save_every=2, stop=lambda: next(calls) == 3)
     with pytest.raises(TrainingInterrupted):
         train_gating(init, ghat, series[:, :-1], model, phase, rule=TrainConfig(), hooks=stop,
                      backend=backend)

@@ -37,7 +37,7 @@ def chunks(total: int, size: int):
 
 
 def benettin(advance: Advance, tangents: torch.Tensor, steps: int, *, transient: int, chunk: int,
-             should_stop: Callable[[], bool] = never) -> torch.Tensor:
+             stop: Callable[[], bool] = never) -> torch.Tensor:
     """The first k exponents per trajectory (B..., k), per step (natural log): `transient` steps
     align the tangents, the log growth of the next `steps` is averaged.
 
@@ -47,12 +47,12 @@ def benettin(advance: Advance, tangents: torch.Tensor, steps: int, *, transient:
             tangents and the summed ln |R_vv|; `counted` says whether the steps are averaged,
             `done` how many of this stretch came before.
         tangents: (B..., dim, k) orthonormal (`initial_tangents`).
-        should_stop: asked before every chunk; `Interrupted` when it says so.
+        stop: asked before every chunk; `Interrupted` when it says so.
     """
     growth = 0
     for counted, total in ((False, transient), (True, steps)):
         for done, size in chunks(total, chunk):
-            stop_if_asked(should_stop, "the Lyapunov exponents were")
+            stop_if_asked(stop, "the Lyapunov exponents were")
             tangents, log_growth = advance(tangents, size, counted, done)
             if counted:
                 growth = growth + log_growth

@@ -42,7 +42,7 @@ def run(tool: GenerateConfig, out_dir: Path, stop=never) -> dict:
                               rows=k)
     with torch.no_grad():
         out = generate(experts, gating, state, tool.steps, noise_std=tool.noise_var**0.5,
-                       generator=generator, backend=run.backend, should_stop=stop)
+                       generator=generator, backend=run.backend, stop=stop)
     samples = {k: v.numpy() for k, v in out.items()}
     samples["symbols"] = dataset.symbolize(samples["outputs"], samples["gates"],
                                            run.backend.nearest_symbols)

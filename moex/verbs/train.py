@@ -111,7 +111,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, *, gating, out_di
         rows, samples = evaluate(experts, beta, gating, dataset, cfg.model.delay, cfg=cfg.eval,
                                  generator=generator, backend=backend,
                                  target_temperature=cfg.train.gating.target_temperature,
-                                 should_stop=stop, sigma_min=cfg.model.sigma_min,
+                                 stop=stop, sigma_min=cfg.model.sigma_min,
                                  gate_prior_std=cfg.train.experts.gate_prior_std)
     metrics = pd.DataFrame(rows).astype({"lyapunov_positive": "boolean"})
     counts = metrics.select_dtypes("integer").columns  # stay integers beside a failed run's NaN
