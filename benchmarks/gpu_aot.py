@@ -44,7 +44,7 @@ BUDGET = {  # the counts at the sizes above on 2026-12-04 (4 warps), rounded up:
     "rnn_forward": {"registers": 96, "shuffles": 0, "barriers": 4},  # by columns (2026-12-04)
     "rnn_backward": {"registers": 255, "shuffles": 32, "barriers": 24},  # by columns too
     "rnn_weight_gradients": {"registers": 255, "shuffles": 330, "barriers": 30},
-    "momentum_kernel": {"registers": 96, "shuffles": 8, "barriers": 4},
+    "momentum_kernel": {"registers": 96, "shuffles": 8, "barriers": 6},
     "mixture_objective": {"registers": 255, "shuffles": 330, "barriers": 30},
     "softmax_objective": {"registers": 112, "shuffles": 330, "barriers": 2},
     "closed_loop_kernel": {"registers": 255, "shuffles": 2048, "barriers": 170},
