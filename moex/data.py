@@ -11,7 +11,7 @@ from moex import budget
 from moex.config import Config
 from moex.errors import check
 from moex.model import ModelConfig
-from moex.tasks import Dataset, make_task, planned_shape
+from moex.tasks import TASKS, Dataset, make_task, planned_shape
 from moex.tasks.scaling import WINDOW, noise_floor
 from moex.train import ExpertPhaseConfig
 
@@ -54,8 +54,9 @@ def held_out(cfg: Config, dataset: Dataset) -> Dataset:
     count = cfg.eval.test_series
     if not count or count == cfg.task.num_test_series:
         return dataset
-    check(cfg.task.name != "csv", f"eval.test_series={count}: task {cfg.task.name} is a user's "
-                                  f"files, which have no held-out series to draw more of")
+    check(not TASKS[cfg.task.name].files, f"eval.test_series={count}: task {cfg.task.name} is "
+                                          f"a user's files, which have no held-out series to "
+                                          f"draw more of")
     more = _generated(dataclasses.replace(cfg, task=dataclasses.replace(
         cfg.task, num_test_series=count)))
     return dataclasses.replace(dataset, test=more.test)
@@ -108,9 +109,9 @@ def warn_ignored(cfg: Config, dataset: Dataset) -> None:
     a csv task (its files decide), and every train.experts key set away from its default where
     the task has no signal (Reber: symbols only; no experts, no phase 1)."""
     S = len(dataset.series)
-    if cfg.task.name == "csv" and cfg.task.num_series not in (0, S):
-        log.warning("task.num_series=%d ignored: task csv trains on every series its files hold "
-                    "(%d)", cfg.task.num_series, S)
+    if TASKS[cfg.task.name].files and cfg.task.num_series not in (0, S):
+        log.warning("task.num_series=%d ignored: task %s trains on every series its files hold "
+                    "(%d)", cfg.task.num_series, cfg.task.name, S)
     if dataset.series.shape[-1] > 0:
         return
     default = dataclasses.asdict(ExpertPhaseConfig())

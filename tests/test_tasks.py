@@ -178,3 +178,28 @@ def test_the_noise_floor_is_half_the_quietest_windows_one_step_change():
     mixed = rng.normal(0, 1, (2, 2000, 2)) * np.where(quiet, 0.01, 0.2)[None, :, None]
     assert noise_floor(mixed) == pytest.approx(0.01 / np.sqrt(2), rel=0.2)
     assert noise_floor(np.zeros((1, 300, 2))) == FLOOR
+
+
+def test_a_task_is_one_registry_entry_a_toy_3d_task_trains_with_no_other_edit(
+        monkeypatch, tmp_path, tiny_cfg):
+    """A task is its generator and its entry in `moex.tasks.TASKS` (with D declared for the
+    memory check): a 3-feature toy task, registered here and nowhere else, is checked, trained
+    and evaluated by `moex train`'s own code."""
+    from moex import tasks
+    from moex.evaluation import EvalConfig
+    from moex.verbs.train import run as run_train
+
+    def toy(cfg, rng, min_length):
+        t = 2 * np.pi * np.arange(cfg.length) / cfg.period
+        phases = rng.uniform(0, 2 * np.pi, size=cfg.num_series)
+        series = 0.8 * np.stack([np.stack([np.sin(t + p), np.cos(t + p), np.sin(2 * t)], -1)
+                                 for p in phases])
+        return tasks.user_data(series, None, None)
+
+    monkeypatch.setitem(tasks.TASKS, "toy3d", tasks.Task(toy, lambda cfg: 3))
+    tiny_cfg.task = TaskConfig(name="toy3d", num_series=2, length=40, num_test_series=0)
+    tiny_cfg.eval = EvalConfig(num_samples=2, lyapunov_steps=50, transient=10, plot_steps=20)
+    assert tasks.planned_shape(tiny_cfg.task) == (2, 40, 3)
+    saved = run_train(tiny_cfg, tmp_path)
+    assert saved.series.shape == (2, 40, 3) and saved.experts["w_out"].shape[-2] == 3
+    assert (tmp_path / "metrics.csv").exists()

@@ -49,11 +49,12 @@ class TaskConfig:
     def __post_init__(self):
         check(self.name in TASKS, f"task.name={self.name!r} is unknown; choose one of "
                                   f"{', '.join(closest_first(self.name, TASKS))}")
-        least = 0 if self.name == "csv" else 1  # csv: 0, every series its files hold
+        files = TASKS[self.name].files  # 0: every series and step the files hold
+        least = 0 if files else 1
         check(self.num_series >= least, f"task.num_series={self.num_series} must be >= {least}")
         check(self.num_test_series >= 0,
               f"task.num_test_series={self.num_test_series} must be >= 0")
-        check(self.length >= 0 if self.name == "csv" else self.length >= 3,
+        check(self.length >= 0 if files else self.length >= 3,
               f"task.length={self.length} must be >= 3")
         check_positive("task.period", self.period)
         check_range("task.switch_prob", self.switch_prob, 0.0, 1.0)
@@ -136,12 +137,12 @@ def _switching(primitives: list[Primitive], transition: np.ndarray, cfg: TaskCon
     return Dataset(*sample(cfg.num_series), **common, test=test)
 
 
-def _lissajous2(cfg, rng):
+def _lissajous2(cfg, rng, min_length):
     return _switching(lissajous.two_circles(), lissajous.two_circles_transition(cfg.switch_prob),
                       cfg, rng)
 
 
-def _lissajous9(cfg, rng):
+def _lissajous9(cfg, rng, min_length):
     return _switching(lissajous.nine_curves(),
                       lissajous.nine_curves_transition(cfg.transition_rule), cfg, rng, initial=0)
 
@@ -166,7 +167,7 @@ def _primitive_from_dict(item: Any, index: int) -> Primitive:
     return Primitive(str(item.get("name", f"p{index}")), length=length, **vectors)
 
 
-def _markov_primitives(cfg, rng):
+def _markov_primitives(cfg, rng, min_length):
     check(len(cfg.primitives) >= 1, "task.primitives is empty: list at least one primitive")
     primitives = [_primitive_from_dict(p, i) for i, p in enumerate(cfg.primitives)]
     dims = {len(p.amplitude) for p in primitives}
@@ -176,7 +177,7 @@ def _markov_primitives(cfg, rng):
     return _switching(primitives, transition, cfg, rng)
 
 
-def _reber(cfg, rng):
+def _reber(cfg, rng, min_length):
     def sample(count):
         labels = np.stack([reber.generate_reber(cfg.length, cfg.burn_in, cfg.choice_prob, rng)
                            for _ in range(count)])
@@ -193,7 +194,7 @@ def _reber(cfg, rng):
     return Dataset(s, lab, **common, gate_targets=g, test=test)
 
 
-def _csv(cfg, rng, min_length=3):
+def _csv(cfg, rng, min_length):
     series, labels = files.load_series(cfg.path, cfg.length, min_length, cfg.columns,
                                        cfg.labels)
     series, scale = fit_scale(series, cfg.scale, f"task.path={cfg.path}")
@@ -209,23 +210,38 @@ def user_data(series: np.ndarray, scale: Scale | None = None,
                    scale=scale or Scale())
 
 
+@dataclass(frozen=True)
+class Task:
+    """A task of the registry: `make(cfg, rng, min_length)` builds its `Dataset`; `features(cfg)`
+    is D, known before the data are made (for the memory check), None where the data come from
+    the user's files (`files`: read, not generated; their size is known once read, and a finished
+    run keeps its series in its checkpoint)."""
+
+    make: Callable[[TaskConfig, np.random.Generator, int], Dataset]
+    features: Callable[[TaskConfig], int] | None = None
+    files: bool = False
+
+
+def _primitive_dims(cfg: TaskConfig) -> int:
+    return len(dict(cfg.primitives[0]).get("amplitude", ())) if cfg.primitives else 0
+
+
+# a new task: its generator above (or in a module of its own) and its entry here, and a YAML in
+# conf/task/ for the command line
 TASKS = {
-    "lissajous2": _lissajous2,
-    "lissajous9": _lissajous9,
-    "markov_primitives": _markov_primitives,
-    "reber": _reber,
-    "csv": _csv,
+    "lissajous2": Task(_lissajous2, lambda cfg: 2),
+    "lissajous9": Task(_lissajous9, lambda cfg: 2),
+    "markov_primitives": Task(_markov_primitives, _primitive_dims),
+    "reber": Task(_reber, lambda cfg: 0),
+    "csv": Task(_csv, files=True),
 }
 
 
 def planned_shape(cfg: TaskConfig) -> tuple[int, int, int] | None:
     """(S, T, D) of the training data a generated task will have, known before generating it
     (None for files: their size is known once read)."""
-    if cfg.name == "csv":
-        return None
-    dims = {"reber": 0, "markov_primitives": len(dict(cfg.primitives[0]).get("amplitude", ()))
-            if cfg.primitives else 0}
-    return cfg.num_series, cfg.length, dims.get(cfg.name, 2)
+    task = TASKS[cfg.name]
+    return None if task.files else (cfg.num_series, cfg.length, task.features(cfg))
 
 
 def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
@@ -242,11 +258,10 @@ def make_task(cfg: TaskConfig, seed: int, min_length: int = 3) -> Dataset:
     """
     seed = seed if cfg.data_seed < 0 else cfg.data_seed
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0xDA7A]))
-    if cfg.name == "csv":
-        return _csv(cfg, rng, min_length)
-    check(cfg.length >= min_length, f"task.length={cfg.length} is too short for "
-                                    f"model.delay: need at least {min_length} steps")
-    return TASKS[cfg.name](cfg, rng)
+    task = TASKS[cfg.name]
+    check(task.files or cfg.length >= min_length, f"task.length={cfg.length} is too short for "
+                                                  f"model.delay: need at least {min_length} steps")
+    return task.make(cfg, rng, min_length)
 
 
 def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, *, scale: Scale,
@@ -254,10 +269,10 @@ def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, *, scale: Scale,
     """The data a finished run was trained on: regenerated from its seed where the task is
     generated (held-out series included), the series (in model units) and scale stored in its
     checkpoint where it came from files (they may have moved since), with their labels."""
-    if cfg.name == "csv":
+    if TASKS[cfg.name].files:
         return user_data(series, scale, labels)
     return make_task(cfg, seed, min_length)
 
 
-__all__ = ["TaskConfig", "Dataset", "Scale", "make_task", "planned_shape", "task_of_run",
+__all__ = ["TaskConfig", "Dataset", "Scale", "Task", "make_task", "planned_shape", "task_of_run",
            "user_data", "TASKS"]

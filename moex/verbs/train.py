@@ -21,7 +21,7 @@ from moex.model import gate_estimates
 from moex.resume import open_checkpoint
 from moex.run import Job, run_generators, train_jobs
 from moex.stop import StopRequest
-from moex.tasks import Dataset
+from moex.tasks import TASKS, Dataset
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +128,7 @@ def evaluate_run(cfg: Config, dataset: Dataset, experts, beta, *, gating, out_di
     if beta is not None and dataset.series.shape[-1] > 0:  # which expert holds which stretch
         write_segments(out_dir, gate_estimates(beta).numpy(), dataset.labels, cfg=cfg,
                        what="training series, ĝ = softmax(β) of phase 1",
-                       table=cfg.task.name == "csv", scores=False)
+                       table=TASKS[cfg.task.name].files, scores=False)
     run_page.write(out_dir, cfg, metrics, f"moex run {out_dir.name}")
     for line in progress.packed(f"of {progress.counted(len(ok), 'run')}:",
                                 chaos_parts(ok, cfg.eval), sep=";"):
