@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from moex.errors import check
 from moex.evaluation import EvalConfig
-from moex.kernels import BACKENDS, get_backend
+from moex.kernels import BACKENDS, CHOICES, get_backend
 from moex.model import ModelConfig
 from moex.plotting import PlotConfig
 from moex.tasks import TaskConfig
@@ -49,7 +49,7 @@ class Config:
               f"device=cuda but this machine has no CUDA device PyTorch can use (torch "
               f"{torch.__version__}); use device=cpu")
         check(self.backend in BACKENDS,
-              f"backend={self.backend!r}; choose one of {', '.join(BACKENDS[:4])}")
+              f"backend={self.backend!r}; choose one of {', '.join(CHOICES)}")
         if self.backend == "gpu":  # refused before a run folder exists, not when training starts
             get_backend(self.backend, self.device)
 

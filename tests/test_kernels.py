@@ -616,3 +616,32 @@ def test_every_entry_point_to_the_time_loops_asks_for_its_backend():
         backend = inspect.signature(function).parameters["backend"]
         assert backend.kind is inspect.Parameter.KEYWORD_ONLY, function.__name__
         assert backend.default is inspect.Parameter.empty, function.__name__
+
+
+def test_a_backend_is_one_registry_entry_and_its_interface_is_checked(monkeypatch):
+    """A backend is a module of `BackendModule`'s names and one entry in `LOADERS`: a copy of the
+    reference registered under a new name trains; a module lacking names is refused, by name,
+    when it is chosen."""
+    import types
+
+    from moex import kernels
+    from moex.kernels import reference
+
+    monkeypatch.setitem(kernels.LOADERS, "mine", lambda device: kernels.Backend(
+        "mine", device, kernels._checked(reference)))
+    mine = kernels.get_backend("mine")
+    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    model = ModelConfig()
+    model.experts.context_size = 3
+    experts = init_experts(model, 2, 2, generators([0]))
+    _, beta, rows = train_experts(experts, torch.as_tensor(task.series), model,
+                                  ExpertPhaseConfig(steps=3, log_every=1), TrainConfig(),
+                                  backend=mine)
+    assert len(rows) == 4 and torch.isfinite(beta).all()
+    half = types.ModuleType("half")
+    half.ExpertProblem, half.GatingProblem = reference.ExpertProblem, reference.GatingProblem
+    monkeypatch.setitem(kernels.LOADERS, "half", lambda device: kernels.Backend(
+        "half", device, kernels._checked(half)))
+    with pytest.raises(TypeError, match="half lacks closed_loop, nearest_symbols, warm_up, "
+                                        "momentum_step, apply_step"):
+        kernels.get_backend("half")

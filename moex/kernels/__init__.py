@@ -23,7 +23,9 @@ tests hold the others to. `cpu` (package `cpu/`) is the compiled numba implement
 interpreter on a CPU). Each declares its `Capabilities`. The training loop (`moex.train`) keeps
 parameters, gradients and momentum on the problem's `device` and is the same for all three. The
 choice is made once, by `get_backend`, and passed down; `available(name)` says whether and where
-a backend runs here (the tests' one `backend` fixture is built from it).
+a backend runs here (the tests' one `backend` fixture is built from it). A new backend is a package
+of `BackendModule`'s names and one entry in `LOADERS`; its module is checked for those names when
+it is first chosen.
 """
 
 from dataclasses import dataclass
@@ -34,7 +36,6 @@ import torch
 from moex.errors import check
 from moex.model import ClosedLoopRun, ClosedLoopState
 
-BACKENDS = ("auto", "reference", "cpu", "gpu", "compiled")
 ALIASES = {"compiled": "cpu"}  # the cpu backend's name before the GPU backend existed
 
 
@@ -149,32 +150,57 @@ def _gpu_module():
     return gpu, ""
 
 
-REGISTRY = ("reference", "cpu", "gpu")  # every backend; `available` says which run here
+def _checked(module) -> BackendModule:
+    """A backend module that defines every name of `BackendModule` (a `TypeError` naming those it
+    lacks otherwise: a new backend fails when it is first chosen, not halfway through a run)."""
+    missing = [name for name in INTERFACE if not callable(getattr(module, name, None))]
+    if missing:
+        raise TypeError(f"backend module {module.__name__} lacks {', '.join(missing)}")
+    return module
+
+
+def _reference(device: str) -> Backend:
+    from moex.kernels import reference
+
+    return Backend("reference", device, _checked(reference))
+
+
+def _cpu(device: str) -> Backend:
+    check(device == "cpu",
+          "backend=cpu runs on the CPU only; use backend=gpu (or auto) with device=cuda")
+    from moex.kernels import cpu
+
+    return Backend("cpu", device, _checked(cpu), Capabilities(threads=True))
+
+
+def _gpu(device: str) -> Backend:
+    gpu, why = _gpu_module()
+    check(gpu is not None, f"backend=gpu needs Triton ({why}); pip install triton")
+    check(gpu.available(device), f"backend=gpu needs device=cuda and a CUDA device "
+          f"(device={device}); use backend=cpu (or auto) on this machine")
+    return Backend("gpu", device, _checked(gpu),
+                   Capabilities(interpreted=gpu.INTERPRET and not device.startswith("cuda")))
+
+
+# every backend, by name: a function binding its module to a device (a `ConfigError` where it
+# cannot run there). A new backend is a package of `BackendModule`'s names and one entry here.
+LOADERS = {"reference": _reference, "cpu": _cpu, "gpu": _gpu}
+REGISTRY = tuple(LOADERS)  # `available` says which run here
+CHOICES = ("auto", *REGISTRY)  # what a user may write (and the aliases)
+BACKENDS = (*CHOICES, *ALIASES)
+INTERFACE = ("ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up",
+             "momentum_step", "apply_step")  # `BackendModule`
 
 
 def get_backend(name: str = "auto", device: str = "cpu") -> Backend:
     """`reference` (PyTorch), `cpu` (numba), `gpu` (Triton; device=cuda), or `auto`: cpu on the
     CPU, gpu with device=cuda when Triton is installed (else reference)."""
-    check(name in BACKENDS, f"backend={name!r}; choose one of {', '.join(BACKENDS[:4])}")
+    check(name in ("auto", *LOADERS, *ALIASES),
+          f"backend={name!r}; choose one of {', '.join(('auto', *LOADERS))}")
     name = ALIASES.get(name, name)
-    check(name != "cpu" or device == "cpu",
-          "backend=cpu runs on the CPU only; use backend=gpu (or auto) with device=cuda")
     if name == "auto":
         name = "cpu" if device == "cpu" else "gpu" if _gpu_module()[0] else "reference"
-    if name == "reference":
-        from moex.kernels import reference
-
-        return Backend("reference", device, reference)
-    if name == "gpu":
-        gpu, why = _gpu_module()
-        check(gpu is not None, f"backend=gpu needs Triton ({why}); pip install triton")
-        check(gpu.available(device), f"backend=gpu needs device=cuda and a CUDA device "
-              f"(device={device}); use backend=cpu (or auto) on this machine")
-        return Backend("gpu", device, gpu,
-                       Capabilities(interpreted=gpu.INTERPRET and not device.startswith("cuda")))
-    from moex.kernels import cpu
-
-    return Backend("cpu", device, cpu, Capabilities(threads=True))
+    return LOADERS[name](device)
 
 
 def available(name: str) -> tuple[Backend | None, str]:
