@@ -85,7 +85,7 @@ def test_the_circle_finder_finds_a_circle():
 
 # what the compute kernels may build on: the model's definitions and its mathematics (the
 # objectives, the Lyapunov and symbol formulas the reference backend spells out), the errors, the
-# draws and the compile stamp; nothing of training, evaluation, the CLI or the pipeline
+# draws and the compile stamp; nothing of training, evaluation, the CLI or the verbs
 KERNEL_FLOOR = {"moex", "moex.model", "moex.objectives", "moex.metrics",
                 "moex.metrics.lyapunov", "moex.metrics.symbols", "moex.errors", "moex.draws",
                 "moex.compile_helper"}

@@ -20,7 +20,6 @@ from moex.metrics.table import LOGGED, METRICS
 from moex.model import gate_estimates
 from moex.resume import open_checkpoint
 from moex.run import Job, run_generators, train_jobs
-from moex.stop import StopRequest
 from moex.tasks import TASKS, Dataset
 
 log = logging.getLogger(__name__)
@@ -29,8 +28,7 @@ NAME, CONFIG = "train", "config"  # the verb and its Hydra config
 check = load_task  # everything `run` refuses, before its folder is made
 
 
-def run(cfg: Config, out_dir: Path,
-              stop: StopRequest | None = None) -> checkpoint.Checkpoint:
+def run(cfg: Config, out_dir: Path, stop=never) -> checkpoint.Checkpoint:
     """Train R runs of the mixture on the task and write the run folder; resumable.
 
     A checkpoint already in `out_dir` (from the same config) is continued: a finished run is not
@@ -42,12 +40,13 @@ def run(cfg: Config, out_dir: Path,
     Args:
         cfg: the whole, validated config.
         out_dir: the run folder; receives checkpoint.pt, history.csv, metrics.csv, figures/.
-        stop: the interruption flag (signals are caught by the caller).
+        stop: the interruption request (`moex.stop.StopRequest`; signals are caught by the
+            caller).
 
     Returns:
         the final `Checkpoint`.
     """
-    out_dir, stop = Path(out_dir), stop or StopRequest()
+    out_dir = Path(out_dir)
     dataset = load_task(cfg)  # (first: it settles the data's defaults the checkpoint holds)
     saved = open_checkpoint(cfg, out_dir)
     if saved is not None and saved.phase != "done":

@@ -8,12 +8,13 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import launch
+from moex.kernels.gpu.rnn import device
 
 BP = 1024  # entries of a row per tile
 _CONSTANTS: dict = {}  # (η, dtype, device) -> η as a device scalar, made once
 
 
-@triton.jit
+@device
 def _nonfinite(x):
     return (x - x) != 0  # NaN and ±inf (x - x is NaN), finite x: 0
 
