@@ -47,7 +47,7 @@ BUDGET = {  # the counts at the sizes above on 2026-12-04 (4 warps), rounded up:
     "momentum_kernel": {"registers": 96, "shuffles": 8, "barriers": 6},
     "mixture_objective": {"registers": 255, "shuffles": 330, "barriers": 30},
     "softmax_objective": {"registers": 112, "shuffles": 330, "barriers": 2},
-    "closed_loop_kernel": {"registers": 255, "shuffles": 2048, "barriers": 170},
+    "closed_loop_kernel": {"registers": 255, "shuffles": 512, "barriers": 128},  # by columns
     "nearest_kernel": {"registers": 192, "shuffles": 340, "barriers": 24},
 }
 TYPES = {torch.float64: "*fp64", torch.float32: "*fp32", torch.int64: "*i64",

@@ -2,7 +2,11 @@
 kernel: `moex.model.closed_loop_step` and its tangent map, repeated for a chunk of steps.
 
 A program runs one run's network for a block of samples through every step of the chunk, so the
-weights are one copy per program (no lane axis). A lane is one (sample, tangent) pair: BN lanes =
+weights are one copy per program (no lane axis); the products with W_rec and W_out (experts and
+gating, and the tangent map's) go by columns, as in `moex.kernels.gpu.rnn`: the vector is written
+to the lane's scratch row, one barrier, and each column updates the accumulators with a column of
+the weights read from memory (no sum across threads; c_t serves both the output at t and the
+recurrence at t + 1). A lane is one (sample, tangent) pair: BN lanes =
 BN / KTP samples × KTP tangent slots, each lane carrying its sample's state (computed once per
 slot, so the state's arithmetic repeats KTP times: the price of keeping the tangent map the
 one-vector code) and one tangent. Shapes inside: experts (BN, K, M), gating (BN, H), delay lines
@@ -24,9 +28,11 @@ import torch
 import triton
 import triton.language as tl
 
-from moex.kernels.gpu.lanes import OPTIONS, launched, pow2
-from moex.kernels.gpu.rnn import device, divide, exp, log, reciprocal, stable_tanh
+from moex.kernels.gpu.lanes import CLOSED_LOOP_BUDGET, OPTIONS, launched, pow2
+from moex.kernels.gpu.rnn import UNROLL, device, divide, exp, log, reciprocal, stable_tanh
 from moex.model import ClosedLoopRun
+
+CLOSED_LOOP_WARPS = 8  # with `CLOSED_LOOP_BUDGET`'s lanes: no spill at Table 2 (4 warps: 12-64 B)
 
 
 @device
@@ -90,11 +96,47 @@ def _load(ptr, offs, mask):
     return tl.load(ptr + offs, mask=mask, other=0.0)
 
 
+@device
+def _expert_columns(acc, out, EC, base, v, W, w_at, w_ok, WO, wo_at, wo_ok, k, m, lanes_k,
+                    v_ok, M: tl.constexpr, MP: tl.constexpr, REC: tl.constexpr,
+                    OUT: tl.constexpr):
+    """acc + W v (REC) and out + W_out v (OUT) for every lane's K expert vectors v (BN, KP, MP),
+    by columns: v is written to the lane's scratch row EC[base ...], one barrier, then each
+    column v_j (BN, KP) updates the (BN, KP, ·) accumulators with column j of the weights, read
+    from memory (W at w_at + j, W_out at wo_at + j). No sum runs across threads."""
+    tl.store(EC + base[:, None, None] + (k * MP)[None, :, None] + m[None, None, :], v,
+             mask=v_ok)
+    tl.debug_barrier()
+    for col in tl.range(0, M, loop_unroll_factor=UNROLL):
+        v_j = tl.load(EC + base[:, None] + (k * MP)[None, :] + col, mask=lanes_k, other=0.0)
+        if REC:
+            acc += v_j[:, :, None] * tl.load(W + w_at + col, mask=w_ok, other=0.0)[None]
+        if OUT:
+            out += v_j[:, :, None] * tl.load(WO + wo_at + col, mask=wo_ok, other=0.0)[None]
+    return acc, out
+
+
+@device
+def _gating_columns(acc, out, GC, base, v, W, w_at, w_ok, WO, wo_at, wo_ok, h, lanes, v_ok,
+                    H: tl.constexpr, REC: tl.constexpr, OUT: tl.constexpr):
+    """acc + W v (REC) and out + W_out v (OUT) for every lane's gating vector v (BN, HP), by
+    columns through the lane's scratch row GC[base ...], as `_expert_columns`."""
+    tl.store(GC + base[:, None] + h[None, :], v, mask=v_ok)
+    tl.debug_barrier()
+    for col in tl.range(0, H, loop_unroll_factor=UNROLL):
+        v_j = tl.load(GC + base + col, mask=lanes, other=0.0)[:, None]
+        if REC:
+            acc += v_j * tl.load(W + w_at + col, mask=w_ok, other=0.0)[None, :]
+        if OUT:
+            out += v_j * tl.load(WO + wo_at + col, mask=wo_ok, other=0.0)[None, :]
+    return acc, out
+
+
 @triton.jit(do_not_specialize=["N", "STEPS"])  # one compile whatever the chunk and samples
 def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
                        G_W_IN, G_W_REC, G_W_OUT, G_B_C, G_B_O, G_EPS,
-                       EU, GU, XL, GL, VEU, VGU, VXL, VGL, NOISE, OUT_Y, OUT_G, OUT_U, GROWTH, N,
-                       STEPS, K: tl.constexpr, M: tl.constexpr, D: tl.constexpr,
+                       EU, GU, XL, GL, VEU, VGU, VXL, VGL, NOISE, OUT_Y, OUT_G, OUT_U, GROWTH,
+                       EC, GC, N, STEPS, K: tl.constexpr, M: tl.constexpr, D: tl.constexpr,
                        H: tl.constexpr, TAU: tl.constexpr, KP: tl.constexpr, MP: tl.constexpr,
                        DP: tl.constexpr, HP: tl.constexpr, TP: tl.constexpr, BN: tl.constexpr,
                        KT: tl.constexpr, KTP: tl.constexpr,
@@ -104,7 +146,9 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
     (R, N, H), XL (R, N, τ, D), GL (R, N, τ, K)) and the KT tangents (VEU (R, N, KT, K, M), VGU
     (R, N, KT, H), VXL (R, N, KT, τ, D), VGL (R, N, KT, τ, K)) are read and written back; records
     OUT_Y (R, N, STEPS, D), OUT_G (R, N, STEPS, K), OUT_U (R, N, STEPS, H) when KEEP_U; GROWTH
-    (R, N, KT) += Σ ln |R_ii| when COUNT."""
+    (R, N, KT) += Σ ln |R_ii| when COUNT. EC (programs·BN, 3, KP, MP) and GC (programs·BN, 3,
+    HP): each lane's scratch rows for the products by columns (the state's, and the tangent's
+    before and after the update)."""
     r = tl.program_id(0).to(tl.int64)
     lane = tl.arange(0, BN)
     n, j = tl.program_id(1) * (BN // KTP) + lane // KTP, lane % KTP  # sample, tangent slot
@@ -113,27 +157,27 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
     row = r * N + n  # (BN,) trajectory index
     trow = row * KT + j  # (BN,) tangent index
     tok = ok & (j < KT)
+    slot = (r * tl.num_programs(1) + tl.program_id(1)) * BN + lane  # the lane's scratch rows
+    e_base, g_base = slot * (3 * KP * MP), slot * (3 * HP)
     k, m, d = tl.arange(0, KP), tl.arange(0, MP), tl.arange(0, DP)
     h, tt = tl.arange(0, HP), tl.arange(0, TP)
     km, dm, hm, tm = k < K, d < D, h < H, tt < TAU
     mm = m < M
-    # ---- the run's weights: experts (KP, ...), gating (HP, ...)
+    # ---- the run's weights: the small ones in registers, W_rec and W_out read by columns
     k3, m3 = k[:, None, None], m[None, :, None]
     e_w_in = _load(E_W_IN, r * K * M * D + k3 * M * D + m3 * D + d[None, None, :],
-                km[:, None, None] & mm[None, :, None] & dm[None, None, :])
-    e_w_rec = _load(E_W_REC, r * K * M * M + k3 * M * M + m3 * M + m[None, None, :],
-                km[:, None, None] & mm[None, :, None] & mm[None, None, :])
-    e_w_out = _load(E_W_OUT, r * K * D * M + k3 * D * M + d[None, :, None] * M + m[None, None, :],
-                km[:, None, None] & dm[None, :, None] & mm[None, None, :])
+                   km[:, None, None] & mm[None, :, None] & dm[None, None, :])
     e_km = km[:, None] & mm[None, :]
+    e_rec_at = r * K * M * M + k[:, None] * M * M + m[None, :] * M  # + column j
+    e_out_at = r * K * D * M + k[:, None] * D * M + d[None, :] * M
+    e_kd = km[:, None] & dm[None, :]
     e_b_c = _load(E_B_C, r * K * M + k[:, None] * M + m[None, :], e_km)
     e_eps = _load(E_EPS, r * K * M + k[:, None] * M + m[None, :], e_km)
-    e_b_o = _load(E_B_O, r * K * D + k[:, None] * D + d[None, :], km[:, None] & dm[None, :])
+    e_b_o = _load(E_B_O, r * K * D + k[:, None] * D + d[None, :], e_kd)
     NI = K + D
     gwg = _load(G_W_IN, r * H * NI + h[:, None] * NI + k[None, :], hm[:, None] & km[None, :])
     gwx = _load(G_W_IN, r * H * NI + h[:, None] * NI + K + d[None, :], hm[:, None] & dm[None, :])
-    g_w_rec = _load(G_W_REC, r * H * H + h[:, None] * H + h[None, :], hm[:, None] & hm[None, :])
-    g_w_out = _load(G_W_OUT, r * K * H + k[:, None] * H + h[None, :], km[:, None] & hm[None, :])
+    g_rec_at, g_out_at = r * H * H + h * H, r * K * H + k * H
     g_b_c, g_eps = _load(G_B_C, r * H + h, hm), _load(G_EPS, r * H + h, hm)
     g_b_o = _load(G_B_O, r * K + k, km)
     # ---- the state of each trajectory
@@ -160,6 +204,21 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
         vxl, vgl = _load(VXL, v_x, v_xm), _load(VGL, v_l, v_lm)
         growth = tl.zeros((BN // KTP, KTP), dtype=g_b_c.dtype)
     rec_d, rec_k = first[:, None] & dm[None, :], first[:, None] & km[None, :]
+    e_scr = ok3 & e_km[None]  # the scratch entries a lane writes (all its rows exist)
+    g_scr = ok[:, None] & hm[None, :]
+    zero_e, zero_g = eu * 0.0, gu * 0.0
+    zero_o = tl.zeros((BN, KP, DP), dtype=eu.dtype)
+    zero_l = tl.zeros((BN, KP), dtype=eu.dtype)
+    # W_rec c_{-1} and W^g_3 c^g_{-1}, by columns: each step then adds the next ones
+    lanes_k = ok[:, None] & km[None, :]
+    if EXPERTS:
+        c_old = stable_tanh(eu + e_b_c[None])
+        rec, _unused = _expert_columns(zero_e, zero_o, EC, e_base, c_old, E_W_REC, e_rec_at,
+                                       e_km, E_W_OUT, e_out_at, e_kd, k, m, lanes_k, e_scr, M, MP,
+                                       True, False)
+    cg_old = stable_tanh(gu + g_b_c[None])
+    grec, _unused_g = _gating_columns(zero_g, zero_l, GC, g_base, cg_old, G_W_REC, g_rec_at, hm,
+                                      G_W_OUT, g_out_at, km, h, ok, g_scr, H, True, False)
     for t in range(STEPS):
         x, g = _first(xl, tt), _first(gl, tt)
         if NOISY:
@@ -167,22 +226,22 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
                        ok[:, None] & dm[None, :])
         y = x
         if EXPERTS:  # Eqs. 1-4, every expert on the same input
-            c_old = stable_tanh(eu + e_b_c[None])
             drive = tl.sum(e_w_in[None] * x[:, None, None, :], axis=3)
-            eu_new = eu + e_eps[None] * (
-                drive + tl.sum(e_w_rec[None] * c_old[:, :, None, :], axis=3) - eu)
+            eu_new = eu + e_eps[None] * (drive + rec - eu)
             c = stable_tanh(eu_new + e_b_c[None])
-            out = stable_tanh(tl.sum(e_w_out[None] * c[:, :, None, :], axis=3)
-                              + e_b_o[None])  # (BN, KP, DP)
+            rec, o = _expert_columns(zero_e, zero_o + e_b_o[None], EC, e_base, c, E_W_REC, e_rec_at,
+                                     e_km, E_W_OUT, e_out_at, e_kd, k, m, lanes_k, e_scr, M, MP,
+                                     True, True)
+            out = stable_tanh(o)  # (BN, KP, DP)
             y = tl.sum(g[:, :, None] * out, axis=1)
         # Eqs. 5-8: the gating RNN reads (g_m, x_m) and emits g_{m+τ}
-        cg_old = stable_tanh(gu + g_b_c[None])
         drive_g = tl.sum(gwg[None] * g[:, None, :], axis=2) + tl.sum(gwx[None] * x[:, None, :],
                                                                      axis=2)
-        gu_new = gu + g_eps[None] * (drive_g + tl.sum(g_w_rec[None] * cg_old[:, None, :], axis=2)
-                                    - gu)
+        gu_new = gu + g_eps[None] * (drive_g + grec - gu)
         cg = stable_tanh(gu_new + g_b_c[None])
-        logits = tl.sum(g_w_out[None] * cg[:, None, :], axis=2) + g_b_o[None]
+        grec, logits = _gating_columns(zero_g, zero_l + g_b_o[None], GC, g_base, cg, G_W_REC,
+                                       g_rec_at, hm, G_W_OUT, g_out_at, km, h, ok, g_scr, H, True,
+                                       True)
         logits = tl.where(km[None, :], logits, float("-inf"))
         e = exp(logits - tl.max(logits, axis=1)[:, None])
         new_g = divide(e, tl.sum(e, axis=1)[:, None])
@@ -196,10 +255,15 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
             dy = dx
             if EXPERTS:
                 d_drive = tl.sum(e_w_in[None] * dx[:, None, None, :], axis=3)
-                d_rec = tl.sum(e_w_rec[None] * ((1.0 - c_old * c_old) * veu)[:, :, None, :], axis=3)
+                d_rec, _no_out = _expert_columns(zero_e, zero_o, EC, e_base + KP * MP,
+                                           (1.0 - c_old * c_old) * veu, E_W_REC, e_rec_at, e_km,
+                                           E_W_OUT, e_out_at, e_kd, k, m, lanes_k, e_scr, M, MP,
+                                           True, False)
                 veu = (1.0 - e_eps[None]) * veu + e_eps[None] * (d_drive + d_rec)
-                d_out = (1.0 - out * out) * tl.sum(
-                    e_w_out[None] * ((1.0 - c * c) * veu)[:, :, None, :], axis=3)
+                _no_rec, d_o = _expert_columns(zero_e, zero_o, EC, e_base + 2 * KP * MP,
+                                         (1.0 - c * c) * veu, E_W_REC, e_rec_at, e_km, E_W_OUT,
+                                         e_out_at, e_kd, k, m, lanes_k, e_scr, M, MP, False, True)
+                d_out = (1.0 - out * out) * d_o
                 if UNIFORM:  # 1/K in the state's precision (a Python 1.0 / K would be float32)
                     weight = tl.where(km[None, :], g * 0.0 + 1.0, 0.0) / K
                 else:
@@ -207,16 +271,20 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
                 dy = tl.sum(dg[:, :, None] * out + weight[:, :, None] * d_out, axis=1)
             d_drive_g = tl.sum(gwg[None] * dg[:, None, :], axis=2) + tl.sum(
                 gwx[None] * dx[:, None, :], axis=2)
-            d_rec_g = tl.sum(g_w_rec[None] * ((1.0 - cg_old * cg_old) * vgu)[:, None, :], axis=2)
+            d_rec_g, _no_out_g = _gating_columns(zero_g, zero_l, GC, g_base + HP,
+                                         (1.0 - cg_old * cg_old) * vgu, G_W_REC, g_rec_at, hm,
+                                         G_W_OUT, g_out_at, km, h, ok, g_scr, H, True, False)
             vgu = (1.0 - g_eps[None]) * vgu + g_eps[None] * (d_drive_g + d_rec_g)
-            d_logits = tl.sum(g_w_out[None] * ((1.0 - cg * cg) * vgu)[:, None, :], axis=2)
+            _no_rec_g, d_logits = _gating_columns(zero_g, zero_l, GC, g_base + 2 * HP,
+                                          (1.0 - cg * cg) * vgu, G_W_REC, g_rec_at, hm, G_W_OUT,
+                                          g_out_at, km, h, ok, g_scr, H, False, True)
             d_g = new_g * (d_logits - tl.sum(new_g * d_logits, axis=1)[:, None])
             vxl, vgl = _shift(vxl, dy, tt, TAU), _shift(vgl, d_g, tt, TAU)
             veu, vgu, vxl, vgl, growth = _orthonormalise(veu, vgu, vxl, vgl, growth, BN // KTP, KT,
                                                          KTP, KP, MP, HP, TP, DP, COUNT)
         if EXPERTS:
-            eu = eu_new
-        gu = gu_new
+            eu, c_old = eu_new, c
+        gu, cg_old = gu_new, cg
         xl, gl = _shift(xl, y, tt, TAU), _shift(gl, new_g, tt, TAU)
     first3 = first[:, None, None]
     tl.store(EU + e_off, eu, mask=e_mask & first3)
@@ -273,15 +341,23 @@ def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
     growth = torch.zeros((R, N, num_tangents), dtype=dtype, device=device)
     pad = {name: pow2(size) for name, size in (("KP", K), ("MP", M), ("DP", D), ("HP", H),
                                                  ("TP", TAU), ("KTP", num_tangents))}
-    per_lane = max(pad["KP"] * pad["MP"] * max(pad["MP"], pad["DP"]), pad["HP"] ** 2)
-    samples = max(1, min(16, 8192 // (per_lane * pad["KTP"])))  # per program (a power of 2)
+    # the largest tiles per lane: the experts' (KP, MP) state and their W_in x, (KP, MP, DP)
+    per_lane = max(pad["KP"] * pad["MP"] * pad["DP"], pad["HP"] * max(pad["KP"], pad["DP"]))
+    # lanes per program: no spill at Table 2 in the compile for an H200 with 8 warps (4 samples;
+    # 16 spilled 1.2 KB), BENCHMARKS.md "Compiled for an H200 without one"
+    samples = max(1, min(16, CLOSED_LOOP_BUDGET // (per_lane * pad["KTP"])))
+    lanes = R * triton.cdiv(N, samples) * samples * pad["KTP"]  # scratch rows, one per lane
+    scratch_e = torch.empty(lanes * 3 * pad["KP"] * pad["MP"], dtype=dtype, device=device)
+    scratch_g = torch.empty(lanes * 3 * pad["HP"], dtype=dtype, device=device)
     launched("closed_loop", closed_loop_kernel[grid(R, N, samples)](
         *weights(experts), *weights(gating), *parts, *vec,
-        put(noise) if noise is not None else dummy, out_y, out_g, out_u, growth, N,
+        put(noise) if noise is not None else dummy, out_y, out_g, out_u, growth, scratch_e,
+        scratch_g, N,
         STEPS=steps, K=K, M=M, D=D, H=H, TAU=TAU, BN=samples * pad["KTP"],
         KT=max(num_tangents, 1), EXPERTS=bool(experts), TANGENT=bool(num_tangents),
         NOISY=noise is not None, COUNT=bool(count and num_tangents),
-        UNIFORM=bool(uniform_gates), KEEP_U=bool(potentials), **pad, **OPTIONS))
+        UNIFORM=bool(uniform_gates), KEEP_U=bool(potentials), **pad, **OPTIONS,
+        num_warps=CLOSED_LOOP_WARPS))
 
     def back(x, shape):
         """x as `shape` where the state came from; to the host through pinned memory (a

@@ -1,12 +1,13 @@
 """The lane layout of the GPU backend's training kernels (as `moex.kernels.cpu.lanes` is the CPU
 backend's): every independent recurrence is a lane, network n owns the lanes n·LPN + j, and a
 program runs one network's lanes in chunks (`moex.kernels.gpu.rnn`). `Net` holds one leaky RNN's
-lanes, buffers and the two launches; `launch` is every training kernel's launch.
+lanes, buffers and its launches; `launch` is every training kernel's launch.
 
-Three knobs for the GPU session's sweep, read once: MOEX_GPU_LANE_BUDGET (entries of the lanes'
+Four knobs for the GPU session's sweep, read once: MOEX_GPU_LANE_BUDGET (entries of the lanes'
 (BL, H) tiles per program, default 1024: 64 lanes at H = 16, 16 at H = 64), MOEX_GPU_WARPS
-(warps per program, default Triton's 4) and MOEX_GPU_TRIALS (candidate steps of the adaptive
-rate per launch, default 1; the result is the same for any value).
+(warps per program, default Triton's 4), MOEX_GPU_TRIALS (candidate steps of the adaptive rate
+per launch, default 1; the result is the same for any value) and MOEX_GPU_CLOSED_LOOP_BUDGET
+(the closed loop's lanes per program, `moex.kernels.gpu.closed_loop`).
 """
 
 import os
@@ -28,6 +29,9 @@ def _knob(name: str, default: str) -> int:
 
 LANE_BUDGET = _knob("MOEX_GPU_LANE_BUDGET", "1024")
 NUM_WARPS = _knob("MOEX_GPU_WARPS", "4")
+# the closed loop's lanes per program: entries of a lane's largest tile (its experts' W_in x_m,
+# K × M × D padded) per program, over 8 warps; a sweep knob as the two above
+CLOSED_LOOP_BUDGET = _knob("MOEX_GPU_CLOSED_LOOP_BUDGET", "256")
 # k candidates are one call of k·R networks' forward passes, k times the work in one launch: on an
 # H200 at 90 networks k = 1 took 0.12 ms per network-epoch in phase 1 (adaptive), k = 4 0.16 and
 # k = 8 0.22 (BENCHMARKS.md, "First contact with an H200"); in Triton's interpreter k times the time
