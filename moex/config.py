@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from moex.errors import check
 from moex.evaluation import EvalConfig
-from moex.kernels import BACKENDS, CHOICES, get_backend
+from moex.kernels import check_name, get_backend
 from moex.model import ModelConfig
 from moex.plotting import PlotConfig
 from moex.tasks import TaskConfig
@@ -48,8 +48,7 @@ class Config:
         check(self.device != "cuda" or torch.cuda.is_available(),
               f"device=cuda but this machine has no CUDA device PyTorch can use (torch "
               f"{torch.__version__}); use device=cpu")
-        check(self.backend in BACKENDS,
-              f"backend={self.backend!r}; choose one of {', '.join(CHOICES)}")
+        check_name(self.backend)
         if self.backend == "gpu":  # refused before a run folder exists, not when training starts
             get_backend(self.backend, self.device)
 

@@ -186,18 +186,22 @@ def _gpu(device: str) -> Backend:
 # cannot run there). A new backend is a package of `BackendModule`'s names and one entry here.
 LOADERS = {"reference": _reference, "cpu": _cpu, "gpu": _gpu}
 REGISTRY = tuple(LOADERS)  # `available` says which run here
-CHOICES = ("auto", *REGISTRY)  # what a user may write (and the aliases)
-BACKENDS = (*CHOICES, *ALIASES)
 INTERFACE = ("ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up",
              "momentum_step", "apply_step")  # `BackendModule`
+
+
+def check_name(name: str) -> str:
+    """The backend a user's `backend=` names (an alias resolved, `auto` kept); a `ConfigError`
+    listing the choices for any other name."""
+    check(name in ("auto", *LOADERS, *ALIASES),
+          f"backend={name!r}; choose one of {', '.join(('auto', *LOADERS))}")
+    return ALIASES.get(name, name)
 
 
 def get_backend(name: str = "auto", device: str = "cpu") -> Backend:
     """`reference` (PyTorch), `cpu` (numba), `gpu` (Triton; device=cuda), or `auto`: cpu on the
     CPU, gpu with device=cuda when Triton is installed (else reference)."""
-    check(name in ("auto", *LOADERS, *ALIASES),
-          f"backend={name!r}; choose one of {', '.join(('auto', *LOADERS))}")
-    name = ALIASES.get(name, name)
+    name = check_name(name)
     if name == "auto":
         name = "cpu" if device == "cpu" else "gpu" if _gpu_module()[0] else "reference"
     return LOADERS[name](device)
