@@ -126,7 +126,9 @@ class Net:
         self.O = empty(L, T, NO)
         self.DO, self.C = (empty(L, T, NO), empty(L, T, H)) if keep else (empty(1), empty(1))
         self.EA = empty(L, T, H) if keep else empty(1)  # ε a_t, from the backward recurrence
-        self.passing = empty(L, 2, H)  # a forward without histories passes c_t through these
+        # a forward without histories passes c_t through these rows; the backward leaves each
+        # lane's c_{-1} in its first row for the weight gradients
+        self.passing = empty(L, 2, H)
         self.U = empty(L, T, H) if learn_eps and keep else empty(1)
         self.S = torch.zeros(L, 2, H, dtype=torch.float64, device=device) if sums else empty(1)
 
@@ -149,9 +151,10 @@ class Net:
         meta = {k: self.meta[k] for k in ("T", "H", "NO", "HP", "BL", "LPN", "NPR", "CHUNKS")}
         launch(rnn_backward, self.networks, self.DO, self.xrow, self.u0j,
                *(params[k] for k in read), self.C, self.U, self.S, active, floor, self.EA,
+               self.passing,
                g["b_c"], g["tau"], g["u0"], *strides(params, read),
                *strides(g, ("b_c", "tau", "u0")), LEARN_EPS=learn, ATTRACT=attract, **meta)
         weights = ("w_in", "w_rec", "w_out", "b_o")
-        launch(rnn_weight_gradients, self.networks, self.EA, self.DO, self.C, X, self.xrow,
-               self.u0j, params["u0"], params["b_c"], active, *(g[k] for k in weights),
-               *strides(params, ("b_c", "u0")), *strides(g, weights), **self.gradient_meta)
+        launch(rnn_weight_gradients, self.networks, self.EA, self.DO, self.C, self.passing, X,
+               self.xrow, active, *(g[k] for k in weights), *strides(g, weights),
+               **self.gradient_meta)

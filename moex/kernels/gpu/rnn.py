@@ -254,7 +254,7 @@ def rnn_forward(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C, U, 
 
 
 @triton.jit
-def rnn_backward(DO, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, FLOOR, EA,
+def rnn_backward(DO, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, FLOOR, EA, C0,
                  G_B_C, G_TAU, G_U0, sW_REC, sW_OUT, sB_C, sTAU, sU0, sG_B_C, sG_TAU, sG_U0,
                  T: tl.constexpr, H: tl.constexpr, NO: tl.constexpr, HP: tl.constexpr,
                  BL: tl.constexpr, LPN: tl.constexpr, NPR: tl.constexpr, CHUNKS: tl.constexpr,
@@ -283,6 +283,7 @@ def rnn_backward(DO, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, 
         ok = ok & (tl.load(ACTIVE + r + 0 * lane) != 0)
         u0 = load_rows(U0 + r * sU0, u0j, ok, h, H)
         c0 = stable_tanh(u0 + b_c)
+        _put(C0, lane * 2, ok, h, c0, H)  # c_{-1}, for `rnn_weight_gradients`
         zero_h = tl.zeros((BL, HP), dtype=dtype)
         a, back, g_b_c, g_eps = zero_h, zero_h, zero_h, zero_h
         for step in range(T):
@@ -315,23 +316,22 @@ def rnn_backward(DO, XROW, U0J, W_REC, W_OUT, B_C, TAU, U0, C, U, SUMS, ACTIVE, 
 
 
 @triton.jit
-def rnn_weight_gradients(EA, DO, C, X, XROW, U0J, U0, B_C, ACTIVE,
-                         G_W_IN, G_W_REC, G_W_OUT, G_B_O, sB_C, sU0,
+def rnn_weight_gradients(EA, DO, C, C0, X, XROW, ACTIVE, G_W_IN, G_W_REC, G_W_OUT, G_B_O,
                          sG_W_IN, sG_W_REC, sG_W_OUT, sG_B_O,
                          T: tl.constexpr, NI: tl.constexpr, H: tl.constexpr, NO: tl.constexpr,
                          IG: tl.constexpr, HG: tl.constexpr, OG: tl.constexpr,
                          BR: tl.constexpr, LPN: tl.constexpr, NPR: tl.constexpr):
     """One network's weight gradients, sums over its lanes and steps (LPN·T rows, BR at a time):
         ∂W_in = Σ (ε a_t) x_tᵀ,  ∂W_rec = Σ (ε a_t) c_{t-1}ᵀ,  ∂W_out = Σ δo_t c_tᵀ,  ∂b_o = Σ δo_t
-    from EA (`rnn_backward`), DO and C (with c_{-1} = tanh(u_0 + b)), written where ACTIVE[r].
+    from EA and C0 (c_{-1} = tanh(u_0 + b), in row 2l of lane l; both from `rnn_backward`), DO and
+    C, written where ACTIVE[r].
     Each block of rows is a matrix product (`tl.dot`: an H200's fp64 tensor cores, DMMA; sizes
     padded to at least 16 as it requires), summed in a fixed order: reruns are exact."""
     n, r, k = _network(NPR)
     h, i, o, q = tl.arange(0, HG), tl.arange(0, IG), tl.arange(0, OG), tl.arange(0, BR)
     on_h = tl.load(ACTIVE + r + 0 * h) != 0
     on_o = tl.load(ACTIVE + r + 0 * o) != 0
-    b_c = _vector(B_C + r * sB_C + k * H, h, H, 0.0)[None, :]
-    dtype = b_c.dtype
+    dtype = EA.dtype.element_ty
     n_w_in = tl.zeros((HG, IG), dtype=dtype)
     n_w_rec = tl.zeros((HG, HG), dtype=dtype)
     n_w_out = tl.zeros((OG, HG), dtype=dtype)
@@ -344,8 +344,7 @@ def rnn_weight_gradients(EA, DO, C, X, XROW, U0J, U0, B_C, ACTIVE,
         first, later = ok & (t == 0), ok & (t > 0)
         ea = load_rows(EA, lane * T + t, ok, h, H)
         do = load_rows(DO, lane * T + t, ok, o, NO)
-        u0 = load_rows(U0 + r * sU0, tl.load(U0J + lane, mask=first, other=0), first, h, H)
-        prev = tl.where(first[:, None], stable_tanh(u0 + b_c),
+        prev = tl.where(first[:, None], load_rows(C0, lane * 2, first, h, H),
                         load_rows(C, lane * T + t - 1, later, h, H))
         x = load_rows(X, tl.load(XROW + lane, mask=ok, other=0) * T + t, ok, i, NI)
         eat = tl.trans(ea)
