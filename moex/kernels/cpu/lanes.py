@@ -300,8 +300,9 @@ class Staging:
     def __init__(self, shapes: dict, dtype):
         self.params = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
         self.grads = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
-        # (tensor, its numpy view or None) per (group, copy_in): the training loop hands the
-        # same views every step, whose numpy views need not be made and checked again
+        # (tensor, its numpy view, whether the kernels take it as it is) per (group, copy_in):
+        # the training loop hands the same views every step, not to be converted and checked
+        # again
         self.seen: dict[tuple[str, bool], tuple] = {}
 
     def load(self, params: dict) -> dict:
@@ -316,16 +317,18 @@ class Staging:
                 else own for name, own in self.grads.items()}
 
     def _direct(self, name: str, value, own: np.ndarray, copy_in: bool) -> np.ndarray:
-        """`_direct(value, own, copy_in)`, remembering the last tensor of each group."""
+        """The numpy view of `value` where the kernels can take it as it is (`_usable`), else
+        `own`, with the value copied in if `copy_in`; the view and its check are remembered for
+        the group's last tensor."""
         seen = self.seen.get((name, copy_in))
         if seen is None or seen[0] is not value:
             x = to_host(value)
-            seen = (value, x if _usable(x, own) else None, x)
-            self.seen[name, copy_in] = seen
-        if seen[1] is not None:
-            return seen[1]
+            seen = self.seen[name, copy_in] = (value, x, _usable(x, own))
+        _, x, usable = seen
+        if usable:
+            return x
         if copy_in:
-            np.copyto(own, seen[2])
+            np.copyto(own, x)
         return own
 
     def store(self, grads: dict | None, written: dict) -> None:

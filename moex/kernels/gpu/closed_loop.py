@@ -206,7 +206,7 @@ def closed_loop_kernel(E_W_IN, E_W_REC, E_W_OUT, E_B_C, E_B_O, E_EPS,
     rec_d, rec_k = first[:, None] & dm[None, :], first[:, None] & km[None, :]
     e_scr = ok3 & e_km[None]  # the scratch entries a lane writes (all its rows exist)
     g_scr = ok[:, None] & hm[None, :]
-    zero_e, zero_g = eu * 0.0, gu * 0.0
+    zero_e, zero_g = tl.zeros_like(eu), tl.zeros_like(gu)
     zero_o = tl.zeros((BN, KP, DP), dtype=eu.dtype)
     zero_l = tl.zeros((BN, KP), dtype=eu.dtype)
     # W_rec c_{-1} and W^g_3 c^g_{-1}, by columns: each step then adds the next ones
