@@ -27,7 +27,7 @@ from moex.data import load_task
 from moex.kernels import get_backend
 from moex.model import init_experts, init_gating
 from moex.run import run_seeds
-from moex.tasks import TaskConfig
+from moex.tasks import task_config
 from moex.train import train_experts, train_gating
 
 
@@ -74,7 +74,7 @@ def trainers(task: str, runs: int, backend: str, threads: int, context_size: int
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
     torch.set_num_threads(1 if chosen.name == "cpu" else threads)
     numba.set_num_threads(threads)
-    cfg = Config(task=TaskConfig(name=task))
+    cfg = Config(task=task_config(task))
     if task == "reber":
         cfg.task.num_series, cfg.task.length = 4, 500
         cfg.model.num_experts, cfg.model.gating.epsilon = 7, 0.1

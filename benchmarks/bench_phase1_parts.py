@@ -23,13 +23,13 @@ import torch
 from bench_epochs import trainers, warm_up
 
 from moex.config import Config
+from moex.config.train import ExpertPhaseConfig
 from moex.data import load_task
 from moex.kernels.cpu import phases, threads
 from moex.kernels.cpu.phases import _BACKWARD, _FORWARD, _MIXTURE, _RUNS, _expert_items
 from moex.model import init_experts
 from moex.run import run_seeds
-from moex.tasks import TaskConfig
-from moex.train import ExpertPhaseConfig
+from moex.tasks import task_config
 
 
 def flops_per_lane_step(M: int, D: int) -> dict[str, int]:
@@ -118,7 +118,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     numba.set_num_threads(1)
     torch.set_num_threads(1)
-    cfg = Config(task=TaskConfig(name="lissajous2"))
+    cfg = Config(task=task_config("lissajous2"))
     series = torch.as_tensor(load_task(cfg).series)
     S, L, D = series.shape
     K, M = cfg.model.num_experts, cfg.model.experts.context_size

@@ -75,7 +75,7 @@ def main():
     args = parser.parse_args()
     from moex.budget import train_bytes
     from moex.config import Config
-    from moex.tasks import TaskConfig
+    from moex.tasks import task_config
 
     print(f"# D {args.features}, K {args.experts}, {args.series} series x {args.length} steps, "
           f"{args.threads} threads, cpu backend, float64")
@@ -90,7 +90,7 @@ def main():
             long = train(data, args.experts, runs, 2 * args.steps, args.threads,
                          Path(scratch) / f"long{runs}")
             per = [(long[p] - short[p]) * 1e3 / args.steps for p in ("phase 1", "phase 2")]
-            cfg = Config(task=TaskConfig(name="csv"), num_runs=runs)
+            cfg = Config(task=task_config("csv"), num_runs=runs)
             cfg.model.num_experts, cfg.eval.enabled = args.experts, False  # eval=quick's
             # records (1 sample) are a few MB
             estimate = train_bytes(cfg, args.series, args.length, args.features) / 2**30

@@ -29,7 +29,7 @@ from bench_epochs import marginal, ratios, trainers, warm_up
 from moex.config import Config
 from moex.data import load_task
 from moex.mregn_format import write_targets
-from moex.tasks import TaskConfig
+from moex.tasks import task_config
 
 ROOT = Path(__file__).resolve().parent.parent
 # the paper's settings (Sec. 3.2.1), as studies/mregn_control.py trains Table 2's control
@@ -75,7 +75,7 @@ def main(argv=None) -> int:
         if built.returncode:
             print(f"bench_vs_mregn: building the tools failed:\n{built.stderr}", file=sys.stderr)
             return 2
-        data = load_task(Config(task=TaskConfig(name="lissajous2")))
+        data = load_task(Config(task=task_config("lissajous2")))
         target = write_targets(work / "data.txt", data.series, "moex lissajous2, data seed 0")
         fields = dict(bin=work / "bin", data=target, cwd=work)
         subprocess.run(PHASE1.format(epochs=10, **fields).replace("mre.dat", "start.dat").split(),

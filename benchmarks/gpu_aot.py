@@ -117,14 +117,13 @@ def recording(size: str, into: list[Launch]):
 
 def config(overrides: list[str]):
     from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
 
-    from moex.cli import register_configs
+    from moex.cli import register_configs, typed
     from moex.config import CONF_DIR
 
     register_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return OmegaConf.to_object(compose("config", overrides=overrides + ["num_runs=2"]))
+        return typed(compose("config", overrides=overrides + ["num_runs=2"]))
 
 
 def record(size: str, evaluation: bool = True) -> list[Launch]:

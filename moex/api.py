@@ -16,14 +16,15 @@ from moex import checkpoint, io, provenance
 from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import trained_state
 from moex.config import Config, RunFolder
+from moex.config.evaluation import EvalConfig
 from moex.data import in_data_units, settled
 from moex.errors import check
-from moex.evaluation import EvalConfig, evaluate
+from moex.evaluation import evaluate
 from moex.kernels import Backend, get_backend
 from moex.model import gate_estimates, random_state
 from moex.run import Job, run_generators, train_jobs
 from moex.segment import METHODS, Segmentation, responsibilities, segmentation
-from moex.tasks import Dataset, TaskConfig, user_data
+from moex.tasks import Dataset, task_config, user_data
 from moex.tasks.scaling import fit_scale
 from moex.train import phase2_targets
 from moex.verbs.train import evaluation_generators
@@ -206,9 +207,8 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
     check(series.ndim == 3 and series.shape[-1] >= 1,
           f"series must be (S, T, D) or (T, D), got shape {np.shape(series)}")
     check(bool(np.isfinite(series).all()), "series contains NaN or inf values")
-    cfg = dataclasses.replace(config or Config(task=TaskConfig(name="csv", length=0,
-                                                               num_test_series=0)),
-                              num_runs=num_runs, seed=seed)
+    cfg = dataclasses.replace(config or Config(task=task_config("csv")), num_runs=num_runs,
+                              seed=seed)
     cfg.model = dataclasses.replace(cfg.model, num_experts=num_experts)
     cfg.train = dataclasses.replace(  # replace() re-validates each config
         cfg.train, experts=dataclasses.replace(cfg.train.experts, steps=expert_steps),

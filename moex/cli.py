@@ -14,9 +14,10 @@ import os
 import signal
 import sys
 import time
+from dataclasses import field, make_dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import hydra
 from hydra import compose, initialize_config_dir
@@ -43,6 +44,7 @@ from moex.config import (
 )
 from moex.errors import ConfigError, Interrupted, check, closest_first
 from moex.stop import StopRequest
+from moex.tasks import typed_config
 
 log = logging.getLogger("moex")
 CONF_DIR = str(config.CONF_DIR)
@@ -50,10 +52,17 @@ SHOWS_CONFIG = {"--cfg", "-c", "--info"}  # Hydra flags that print instead of ru
 
 
 def register_configs() -> None:
-    """The typed schemas of every verb's config, in Hydra's ConfigStore (done before composing)."""
-    for name, node in (("base_config", Config), ("base_evaluate", EvaluateConfig),
-                       ("base_generate", GenerateConfig), ("base_import", ImportConfig),
-                       ("base_segment", SegmentConfig)):
+    """The typed schemas of every verb's config, in Hydra's ConfigStore (done before composing).
+    A config with a task has an open `task` node: any task's keys compose into it, and `typed`
+    types them by the task's own config class (`moex.tasks.typed_config`)."""
+    for name, schema in (("base_config", Config), ("base_evaluate", EvaluateConfig),
+                         ("base_generate", GenerateConfig), ("base_import", ImportConfig),
+                         ("base_segment", SegmentConfig)):
+        node = OmegaConf.structured(schema)
+        if issubclass(schema, Config):
+            node = OmegaConf.structured(make_dataclass(
+                schema.__name__, [("task", Any, field(default_factory=dict))], bases=(schema,)))
+            OmegaConf.set_struct(node.task, False)
         ConfigStore.instance().store(name=name, node=node)
 
 
@@ -80,11 +89,12 @@ examples:
 """
 
 
-def _allowed_keys(config_name: str, key: str) -> str:
-    """The keys allowed beside an unknown `key`, closest spelling first."""
+def _allowed_keys(config_name: str, key: str, groups: list[str]) -> str:
+    """The keys allowed beside an unknown `key`, closest spelling first, in the config the
+    command line's group choices (`groups`: task=reber, ...) compose."""
     parent, _, leaf = key.rpartition(".")
     try:
-        root = compose(config_name)
+        root = compose(config_name, overrides=groups)
         node = OmegaConf.select(root, parent) if parent else root
         if not OmegaConf.is_dict(node):  # the parent itself is misspelt: the closest full keys
             paths = dotted_keys(OmegaConf.to_container(root, resolve=False))
@@ -111,8 +121,9 @@ def dotted_keys(tree: dict, prefix: str = "") -> list[str]:
     return paths
 
 
-def _one_line(exc: BaseException, config_name: str) -> str:
-    """A readable single line from a Hydra / OmegaConf / moex exception."""
+def _one_line(exc: BaseException, config_name: str, groups: list[str]) -> str:
+    """A readable single line from a Hydra / OmegaConf / moex exception (`groups`: the command
+    line's config group choices, which decide the keys a config has)."""
     text = str(exc).strip()
     first = text.splitlines()[0] if text else type(exc).__name__
     cause = exc.__cause__
@@ -123,7 +134,7 @@ def _one_line(exc: BaseException, config_name: str) -> str:
                 f"{override}); a list is written {override.split('=')[0]}=[a,b]")
     if "Could not override" in first and cause is not None:
         key = first.split(chr(39))[1]
-        return f"unknown key {key}{_allowed_keys(config_name, key)}"
+        return f"unknown key {key}{_allowed_keys(config_name, key, groups)}"
     if "Error merging override" in first and cause is not None:
         key = first.split()[-1].split("=")[0]
         return f"{key}: {str(cause).splitlines()[0]}"
@@ -179,10 +190,14 @@ def _search_path(args: list[str], flags: list[str]) -> list[str]:
     return [f"hydra.searchpath=[{','.join(entries)}]"] if entries else []
 
 
-def _typed(composed, choices) -> object:
+def typed(composed, choices=None) -> object:
     """The dataclass of a composed config; `eval=paper` of `moex evaluate` sets paper_sizes."""
-    cfg = OmegaConf.to_object(composed)
-    if isinstance(cfg, EvaluateConfig) and choices.get("eval") == "paper":
+    schema = OmegaConf.get_type(composed)
+    if issubclass(schema, Config):  # the open schema of `register_configs`: its base, typed
+        cfg = typed_config(schema.__mro__[1], OmegaConf.to_container(composed, resolve=True))
+    else:
+        cfg = OmegaConf.to_object(composed)
+    if isinstance(cfg, EvaluateConfig) and (choices or {}).get("eval") == "paper":
         cfg.paper_sizes = True
     return cfg
 
@@ -193,7 +208,7 @@ def typed_job_config(sweep_config) -> object:
     task_cfg = copy.deepcopy(sweep_config)
     with open_dict(task_cfg):
         del task_cfg["hydra"]
-    return _typed(task_cfg, sweep_config.hydra.runtime.choices)
+    return typed(task_cfg, sweep_config.hydra.runtime.choices)
 
 
 def interrupted_jobs(job_dirs: list[Path], exc: BaseException) -> None:
@@ -235,14 +250,17 @@ def validate(config_name: str, args: list[str], flags: list[str] = (), multirun:
                     _check_launcher(composed.hydra.launcher)
                     with open_dict(composed):
                         del composed["hydra"]
-                    configs.append(_typed(composed, choices))
+                    configs.append(typed(composed, choices))
                 for cfg in configs:
                     VERBS_CHECK[config_name](cfg)
                 return configs[0], first
             except (HydraException, OmegaConfBaseException) as exc:
                 if isinstance(exc, OverrideParseException):
                     _parse(args)  # names the override that does not parse
-                raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name)) from None
+                named = {d.name for d in Path(CONF_DIR).iterdir() if d.is_dir()}
+                groups = search + [a for a in args if a.split("=", 1)[0].lstrip("+~") in named]
+                raise ConfigError(_launcher_hint(exc) or _one_line(exc, config_name, groups)) \
+                    from None
     finally:
         GlobalHydra.instance().clear()
 
@@ -297,7 +315,7 @@ def _job(run, verb: str):
     def task_function(dict_cfg) -> None:
         hydra_cfg = HydraConfig.get()
         out_dir = Path(hydra_cfg.runtime.output_dir)
-        cfg = _typed(dict_cfg, hydra_cfg.runtime.choices)
+        cfg = typed(dict_cfg, hydra_cfg.runtime.choices)
         status = (lambda **kw: folders.write_status(out_dir, verb=verb, **kw)) if verb == "train" \
             else (lambda **kw: None)
         started = time.time()

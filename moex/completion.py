@@ -5,6 +5,7 @@ options (`task=reber`) and its keys one level at a time (`eval.` -> `eval.noise_
 `report`, folders. `python -m moex.completion` writes the key file from the configs (a test
 checks it is current)."""
 
+import dataclasses
 import json
 import os
 import sys
@@ -67,6 +68,7 @@ def table() -> dict:
 
     from moex.cli import dotted_keys, register_configs
     from moex.config import CONF_DIR
+    from moex.tasks import TASKS
 
     register_configs()
     GlobalHydra.instance().clear()
@@ -74,8 +76,14 @@ def table() -> dict:
     for verb, name in CONFIGS.items():
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             root = compose(name)
-        keys = [k for k in dotted_keys(OmegaConf.to_container(root, resolve=False))
-                if not k.startswith("hydra")]
+        keys = {k for k in dotted_keys(OmegaConf.to_container(root, resolve=False))
+                if not k.startswith(("hydra", "task."))}
+        if verb in ("train", "import"):  # a `Config`'s task: every task's own keys
+            keys |= {f"task.{f.name}" for task in TASKS.values()
+                     for f in dataclasses.fields(task.config)}
+        else:
+            keys |= {k for k in dotted_keys(OmegaConf.to_container(root, resolve=False))
+                     if k.startswith("task.")}
         defaults = OmegaConf.load(Path(CONF_DIR) / f"{name}.yaml").get("defaults", [])
         named = {next(iter(d)) for d in defaults if OmegaConf.is_dict(d)}
         groups = {g.name: sorted(p.stem for p in g.glob("*.yaml"))

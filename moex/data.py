@@ -9,11 +9,11 @@ import numpy as np
 
 from moex import budget
 from moex.config import Config
+from moex.config.model import ModelConfig
+from moex.config.train import ExpertPhaseConfig
 from moex.errors import check
-from moex.model import ModelConfig
 from moex.tasks import TASKS, Dataset, make_task, planned_shape
 from moex.tasks.scaling import WINDOW, noise_floor
-from moex.train import ExpertPhaseConfig
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ def _generated(cfg: Config) -> Dataset:
     from files): `moex train` checks its config on the data (`cli.validate`) and then trains on
     the same data set; a packed sweep checks every job's and then trains them all. Nothing
     changes a `Dataset` in place."""
-    if cfg.task.path:
+    if TASKS[cfg.task.name].files:  # files may change between runs: read afresh
         return make_task(cfg.task, cfg.seed, min_length=cfg.model.delay + 2)
     key = (repr(cfg.task), cfg.seed, cfg.model.delay)
     if key not in _BUILT:

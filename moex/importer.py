@@ -18,9 +18,10 @@ import numpy as np
 import torch
 
 from moex import checkpoint, io
-from moex.config import Config, ImportConfig, config_from_dict
+from moex.config import Config, ImportConfig
 from moex.errors import ConfigError, check
 from moex.mregn_format import read_save, write_save
+from moex.resume import config_from_dict
 from moex.tasks import Dataset
 
 

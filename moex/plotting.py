@@ -3,7 +3,6 @@ own) and returns it. One look for all of them: the style below, labels and scale
 metric table (`moex.metrics.table`), colour-blind-safe colours, a symlog axis for Lyapunov
 exponents (their sign is what matters), integer ticks for counts."""
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -36,24 +35,6 @@ def palette(n: int) -> list:
     if n <= 20:
         return list(plt.get_cmap("tab20").colors[:n])
     return [plt.get_cmap("turbo")(x) for x in np.linspace(0.05, 0.95, n)]
-
-
-@dataclass
-class PlotConfig:
-    """Which run the single-run figures show: -1 picks the run with the highest λ_max (the most
-    chaotic; failed runs never), k picks run k. `format`: png, pdf or svg (vector)."""
-
-    run: int = -1
-    format: str = "png"
-
-    def __post_init__(self):
-        from moex.errors import ConfigError
-
-        if self.run < -1:
-            raise ConfigError(f"plot.run={self.run} must be -1 (the run with the highest "
-                              f"λ_max) or a run index >= 0")
-        if self.format not in FORMATS:
-            raise ConfigError(f"plot.format={self.format!r}; choose png, pdf or svg")
 
 
 def scale_axis(ax, column: str, axis: str = "y") -> None:

@@ -8,11 +8,12 @@ import sys
 import torch
 
 from moex import compile_helper
+from moex.config.model import ModelConfig
+from moex.config.train import GatingPhaseConfig
 from moex.kernels.cpu import LATER, phases, warm
 from moex.kernels.cpu.closed_loop import closed_loop
 from moex.kernels.cpu.symbols import nearest_symbols
-from moex.model import ModelConfig, init_experts, init_gating, random_state
-from moex.train import GatingPhaseConfig
+from moex.model import init_experts, init_gating, random_state
 
 
 def compile_later_phases(dtype: str) -> None:

@@ -401,7 +401,8 @@ def _figures(sweep_dir: Path, runs, summary, *, jobs, keys, fmt: str = "png") ->
                 and {"max_lyapunov", "block_kl_test"} <= set(ours):
             fig = plotting.plot_scatter_by(ours, "max_lyapunov", "block_kl_test", nc, log_y=True)
             plotting.save_figure(fig, figures / f"{paper.name}_kl_vs_lyapunov.png", fmt)
-    liss = jobs[(jobs["status"] == "done") & jobs["task.switch_prob"].notna()
+    switch_prob = jobs.get("task.switch_prob", pd.Series(np.nan, index=jobs.index))  # lissajous2
+    liss = jobs[(jobs["status"] == "done") & switch_prob.notna()
                 & ~jobs["job"].str.contains("/evaluate/")]  # Fig. 9: the trained evaluation
     hists = {}
     for _, job in liss.iterrows():

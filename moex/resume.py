@@ -1,12 +1,14 @@
-"""Whether a run folder's checkpoint may be continued: only by the config that wrote it (its
+"""A run folder's checkpoint: its config rebuilt from the plain dict it stores (as older versions
+wrote it, too), and whether it may be continued: only by the config that wrote it (its
 evaluation settings aside)."""
 
 import dataclasses
 from pathlib import Path
 
 from moex import checkpoint
-from moex.config import Config, config_from_dict
+from moex.config import Config
 from moex.errors import ConfigError
+from moex.tasks import task_config, typed_config
 
 
 def check_same_training(saved: dict, cfg: Config, path: Path) -> None:
@@ -38,3 +40,22 @@ def open_checkpoint(cfg: Config, out_dir: Path) -> checkpoint.Checkpoint | None:
     saved = checkpoint.load(path)
     check_same_training(saved.config, cfg, path)
     return saved
+
+
+def config_from_dict(data: dict) -> Config:
+    """Rebuild (and re-validate) a `Config` from the plain dict stored in a checkpoint: the task's
+    keys into its own config class (checkpoints written before tasks had their own classes hold
+    every task's keys; the task's own are kept)."""
+    if "dtype" in data:  # checkpoints written before `dtype` was renamed `precision`
+        data = {**{k: v for k, v in data.items() if k != "dtype"}, "precision": data["dtype"]}
+    model = data.get("model", {})
+    if any("time_constant" in model.get(net, {}) for net in ("experts", "gating")):
+        # written before `time_constant` (which held ε, not τ) was renamed `epsilon`
+        model = {**model, **{net: {("epsilon" if k == "time_constant" else k): v
+                                   for k, v in model[net].items()}
+                             for net in ("experts", "gating") if net in model}}
+        data = {**data, "model": model}
+    task = dict(data.get("task", {}))
+    own = type(task_config(task.get("name", Config().task.name)))
+    task = {k: v for k, v in task.items() if k in {f.name for f in dataclasses.fields(own)}}
+    return typed_config(Config, {**data, "task": task})

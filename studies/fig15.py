@@ -32,10 +32,10 @@ import torch
 
 from moex import checkpoint
 from moex.closed_loop import closed_loop_lyapunov
-from moex.config import config_from_dict
 from moex.kernels import get_backend
 from moex.model import random_state
 from moex.report import to_markdown
+from moex.resume import config_from_dict
 from studies.common import DOCS
 
 REPEATS = 20

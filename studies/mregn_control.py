@@ -41,7 +41,7 @@ import yaml
 from moex.config import CONF_DIR
 from moex.errors import check
 from moex.mregn_format import write_targets
-from moex.tasks import TaskConfig, make_task
+from moex.tasks import make_task, task_config
 from studies.common import DOCS
 
 _REBER = ("{bin}/rnn-learn -s {seed} -n NC -t 10 -k 1 -d 1 -e 10000 -x 0.01 -m 0.9 -a -l 1000 "
@@ -80,7 +80,7 @@ def data_file(design: str, out: Path) -> Path:
     overrides = DESIGNS[design][0]
     task_file = CONF_DIR / "task" / f"{overrides['name']}.yaml"  # the task's own sizes first
     own = yaml.safe_load(task_file.read_text())["task"]
-    dataset = make_task(TaskConfig(**{**own, **overrides}), seed=0)
+    dataset = make_task(task_config(**{**own, **overrides}), seed=0)
     series = dataset.series if dataset.gate_targets is None else dataset.gate_targets
     path = out / design / "data.txt"
     path.parent.mkdir(parents=True, exist_ok=True)

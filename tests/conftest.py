@@ -11,10 +11,10 @@ if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from moex.config import Config
+from moex.config.model import ExpertsConfig, GatingConfig, ModelConfig
+from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.kernels import Backend, available
-from moex.model import ExpertsConfig, GatingConfig, ModelConfig
-from moex.tasks import TaskConfig
-from moex.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
+from moex.tasks import task_config
 from tests.helpers import backend_params
 
 torch.set_default_dtype(torch.float64)
@@ -24,7 +24,7 @@ torch.set_default_dtype(torch.float64)
 def tiny_cfg() -> Config:
     """A lissajous2 config small enough to train both phases in about a second."""
     return Config(
-        task=TaskConfig(name="lissajous2", num_series=2, length=40, num_test_series=1),
+        task=task_config("lissajous2", num_series=2, length=40, num_test_series=1),
         model=ModelConfig(num_experts=2, delay=1, experts=ExpertsConfig(context_size=4),
                           gating=GatingConfig(context_size=5)),
         train=TrainConfig(experts=ExpertPhaseConfig(steps=15, log_every=5),

@@ -1,10 +1,10 @@
 import torch
 
 from moex.closed_loop import generate, trained_state
+from moex.config.model import ModelConfig
 from moex.kernels import get_backend
 from moex.model import (
     ClosedLoopState,
-    ModelConfig,
     closed_loop_step,
     expert_forward,
     gating_forward,

@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
-from omegaconf import OmegaConf
 
-from moex.cli import CONF_DIR, _override_variants, register_configs
-from moex.config import Config, config_from_dict
+from moex.cli import CONF_DIR, _override_variants, register_configs, typed
+from moex.config import Config
 from moex.data import load_task
 from moex.run import phase1_cache
 
@@ -25,7 +24,7 @@ def test_every_task_config_composes(task, tmp_path):
     if task == "csv":
         (tmp_path / "x.csv").write_text("0.1 0.2\n" * 20)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = OmegaConf.to_object(compose("config", overrides=overrides))
+        cfg = typed(compose("config", overrides=overrides))
     assert isinstance(cfg, Config)
     assert cfg.task.name == task
     data = load_task(cfg)
@@ -37,21 +36,12 @@ def test_every_task_config_composes(task, tmp_path):
 
 def test_paper_settings_of_lissajous2():
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = OmegaConf.to_object(compose("config", overrides=["task=lissajous2"]))
+        cfg = typed(compose("config", overrides=["task=lissajous2"]))
     assert (cfg.model.num_experts, cfg.model.delay, cfg.model.sigma_min) == (2, 1, 0.05)
     assert (cfg.model.experts.context_size, cfg.model.gating.context_size) == (10, 15)
     assert (cfg.model.experts.epsilon, cfg.model.gating.epsilon) == (0.2, 0.04)
     assert (cfg.train.experts.steps, cfg.train.gating.steps) == (30000, 10000)
     assert cfg.train.experts.gate_prior_std == 10.0 and cfg.train.gating.adaptive_lr
-
-
-def test_checkpoint_configs_with_old_key_names_still_load():
-    """Run folders written before `time_constant` became `epsilon` (and `dtype` `precision`)."""
-    old = {"dtype": "float32", "model": {"experts": {"context_size": 7, "time_constant": 0.3},
-                                         "gating": {"time_constant": 0.05}}}
-    cfg = config_from_dict(old)
-    assert (cfg.model.experts.epsilon, cfg.model.gating.epsilon) == (0.3, 0.05)
-    assert cfg.model.experts.context_size == 7 and cfg.precision == "float32"
 
 
 def test_sweep_overrides_are_validated_value_by_value():
@@ -81,7 +71,7 @@ def test_every_experiment_composes_with_each_sweep_value(experiment):
             [f"experiment={experiment}", f"{key}={value}"]
             for key, values in params.items() for value in sweep_values(key, values)]
         for overrides in variants:
-            cfg = OmegaConf.to_object(compose("config", overrides=overrides))
+            cfg = typed(compose("config", overrides=overrides))
             assert isinstance(cfg, Config)
             load_task(cfg)
 
@@ -100,7 +90,7 @@ def test_cached_sweeps_vary_phase1_settings_fastest(experiment):
         params = dict(base.hydra.sweeper.params or {})
         changes = []
         for key, values in params.items():
-            paths = {phase1_cache(OmegaConf.to_object(compose(
+            paths = {phase1_cache(typed(compose(
                 "config", overrides=[f"experiment={experiment}", f"{key}={v}"])))
                 for v in sweep_values(key, values)}
             changes.append(len(paths) > 1)

@@ -4,6 +4,7 @@ import dataclasses
 
 from moex.config import Config
 from moex.data import load_task
+from moex.tasks import task_config
 
 
 def test_a_generated_data_set_is_built_once_per_process(monkeypatch, tmp_path):
@@ -28,9 +29,7 @@ def test_a_generated_data_set_is_built_once_per_process(monkeypatch, tmp_path):
     assert len(built) == 3
     assert load_task(cfg) is not first and len(built) == 4
     (tmp_path / "x.csv").write_text("0.1 0.2\n" * 20)
-    files = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, name="csv",
-                                                              path=str(tmp_path / "x.csv"),
-                                                              length=0))
+    files = dataclasses.replace(cfg, task=task_config("csv", path=str(tmp_path / "x.csv")))
     load_task(files)
     load_task(files)
     assert len(built) == 6

@@ -473,8 +473,9 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
     closed loop: a contracting mixture (as initialised) and a chaotic one (experts without leak,
     τ = 1, recurrent weights 16 times larger)."""
     from moex.closed_loop import closed_loop_lyapunov
+    from moex.config.model import ModelConfig
     from moex.kernels import get_backend
-    from moex.model import ModelConfig, init_experts, init_gating, random_state
+    from moex.model import init_experts, init_gating, random_state
     from tests.helpers import generators
 
     check = _script("lyapunov_crosscheck")

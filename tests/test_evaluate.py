@@ -12,22 +12,18 @@ import torch
 from moex import objectives
 from moex.closed_loop import closed_loop_lyapunov, generate, trained_state
 from moex.config import Config
+from moex.config.evaluation import EvalConfig
+from moex.config.model import ModelConfig
+from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.data import load_task
-from moex.evaluation import EvalConfig, _decided, _train_block_kl, evaluate
+from moex.evaluation import _decided, _train_block_kl, evaluate
 from moex.kernels import get_backend
 from moex.metrics.lyapunov import chaos_label, standard_error
 from moex.metrics.switching import segment_symbols, switch_probability
-from moex.model import ModelConfig, expert_forward, gate_estimates, gating_forward, random_state
+from moex.model import expert_forward, gate_estimates, gating_forward, random_state
 from moex.run import initial_parameters
-from moex.tasks import Dataset, TaskConfig, make_task
-from moex.train import (
-    ExpertPhaseConfig,
-    GatingPhaseConfig,
-    TrainConfig,
-    phase2_targets,
-    train_experts,
-    train_gating,
-)
+from moex.tasks import Dataset, TaskConfig, make_task, task_config
+from moex.train import phase2_targets, train_experts, train_gating
 from moex.verbs.train import run as run_train
 from tests.helpers import backend_params
 
@@ -53,7 +49,7 @@ def _trained(task: TaskConfig, model: ModelConfig, R=2, steps=(30, 20)):
 def test_the_metric_table_of_a_lissajous_task():
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
-    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+    data, experts, beta, gating = _trained(task_config("lissajous2", num_series=2, length=60,
                                                       num_test_series=1), model)
     rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg=QUICK,
                                  generator=torch.Generator().manual_seed(0),
@@ -98,7 +94,7 @@ def test_a_networks_evaluation_is_the_same_alone_and_in_a_batch():
 
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
-    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+    data, experts, beta, gating = _trained(task_config("lissajous2", num_series=2, length=60,
                                                       num_test_series=1), model)
     noisy = dataclasses.replace(QUICK, noise_var=1e-3)
 
@@ -119,7 +115,7 @@ def test_a_networks_evaluation_is_the_same_alone_and_in_a_batch():
 def test_metrics_a_task_cannot_have_are_left_out():
     model = ModelConfig(num_experts=7)
     model.gating.context_size = 4
-    data, experts, beta, gating = _trained(TaskConfig(name="reber", num_series=2, length=30),
+    data, experts, beta, gating = _trained(task_config("reber", num_series=2, length=30),
                                            model)
     rows = evaluate(experts, beta, gating, data, 1, cfg=dataclasses.replace(QUICK, block_length=3),
                     generator=torch.Generator().manual_seed(0), backend=get_backend()).rows
@@ -133,7 +129,7 @@ def test_metrics_a_task_cannot_have_are_left_out():
         assert threshold.rows[0][key] == rows[0][key]
     assert threshold.samples["transition"].shape[-1] == 8  # 7 gates and "none"
     # a user's series: no held-out data, no true labels
-    lissajous = make_task(TaskConfig(num_series=2, length=40, num_test_series=0), 0)
+    lissajous = make_task(task_config("lissajous2", num_series=2, length=40, num_test_series=0), 0)
     mine = Dataset(lissajous.series, -np.ones((2, 40), int), [], np.zeros(0, int))
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 3, 4
@@ -168,7 +164,8 @@ def test_undetermined_runs_are_sampled_again_until_decided_or_the_budget_is_spen
 def test_tracking_during_training(tmp_path):
     """eval.every tracks the training-data block KL and λ_max in the phase-2 history; the last
     tracked block KL is that of the trained network."""
-    cfg = Config(task=TaskConfig(num_series=2, length=40, num_test_series=0), num_runs=2)
+    cfg = Config(task=task_config("lissajous2", num_series=2, length=40, num_test_series=0),
+                 num_runs=2)
     cfg.model.experts.context_size, cfg.model.gating.context_size = 4, 5
     cfg.train = TrainConfig(experts=ExpertPhaseConfig(steps=6),
                             gating=GatingPhaseConfig(steps=5, log_every=100))
@@ -230,7 +227,7 @@ def test_noise_enters_only_the_metrics_it_is_said_to():
     named."""
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
-    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+    data, experts, beta, gating = _trained(task_config("lissajous2", num_series=2, length=60,
                                                       num_test_series=1), model)
 
     def table(noise_var):
@@ -256,7 +253,7 @@ def test_trained_initial_states_start_each_sample_from_its_series():
     as computed directly from those states with the same generator."""
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
-    data, experts, beta, gating = _trained(TaskConfig(num_series=2, length=60,
+    data, experts, beta, gating = _trained(task_config("lissajous2", num_series=2, length=60,
                                                       num_test_series=1), model)
     cfg = dataclasses.replace(QUICK, initial_states="trained", num_samples=4)
     rows = pd.DataFrame(evaluate(experts, beta, gating, data, 1, cfg=cfg,
@@ -317,7 +314,7 @@ def test_eval_test_series_draws_more_held_out_data_that_begins_with_the_runs_own
     """eval.test_series=N scores the test KL on N held-out series drawn as the task draws them:
     the training series are the run's, the first held-out series are the run's own, and N equal
     to the task's own count changes nothing. A user's files have none to draw: refused."""
-    for task in (tiny_cfg.task, TaskConfig(name="reber", num_series=2, length=50,
+    for task in (tiny_cfg.task, task_config("reber", num_series=2, length=50,
                                            num_test_series=2)):
         cfg = dataclasses.replace(tiny_cfg, task=task)
         if task.name == "reber":
@@ -335,7 +332,7 @@ def test_eval_test_series_draws_more_held_out_data_that_begins_with_the_runs_own
         np.testing.assert_array_equal(more.test.labels[:n], own.test.labels)
         np.testing.assert_array_equal(more.test.series[:n], own.test.series)
     np.save(tmp_path / "a.npy", np.zeros((30, 2)))
-    files = dataclasses.replace(tiny_cfg, task=TaskConfig(name="csv", path=str(tmp_path),
+    files = dataclasses.replace(tiny_cfg, task=task_config("csv", path=str(tmp_path),
                                                           length=0),
                                 eval=dataclasses.replace(tiny_cfg.eval, test_series=3))
     with pytest.raises(ValueError, match="eval.test_series=3: task csv is a user's files"):

@@ -10,18 +10,13 @@ import pytest
 import torch
 
 from moex.closed_loop import closed_loop_lyapunov, generate
+from moex.config.model import ModelConfig
+from moex.config.train import AdaptiveLRConfig, ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.kernels import REGISTRY, available, get_backend, reference
 from moex.metrics.lyapunov import initial_tangents, reorthonormalise
-from moex.model import ModelConfig, closed_loop_step, init_experts, init_gating, random_state
-from moex.tasks import TaskConfig, make_task
-from moex.train import (
-    AdaptiveLRConfig,
-    ExpertPhaseConfig,
-    GatingPhaseConfig,
-    TrainConfig,
-    train_experts,
-    train_gating,
-)
+from moex.model import closed_loop_step, init_experts, init_gating, random_state
+from moex.tasks import make_task, task_config
+from moex.train import train_experts, train_gating
 from tests.helpers import INTERPRETED, backend_params, generators
 
 REFERENCE, COMPILED = get_backend("reference"), get_backend("cpu")
@@ -197,7 +192,7 @@ def _trajectory_cases():
                          indirect=["backend"])
 def test_training_trajectories_of_both_phases_match(backend, dtype, form, adaptive):
     steps, length = (4, 16) if backend.caps.interpreted else (12, 40)
-    task = make_task(TaskConfig(num_series=2, length=length), seed=0)
+    task = make_task(task_config("lissajous2", num_series=2, length=length), seed=0)
     series = torch.as_tensor(task.series, dtype=dtype)
     model = ModelConfig(learn_time_constants=True)
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -236,7 +231,8 @@ def test_gpu_candidate_steps_in_one_call_train_as_one_by_one(monkeypatch):
         pytest.skip(f"backend gpu cannot run here: {why}")
     from moex.kernels.gpu import phases
 
-    series = torch.as_tensor(make_task(TaskConfig(num_series=2, length=8), seed=0).series)
+    task = task_config("lissajous2", num_series=2, length=8)
+    series = torch.as_tensor(make_task(task, seed=0).series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
     rule = TrainConfig(adaptive=AdaptiveLRConfig(max_retries=5))
@@ -266,7 +262,7 @@ def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(backend):
     """With input noise in phase 2, both backends draw the same noise; run r sees the noise of
     its own seed whether trained in a batch or alone."""
     steps = 3 if backend.caps.interpreted else 6
-    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    task = make_task(task_config("lissajous2", num_series=2, length=30), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.gating.context_size = 5
@@ -484,7 +480,7 @@ def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(mo
     step) nothing is reused."""
     from moex.kernels.cpu import lanes
 
-    task = make_task(TaskConfig(num_series=3, length=40), seed=1)
+    task = make_task(task_config("lissajous2", num_series=3, length=40), seed=1)
     series = torch.as_tensor(task.series)
     model = ModelConfig(learn_time_constants=True)
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -630,7 +626,7 @@ def test_a_backend_is_one_registry_entry_and_its_interface_is_checked(monkeypatc
     monkeypatch.setitem(kernels.LOADERS, "mine", lambda device: kernels.Backend(
         "mine", device, kernels._checked(reference)))
     mine = kernels.get_backend("mine")
-    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    task = make_task(task_config("lissajous2", num_series=2, length=30), seed=0)
     model = ModelConfig()
     model.experts.context_size = 3
     experts = init_experts(model, 2, 2, generators([0]))

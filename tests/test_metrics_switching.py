@@ -102,7 +102,8 @@ def test_a_network_that_never_switches_has_long_stays_not_short_ones():
     mean_residence 1 (its few jitter stays). Every stay now counts, the cut-off ones flagged."""
     from types import SimpleNamespace
 
-    from moex.evaluation import EvalConfig, _switching_columns
+    from moex.config.evaluation import EvalConfig
+    from moex.evaluation import _switching_columns
 
     period, laps = 25, 40
     stay = np.zeros((3, period * laps), dtype=int)  # 3 samples, each on curve 0 throughout

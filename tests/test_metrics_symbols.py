@@ -90,8 +90,8 @@ def test_threshold_rule_is_argmax_where_a_gate_exceeds_one_half_else_a_symbol_of
 def test_bad_symbol_rule_is_refused():
     import pytest
 
+    from moex.config.evaluation import EvalConfig
     from moex.errors import ConfigError
-    from moex.evaluation import EvalConfig
 
     with pytest.raises(ConfigError, match="eval.symbol_rule='vote'; choose argmax or threshold"):
         EvalConfig(symbol_rule="vote")

@@ -1,13 +1,7 @@
 import torch
 
-from moex.model import (
-    ModelConfig,
-    expert_forward,
-    gating_forward,
-    init_experts,
-    init_gating,
-    leaky_scan,
-)
+from moex.config.model import ModelConfig
+from moex.model import expert_forward, gating_forward, init_experts, init_gating, leaky_scan
 from tests.helpers import generators
 
 

@@ -4,9 +4,8 @@ the Reber task reaches the paper's Table 1 regime."""
 import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
-from moex.cli import CONF_DIR, register_configs
+from moex.cli import CONF_DIR, register_configs, typed
 from moex.verbs.train import run as run_train
 
 
@@ -16,7 +15,7 @@ def test_reber_gating_network_becomes_chaotic_with_the_papers_training(tmp_path)
     closed loop (paper: 98 % of networks, λ_max 0.215) and a test-data block KL near 0.309."""
     register_configs()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = OmegaConf.to_object(compose("config", overrides=[
+        cfg = typed(compose("config", overrides=[
             "task=reber", "model.gating.context_size=20", "num_runs=2",
             "eval.num_samples=20", "eval.lyapunov_steps=5000"]))
     assert cfg.train.gating.steps == 10000

@@ -17,11 +17,13 @@ from omegaconf import open_dict
 
 from moex import cli
 from moex.cli import register_configs
+from moex.config.model import ModelConfig
+from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.kernels import get_backend
-from moex.model import ModelConfig, init_experts, init_gating
+from moex.model import init_experts, init_gating
 from moex.run import run_seeds
-from moex.tasks import TaskConfig, make_task
-from moex.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig, train_experts
+from moex.tasks import make_task, task_config
+from moex.train import train_experts
 from tests.helpers import generators
 
 MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
@@ -91,7 +93,7 @@ def test_resume_with_another_config_is_refused(tmp_path):
 
 
 def test_a_nan_run_leaves_the_others_identical():
-    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    task = make_task(task_config("lissajous2", num_series=2, length=30), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.experts.context_size = 4

@@ -22,7 +22,7 @@ from moex.metrics.segmentation import (
     scores,
 )
 from moex.metrics.switching import rle
-from moex.tasks import TaskConfig, files, make_task
+from moex.tasks import files, make_task, task_config
 
 MOEX = [sys.executable, "-c", "from moex.launch import main; main()"]
 
@@ -70,7 +70,7 @@ def test_the_matching_is_the_best_one_to_one_assignment():
 
 def _two_curves():
     """A small two-Lissajous mixture (3 runs) and held-out series of its task with labels."""
-    data = make_task(TaskConfig(num_series=4, length=400, num_test_series=4), seed=1)
+    data = make_task(task_config("lissajous2", num_series=4, length=400, num_test_series=4), seed=1)
     fitted = moex.fit(data.series, num_experts=2, expert_steps=3000, gating_steps=1000,
                       num_runs=3, labels=data.labels)
     return fitted, data

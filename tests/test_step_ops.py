@@ -16,16 +16,12 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode, _disable_current_modes
 
+from moex.config.model import ModelConfig
+from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.kernels import available
-from moex.model import ModelConfig, init_experts, init_gating
-from moex.tasks import TaskConfig, make_task
-from moex.train import (
-    ExpertPhaseConfig,
-    GatingPhaseConfig,
-    TrainConfig,
-    train_experts,
-    train_gating,
-)
+from moex.model import init_experts, init_gating
+from moex.tasks import make_task, task_config
+from moex.train import train_experts, train_gating
 from tests.helpers import generators
 
 SYNCS = ("_local_scalar_dense", "nonzero", "boolean mask")
@@ -46,7 +42,7 @@ class _Count(TorchDispatchMode):
 
 
 def _train(phase: int, steps: int, adaptive: bool, backend) -> Counter:
-    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    task = make_task(task_config("lissajous2", num_series=2, length=30), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5

@@ -1,8 +1,11 @@
+import logging
+
 import numpy as np
 import pytest
+import torch
 
 from moex.errors import ConfigError
-from moex.tasks import TaskConfig, lissajous, make_task, reber
+from moex.tasks import lissajous, make_task, reber, task_config
 from moex.tasks.switching import generate_switching
 
 
@@ -16,10 +19,10 @@ def _switch_stats(labels_at_boundaries):
 
 @pytest.mark.parametrize("name", ["lissajous2", "lissajous9", "reber", "markov_primitives"])
 def test_same_seed_same_data_and_shapes(name):
-    cfg = TaskConfig(name=name, num_series=3, length=200, num_test_series=2,
-                     primitives=[{"amplitude": [0.5, 0.5]}, {"amplitude": [0.3, 0.2],
-                                                             "frequency": [2, 1]}],
-                     transition=[[0.5, 0.5], [0.5, 0.5]])
+    own = dict(primitives=[{"amplitude": [0.5, 0.5]}, {"amplitude": [0.3, 0.2],
+                                                       "frequency": [2, 1]}],
+               transition=[[0.5, 0.5], [0.5, 0.5]]) if name == "markov_primitives" else {}
+    cfg = task_config(name, num_series=3, length=200, num_test_series=2, **own)
     a, b, c = make_task(cfg, 1), make_task(cfg, 1), make_task(cfg, 2)
     assert np.array_equal(a.series, b.series) and np.array_equal(a.labels, b.labels)
     assert not np.array_equal(a.labels, c.labels) or not np.array_equal(a.series, c.series)
@@ -91,61 +94,62 @@ def test_reber_strings_obey_grammar_and_choice_probability():
 
 
 def test_reber_one_hot_targets():
-    data = make_task(TaskConfig(name="reber", num_series=4, length=500), 0)
+    data = make_task(task_config("reber", num_series=4, length=500), 0)
     assert data.series.shape == (4, 500, 0)
     assert data.gate_targets.shape == (4, 500, 7)
     assert np.array_equal(data.gate_targets.argmax(-1), data.labels)
 
 
 @pytest.mark.parametrize("bad, match", [
-    (dict(switch_prob=1.5), "task.switch_prob=1.5 is outside"),
-    (dict(num_series=0), "task.num_series=0"),
+    (dict(name="lissajous2", switch_prob=1.5), "task.switch_prob=1.5 is outside"),
+    (dict(name="lissajous2", num_series=0), "task.num_series=0"),
+    (dict(name="reber", switch_prob=0.5), "task.switch_prob is not a key of task reber"),
     (dict(name="nope"), "task.name='nope' is unknown"),
     (dict(name="markov_primitives", primitives=[{"amplitude": [1, 1]}],
           transition=[[0.5]]), "task.transition\\[0\\] sums to 0.5"),
 ])
 def test_bad_task_config(bad, match):
     with pytest.raises(ConfigError, match=match):
-        make_task(TaskConfig(**bad), 0)
+        make_task(task_config(**bad), 0)
 
 
 def test_csv_task(tmp_path):
     rng = np.random.default_rng(0)
     for i in range(3):
         np.savetxt(tmp_path / f"s{i}.csv", rng.uniform(-1, 1, (50, 2)), delimiter=",")
-    data = make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
+    data = make_task(task_config("csv", path=str(tmp_path), length=0), 0)
     assert data.series.shape == (3, 50, 2)
     (tmp_path / "s1.csv").write_text("0.1,0.2\nnan,0.3\n" * 30)
     with pytest.raises(ConfigError, match="NaN or inf"):
-        make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
+        make_task(task_config("csv", path=str(tmp_path), length=0), 0)
     (tmp_path / "s1.csv").write_text("0.1,0.2\n0.3\n" * 30)
     with pytest.raises(ConfigError, match="rows of different lengths"):
-        make_task(TaskConfig(name="csv", path=str(tmp_path), length=0), 0)
+        make_task(task_config("csv", path=str(tmp_path), length=0), 0)
 
 
 def test_an_unknown_task_lists_the_closest_first():
     with pytest.raises(ConfigError, match="task.name='lisajous2' is unknown; choose one of "
                                           "lissajous2, lissajous9, "):
-        TaskConfig(name="lisajous2")
+        task_config("lisajous2")
 
 
 def test_empty_npy_arrays_and_folders_named_like_files_are_clean_errors(tmp_path):
     np.save(tmp_path / "empty.npy", np.zeros((120, 0)))
     with pytest.raises(ConfigError, match="empty array of shape \\(120, 0\\)"):
-        make_task(TaskConfig(name="csv", path=str(tmp_path / "empty.npy"), length=0), 0)
+        make_task(task_config("csv", path=str(tmp_path / "empty.npy"), length=0), 0)
     data = tmp_path / "data"
     (data / "sub.csv").mkdir(parents=True)  # a folder named like a file is not read
     np.savetxt(data / "s.csv", np.zeros((20, 2)), delimiter=",")
-    assert make_task(TaskConfig(name="csv", path=str(data), length=0), 0).series.shape == (
+    assert make_task(task_config("csv", path=str(data), length=0), 0).series.shape == (
         1, 20, 2)
 
 
 def test_data_seed_sets_the_data_apart_from_the_networks():
-    from moex.tasks import TaskConfig, make_task
+    from moex.tasks import make_task, task_config
 
-    base = TaskConfig(num_series=2, length=200)
+    base = task_config("lissajous2", num_series=2, length=200)
     own = make_task(base, 3).series
-    fixed = TaskConfig(num_series=2, length=200, data_seed=3)
+    fixed = task_config("lissajous2", num_series=2, length=200, data_seed=3)
     np.testing.assert_array_equal(make_task(fixed, 0).series, own)  # seed no longer matters
     np.testing.assert_array_equal(make_task(fixed, 7).series, own)
     assert not np.array_equal(make_task(base, 0).series, own)
@@ -180,26 +184,74 @@ def test_the_noise_floor_is_half_the_quietest_windows_one_step_change():
     assert noise_floor(np.zeros((1, 300, 2))) == FLOOR
 
 
-def test_a_task_is_one_registry_entry_a_toy_3d_task_trains_with_no_other_edit(
-        monkeypatch, tmp_path, tiny_cfg):
-    """A task is its generator and its entry in `moex.tasks.TASKS` (with D declared for the
-    memory check): a 3-feature toy task, registered here and nowhere else, is checked, trained
-    and evaluated by `moex train`'s own code."""
-    from moex import tasks
-    from moex.evaluation import EvalConfig
-    from moex.verbs.train import run as run_train
+TOY_MODULE = """
+from dataclasses import dataclass
 
-    def toy(cfg, rng, min_length):
-        t = 2 * np.pi * np.arange(cfg.length) / cfg.period
-        phases = rng.uniform(0, 2 * np.pi, size=cfg.num_series)
-        series = 0.8 * np.stack([np.stack([np.sin(t + p), np.cos(t + p), np.sin(2 * t)], -1)
-                                 for p in phases])
-        return tasks.user_data(series, None, None)
+import numpy as np
 
-    monkeypatch.setitem(tasks.TASKS, "toy3d", tasks.Task(toy, lambda cfg: 3))
-    tiny_cfg.task = TaskConfig(name="toy3d", num_series=2, length=40, num_test_series=0)
-    tiny_cfg.eval = EvalConfig(num_samples=2, lyapunov_steps=50, transient=10, plot_steps=20)
-    assert tasks.planned_shape(tiny_cfg.task) == (2, 40, 3)
-    saved = run_train(tiny_cfg, tmp_path)
-    assert saved.series.shape == (2, 40, 3) and saved.experts["w_out"].shape[-2] == 3
-    assert (tmp_path / "metrics.csv").exists()
+from moex.errors import check_positive
+from moex.tasks.base import Task, TaskConfig, user_data
+
+
+@dataclass
+class ToyConfig(TaskConfig):
+    name: str = "toy3d"
+    period: float = 20.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_positive("task.period", self.period)
+
+
+def make(cfg, rng, min_length):
+    t = 2 * np.pi * np.arange(cfg.length) / cfg.period
+    phases = rng.uniform(0, 2 * np.pi, size=cfg.num_series)
+    return user_data(0.8 * np.stack([np.stack([np.sin(t + p), np.cos(t + p), np.sin(2 * t)], -1)
+                                     for p in phases]))
+
+
+TASKS = (Task(ToyConfig, make, lambda cfg: 3),)
+"""
+
+TOY_YAML = """# @package _global_
+task: {name: toy3d, num_series: 2, length: 40, num_test_series: 0, period: 16}
+"""
+
+
+def test_a_task_is_one_module_and_one_yaml_a_toy_3d_task_trains_with_no_other_edit(
+        monkeypatch, tmp_path):
+    """A task is a module (its config class, generator and `Task` entry) and a YAML: a 3-feature
+    toy task written here, in a temporary module and a temporary config
+    folder, is type-checked, trained and evaluated by `moex train` on the command line; its
+    own key (`task.period`) is overridable and another task's key is refused."""
+    import importlib
+
+    from moex import cli, tasks
+
+    (tmp_path / "toy_task_module.py").write_text(TOY_MODULE)
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    (tmp_path / "conf" / "task" / "toy3d.yaml").write_text(TOY_YAML)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    toy = importlib.import_module("toy_task_module")
+    for task in toy.TASKS:  # what the registry's line in moex/tasks/__init__.py does
+        monkeypatch.setitem(tasks.TASKS, task.name, task)
+    monkeypatch.chdir(tmp_path)
+    search = f"hydra.searchpath=[file://{tmp_path / 'conf'}]"
+    tiny = ["model.experts.context_size=4", "model.gating.context_size=5",
+            "train.experts.steps=6", "train.gating.steps=4", "eval.num_samples=2",
+            "eval.lyapunov_steps=50", "eval.transient=10", "eval.plot_steps=20"]
+    with pytest.raises(SystemExit) as refused:
+        cli.main(["train", "task=toy3d", search, "task.switch_prob=0.3", *tiny])
+    assert refused.value.code == 2
+    handlers = list(logging.getLogger().handlers)
+    try:
+        cli.main(["train", "task=toy3d", search, "task.period=12", *tiny,
+                  f"hydra.run.dir={tmp_path / 'run'}"])
+    finally:
+        logging.getLogger().handlers[:] = handlers  # Hydra set up the run's log
+    saved = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    assert saved["config"]["task"] == {"name": "toy3d", "num_series": 2, "length": 40,
+                                       "num_test_series": 0, "data_seed": -1, "period": 12.0}
+    assert saved["series"].shape == (2, 40, 3) and saved["experts"]["w_out"].shape[-2] == 3
+    assert (tmp_path / "run" / "metrics.csv").exists()
+    assert not (tmp_path / "outputs").exists()  # the refused command wrote nothing

@@ -3,21 +3,14 @@ import dataclasses
 import pytest
 import torch
 
+from moex.config.model import ModelConfig
+from moex.config.train import AdaptiveLRConfig, ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.kernels import get_backend
 from moex.kernels.reference import expert_objective, gating_objective
-from moex.model import ModelConfig, init_experts, init_gating
+from moex.model import init_experts, init_gating
 from moex.run import run_seeds
-from moex.tasks import TaskConfig, make_task
-from moex.train import (
-    AdaptiveLRConfig,
-    ExpertPhaseConfig,
-    GatingPhaseConfig,
-    Hooks,
-    TrainConfig,
-    TrainingInterrupted,
-    train_experts,
-    train_gating,
-)
+from moex.tasks import make_task, task_config
+from moex.train import Hooks, TrainingInterrupted, train_experts, train_gating
 from tests.helpers import generators
 
 
@@ -90,7 +83,7 @@ def _train_both(model, rule, series, seeds, S, D, phase1, phase2, backend):
 
 @pytest.mark.parametrize("form", ["paper", "mregn"])
 def test_batch_of_runs_equals_runs_trained_alone(form, backend):
-    task = make_task(TaskConfig(num_series=2, length=30), seed=0)
+    task = make_task(task_config("lissajous2", num_series=2, length=30), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -116,8 +109,9 @@ def test_runs_with_data_of_their_own_equal_each_data_set_trained_alone(backend):
     """Packing law: a batch whose runs have series of their own ((R, S, L, D), as the packed
     launcher trains a sweep's jobs) equals each data set trained alone, both phases, to 1e-10;
     phase 2 with input noise, so each run's noise stays its own."""
-    data = [torch.as_tensor(make_task(TaskConfig(num_series=2, length=30, switch_prob=p),
-                                      seed=s).series) for p, s in ((0.5, 0), (0.25, 1))]
+    data = [torch.as_tensor(make_task(task_config("lissajous2", num_series=2, length=30,
+                                                  switch_prob=p), seed=s).series)
+            for p, s in ((0.5, 0), (0.25, 1))]
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
     steps = 2 if backend.caps.interpreted else 10
@@ -145,7 +139,7 @@ def test_runs_with_data_of_their_own_equal_each_data_set_trained_alone(backend):
 
 def test_learning_rate_scaling_per_group():
     """One step from rest moves each group by its rate times the gradient (the C code's scaling)."""
-    task = make_task(TaskConfig(num_series=3, length=21), seed=0)
+    task = make_task(task_config("lissajous2", num_series=3, length=21), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     S, T, D, K, alpha = 3, 20, 2, 2, 0.01
@@ -180,7 +174,7 @@ def test_learning_rate_scaling_per_group():
 
 
 def test_both_phases_reduce_their_errors():
-    task = make_task(TaskConfig(num_series=2, length=60), seed=1)
+    task = make_task(task_config("lissajous2", num_series=2, length=60), seed=1)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 5, 6
@@ -202,7 +196,7 @@ def test_both_phases_reduce_their_errors():
 
 
 def test_adaptive_rate_never_accepts_a_large_increase():
-    task = make_task(TaskConfig(num_series=2, length=40), seed=2)
+    task = make_task(task_config("lissajous2", num_series=2, length=40), seed=2)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     experts = init_experts(model, 2, 2, generators([0]))
@@ -281,7 +275,7 @@ def test_candidate_steps_in_one_call_train_as_one_by_one(k):
 def test_stopped_and_resumed_training_is_bit_identical(backend):
     """A phase stopped after a checkpoint and resumed from the saved state ends exactly where
     an uninterrupted run ends (parameters and history), on every backend."""
-    task = make_task(TaskConfig(num_series=2, length=25), seed=0)
+    task = make_task(task_config("lissajous2", num_series=2, length=25), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5

@@ -198,6 +198,14 @@ def check_name(name: str) -> str:
     return ALIASES.get(name, name)
 
 
+def check_backend(name: str, device: str) -> None:
+    """A config's `backend` and `device` before anything is written: a known name, and gpu only
+    where its device and Triton are (refused before a run folder exists, not when training
+    starts)."""
+    if check_name(name) == "gpu":
+        get_backend(name, device)
+
+
 def get_backend(name: str = "auto", device: str = "cpu") -> Backend:
     """`reference` (PyTorch), `cpu` (numba), `gpu` (Triton; device=cuda), or `auto`: cpu on the
     CPU, gpu with device=cuda when Triton is installed (else reference)."""

@@ -4,11 +4,15 @@ import glob
 import io
 import os
 import re
+from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import pandas as pd
 
 from moex.errors import ConfigError, check
+from moex.tasks.base import Dataset, Task, TaskConfig, user_data
+from moex.tasks.scaling import SCALES, fit_scale
 
 SEPARATOR = r"\s*,\s*|\s+"  # commas or spaces
 
@@ -181,3 +185,31 @@ def load_series(pattern: str, length: int, min_length: int, columns: list[str] =
     check(len(series[0]) >= min_length, f"task.path: series have {len(series[0])} steps, "
                                         f"need at least {min_length} (model.delay + 2)")
     return np.stack(series), np.stack(given)
+
+
+@dataclass
+class CsvConfig(TaskConfig):
+    """Your own series (`load_series`); num_series and length 0: as the files hold them."""
+
+    name: str = "csv"
+    num_series: int = 0
+    length: int = 0
+    num_test_series: int = 0
+    path: str = ""  # a file, glob or folder
+    labels: str = ""  # a column of per-step integer labels, or files of them (scored)
+    columns: list[str] = field(default_factory=list)  # by header name (all if [])
+    scale: str = "none"  # none (data must lie in [-1, 1]) | auto (each feature linearly)
+    FILES: ClassVar[bool] = True
+
+    def __post_init__(self):
+        super().__post_init__()
+        check(self.scale in SCALES, f"task.scale={self.scale!r}; choose none or auto")
+
+
+def _read(cfg: CsvConfig, rng, min_length) -> Dataset:
+    series, labels = load_series(cfg.path, cfg.length, min_length, cfg.columns, cfg.labels)
+    series, scale = fit_scale(series, cfg.scale, f"task.path={cfg.path}")
+    return user_data(series, scale, labels)
+
+
+TASKS = (Task(CsvConfig, _read),)

@@ -2,10 +2,13 @@
 curves around a central circle, as the authors' C tools generate them, on the switching engine."""
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from moex.tasks.switching import Primitive
+from moex.errors import check, check_positive, check_range
+from moex.tasks.base import Task, TaskConfig
+from moex.tasks.switching import Primitive, switching_dataset
 
 HALF_PI = math.pi / 2
 
@@ -59,3 +62,44 @@ def nine_curves_transition(rule: str) -> np.ndarray:
         for this, other in ((first, second), (second, first)):
             p[this, this], p[this, other], p[this, (k + 1) % 4] = repeat, sibling, back
     return p
+
+
+@dataclass
+class Lissajous2Config(TaskConfig):
+    """Two circles (Table 2): switch at the origin with probability `switch_prob`."""
+
+    name: str = "lissajous2"
+    period: float = 25.0  # P, steps per Lissajous period
+    switch_prob: float = 0.5
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_positive("task.period", self.period)
+        check_range("task.switch_prob", self.switch_prob, 0.0, 1.0)
+
+
+@dataclass
+class Lissajous9Config(TaskConfig):
+    """Nine curves (Table 1); `transition_rule`: the paper's or the C tools' (mregn)."""
+
+    name: str = "lissajous9"
+    period: float = 25.0  # P, steps per Lissajous period
+    transition_rule: str = "paper"
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_positive("task.period", self.period)
+        check(self.transition_rule in ("paper", "mregn"),
+              f"task.transition_rule={self.transition_rule!r}; choose paper or mregn")
+
+
+def _two(cfg: Lissajous2Config, rng, min_length):
+    return switching_dataset(two_circles(), two_circles_transition(cfg.switch_prob), cfg, rng)
+
+
+def _nine(cfg: Lissajous9Config, rng, min_length):
+    return switching_dataset(nine_curves(), nine_curves_transition(cfg.transition_rule), cfg,
+                             rng, initial=0)
+
+
+TASKS = (Task(Lissajous2Config, _two, lambda cfg: 2), Task(Lissajous9Config, _nine, lambda cfg: 2))

@@ -1,6 +1,11 @@
 """The ergodic Reber automaton of the preliminary experiment (paper Sec. 3.1, Fig. 2)."""
 
+from dataclasses import dataclass
+
 import numpy as np
+
+from moex.errors import check, check_range
+from moex.tasks.base import Dataset, Task, TaskConfig
 
 SYMBOLS = ("T", "P", "S", "X", "V", "E", "B")
 
@@ -62,3 +67,37 @@ def violations(symbols: np.ndarray) -> np.ndarray:
             nxt = _emitted(AUTOMATON, s) or set(AUTOMATON)
         states = nxt
     return bad
+
+
+@dataclass
+class ReberConfig(TaskConfig):
+    """Walks of the automaton; the first of two paths with `choice_prob` (1/2 in the paper)."""
+
+    name: str = "reber"
+    choice_prob: float = 0.5
+    burn_in: int = 100  # symbols discarded from the start state
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_range("task.choice_prob", self.choice_prob, 0.0, 1.0)
+        check(self.burn_in >= 0, f"task.burn_in={self.burn_in} must be >= 0")
+
+
+def _walks(cfg: ReberConfig, rng, min_length) -> Dataset:
+    def sample(count):
+        labels = np.stack([generate_reber(cfg.length, cfg.burn_in, cfg.choice_prob, rng)
+                           for _ in range(count)])
+        series = np.zeros(labels.shape + (0,))
+        return series, labels, np.eye(len(SYMBOLS))[labels]
+
+    common = dict(symbol_names=list(SYMBOLS), symbol_of=np.arange(len(SYMBOLS)),
+                  violations=violations)
+    test = None
+    if cfg.num_test_series:
+        s, lab, g = sample(cfg.num_test_series)
+        test = Dataset(s, lab, **common, gate_targets=g)
+    s, lab, g = sample(cfg.num_series)
+    return Dataset(s, lab, **common, gate_targets=g, test=test)
+
+
+TASKS = (Task(ReberConfig, _walks, lambda cfg: 0),)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from moex.errors import check, check_range
+from moex.tasks.base import Dataset, TaskConfig
 
 
 @dataclass(frozen=True)
@@ -98,3 +99,21 @@ def prototype_points(primitives: list[Primitive], samples: int = 64) -> tuple[np
         points.append(prim(phi))
         labels.append(np.full(samples, symbol_of[k]))
     return np.concatenate(points), np.concatenate(labels)
+
+
+def switching_dataset(primitives: list[Primitive], transition: np.ndarray, cfg: TaskConfig,
+                      rng: np.random.Generator, initial: int | None = None) -> Dataset:
+    """The training and held-out series of a switching task (`cfg.period` steps per period)
+    with its symbols and prototype points."""
+    def sample(count):
+        pairs = [generate_switching(primitives, transition, cfg.length, cfg.period, rng=rng,
+                                    initial=initial)
+                 for _ in range(count)]
+        return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
+
+    names, symbol_of = symbol_table(primitives)
+    points, point_symbols = prototype_points(primitives)
+    common = dict(symbol_names=names, symbol_of=symbol_of, transition=transition,
+                  prototypes=points, prototype_symbols=point_symbols, period=cfg.period)
+    test = Dataset(*sample(cfg.num_test_series), **common) if cfg.num_test_series else None
+    return Dataset(*sample(cfg.num_series), **common, test=test)

@@ -8,7 +8,7 @@ from moex import checkpoint, importer, progress, run_page
 from moex.config import ImportConfig
 from moex.data import load_task
 from moex.errors import never
-from moex.kernels import get_backend
+from moex.kernels import check_backend, get_backend
 from moex.verbs.train import evaluate_run
 
 log = logging.getLogger(__name__)
@@ -17,7 +17,9 @@ NAME, CONFIG = "import", "import"
 
 
 def check(cfg: ImportConfig) -> None:
-    """Before anything is written: the task's data and every source file read and matched."""
+    """Before anything is written: the backend, the task's data and every source file read and
+    matched."""
+    check_backend(cfg.backend, cfg.device)
     importer.import_networks(cfg, load_task(cfg))
 
 

@@ -34,14 +34,15 @@ def segment_input(tool: SegmentConfig) -> tuple[TrainedRun, np.ndarray, np.ndarr
                      f"run_dir={tool.run_dir} has no held-out series; give task.path=<new data>")
         return run, dataset.test.series, dataset.test.labels, "held-out series"
     read = functools.partial(files.load_series, new.path, new.length, cfg.model.delay + 2,
-                             new.columns or cfg.task.columns)
+                             new.columns or getattr(cfg.task, "columns", []))
     try:  # the run's label column where the new files have it too
         series, labels = read(new.labels or _label_column(cfg.task))
     except ConfigError:
         if new.labels or not _label_column(cfg.task):
             raise
         series, labels = read("")
-        log.info("no column %s in %s: the segmentation is not scored", cfg.task.labels, new.path)
+        log.info("no column %s in %s: the segmentation is not scored", _label_column(cfg.task),
+                 new.path)
     errors.check(series.shape[-1] == dataset.series.shape[-1],
                  f"task.path={new.path} has {series.shape[-1]} features; the run was trained "
                  f"on {dataset.series.shape[-1]}")
@@ -74,8 +75,10 @@ def run(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
 
 
 def _label_column(task) -> str:
-    """The training data's label column, reused for new data (a label file is not)."""
-    return task.labels if files.is_column_name(task.labels) else ""
+    """The training data's label column, reused for new data (a label file is not; a task not
+    read from files has none)."""
+    labels = getattr(task, "labels", "")
+    return labels if files.is_column_name(labels) else ""
 
 
 check = segment_input  # every refusal of `moex segment`, before its folder is made

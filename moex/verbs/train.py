@@ -14,7 +14,7 @@ from moex.data import in_data_units, load_task, warn_ignored
 from moex.errors import never
 from moex.evaluation import evaluate
 from moex.figures import numbered, plot_samples, write_segments
-from moex.kernels import Backend, get_backend
+from moex.kernels import Backend, check_backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
 from moex.metrics.table import LOGGED, METRICS
 from moex.model import gate_estimates
@@ -25,7 +25,12 @@ from moex.tasks import TASKS, Dataset
 log = logging.getLogger(__name__)
 
 NAME, CONFIG = "train", "config"  # the verb and its Hydra config
-check = load_task  # everything `run` refuses, before its folder is made
+
+
+def check(cfg: Config) -> None:
+    """Everything `run` refuses, before its folder is made: the backend, the task, its data."""
+    check_backend(cfg.backend, cfg.device)
+    load_task(cfg)
 
 
 def run(cfg: Config, out_dir: Path, stop=never) -> checkpoint.Checkpoint:

@@ -9,13 +9,13 @@ from moex.config import (
     EvaluateConfig,
     GenerateConfig,
     RunFolder,
-    config_from_dict,
     paper_eval_sizes,
 )
+from moex.config.evaluation import EvalConfig
 from moex.data import held_out
 from moex.errors import check
-from moex.evaluation import EvalConfig
 from moex.kernels import Backend, get_backend
+from moex.resume import config_from_dict
 from moex.tasks import Dataset, Scale, task_of_run
 
 

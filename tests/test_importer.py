@@ -1,7 +1,7 @@
-"""The authors' C tools' files (tests/data/mregn: written by mre-learn, gn-learn, rnn-learn and
-mregn-generate of jnamika/mregn 6a92a19, built by tools/build_mregn.sh, on moex's data files):
-read and written back byte for byte, imported with the errors their own logs report, and run
-in moex's closed loop as their generator runs them."""
+"""moex.importer: networks the authors' C tools trained (tests/data/mregn: written by mre-learn,
+gn-learn, rnn-learn and mregn-generate of jnamika/mregn 6a92a19, built by tools/build_mregn.sh,
+on moex's data files) imported with the errors their own logs report, run in moex's closed loop
+as their generator runs them, and exported back to the same files."""
 
 import shutil
 from pathlib import Path
@@ -14,19 +14,19 @@ import torch
 from moex import checkpoint
 from moex.closed_loop import generate, trained_state
 from moex.config import ImportConfig
+from moex.config.model import ModelConfig
 from moex.errors import ConfigError
 from moex.evaluation import _teacher_forced
 from moex.importer import export_run, import_networks
 from moex.kernels import get_backend
-from moex.model import ModelConfig
-from moex.mregn_format import read_save, read_targets, write_save, write_targets
-from moex.tasks import TaskConfig, make_task
+from moex.mregn_format import read_save, write_save
+from moex.tasks import make_task, task_config
 from moex.train import phase2_targets
 from moex.verbs import importing
 
 DATA = Path(__file__).parent / "data" / "mregn"
-TASKS = {"mixture": TaskConfig(name="lissajous2", num_series=2, length=60),
-         "gating": TaskConfig(name="reber", num_series=2, length=60, num_test_series=4)}
+TASKS = {"mixture": task_config("lissajous2", num_series=2, length=60),
+         "gating": task_config("reber", num_series=2, length=60, num_test_series=4)}
 
 
 def _imported(kind: str, source=None):
@@ -35,25 +35,6 @@ def _imported(kind: str, source=None):
                        model=ModelConfig(num_experts=2 if kind == "mixture" else 7))
     dataset = make_task(task, 0)
     return (*import_networks(cfg, dataset), dataset)
-
-
-@pytest.mark.parametrize("name", ["mixture/mre.dat", "mixture/gn.dat", "gating/rnn.dat"])
-def test_save_files_read_and_write_back_byte_for_byte(tmp_path, name):
-    path = DATA / name
-    written = write_save(tmp_path / path.name, read_save(path), path.name)
-    assert written.read_bytes() == path.read_bytes()
-
-
-def test_a_truncated_save_file_is_refused(tmp_path):
-    (tmp_path / "mre.dat").write_bytes((DATA / "mixture/mre.dat").read_bytes()[:-100])
-    with pytest.raises(ValueError, match="ends early"):
-        read_save(tmp_path / "mre.dat")
-
-
-def test_target_files_carry_moex_data_exactly(tmp_path):
-    series = np.random.default_rng(0).uniform(-1, 1, (3, 7, 2))
-    back = read_targets(write_targets(tmp_path / "t.txt", series, "header\nline two"))
-    assert len(back) == 3 and all(np.array_equal(b, s) for b, s in zip(back, series, strict=True))
 
 
 def _last_log_row(path: Path) -> np.ndarray:
@@ -128,7 +109,7 @@ def _assert_same(a, b, where):
 
 
 def test_import_refuses_networks_of_other_data():
-    task = TaskConfig(name="lissajous2", num_series=2, length=60, switch_prob=0.25)
+    task = task_config("lissajous2", num_series=2, length=60, switch_prob=0.25)
     cfg = ImportConfig(task=task, source=[str(DATA / "mixture")])
     with pytest.raises(ConfigError, match="trained on other data"):
         import_networks(cfg, make_task(cfg.task, 0))

@@ -1,6 +1,9 @@
-"""The top-level `Config`, assembled from each component's own dataclass, and the configs of the
-other verbs. `moex.cli.register_configs` registers them as Hydra's schemas (`base_config`, ...),
-so that every YAML value is type-checked when composed; nothing here imports Hydra."""
+"""The top-level `Config`, assembled from each component's own dataclass (this package's modules,
+and each task's own in its module), and the configs of the other verbs. `moex.cli.register_configs`
+registers them as Hydra's schemas (`base_config`, ...), so that every YAML value is type-checked
+when composed; nothing here imports Hydra, a registry or what trains and evaluates: a value that
+needs a registry to be checked (a backend's or a task's name) is checked where the registry
+lives (`moex.kernels.check_name`, `moex.tasks.check_task`), by the verbs before they write."""
 
 from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
@@ -8,17 +11,16 @@ from typing import Optional
 
 import torch
 import yaml
-from omegaconf import OmegaConf
 
+from moex.config.evaluation import EvalConfig
+from moex.config.model import ModelConfig
+from moex.config.plot import PlotConfig
+from moex.config.train import TrainConfig
 from moex.errors import check
-from moex.evaluation import EvalConfig
-from moex.kernels import check_name, get_backend
-from moex.model import ModelConfig
-from moex.plotting import PlotConfig
-from moex.tasks import TaskConfig
-from moex.train import TrainConfig
+from moex.tasks.base import TaskConfig
+from moex.tasks.lissajous import Lissajous2Config
 
-_PACKAGE_CONF = Path(__file__).resolve().parent / "conf"  # in a wheel; in a checkout: ../conf
+_PACKAGE_CONF = Path(__file__).resolve().parent.parent / "conf"  # in a wheel; a checkout: ../conf
 CONF_DIR = _PACKAGE_CONF if _PACKAGE_CONF.is_dir() else _PACKAGE_CONF.parent.parent / "conf"
 PRECISIONS = ("float64", "float32")
 DEVICES = ("cpu", "cuda")
@@ -26,7 +28,7 @@ DEVICES = ("cpu", "cuda")
 
 @dataclass
 class Config:
-    task: TaskConfig = field(default_factory=TaskConfig)
+    task: TaskConfig = field(default_factory=Lissajous2Config)  # a task's own subclass
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -34,7 +36,8 @@ class Config:
     num_runs: int = 1  # R networks trained side by side, run r seeded by (seed, r)
     precision: str = "float64"  # of training and evaluation; tests and defaults use float64
     device: str = "cpu"
-    backend: str = "auto"  # auto | reference (PyTorch) | cpu (numba) | gpu (Triton)
+    backend: str = "auto"  # auto | reference (PyTorch) | cpu (numba) | gpu (Triton) (checked by
+    # the verbs: moex.kernels.check_backend)
     resume: bool = False  # continue the latest run folder of this task (or hydra.run.dir)
     cache_dir: str = ""  # phase-1 results shared by jobs that differ only in the gating net
     plot: PlotConfig = field(default_factory=PlotConfig)
@@ -48,9 +51,6 @@ class Config:
         check(self.device != "cuda" or torch.cuda.is_available(),
               f"device=cuda but this machine has no CUDA device PyTorch can use (torch "
               f"{torch.__version__}); use device=cpu")
-        check_name(self.backend)
-        if self.backend == "gpu":  # refused before a run folder exists, not when training starts
-            get_backend(self.backend, self.device)
 
 
 # every EvalConfig key, optional: what `moex evaluate` overrides in the run's own eval config
@@ -155,17 +155,3 @@ class ImportConfig(Config):
     def __post_init__(self):
         super().__post_init__()
         check(self.min_variance > 0, f"min_variance={self.min_variance} must be > 0")
-
-
-def config_from_dict(data: dict) -> Config:
-    """Rebuild (and re-validate) a `Config` from the plain dict stored in a checkpoint."""
-    if "dtype" in data:  # checkpoints written before `dtype` was renamed `precision`
-        data = {**{k: v for k, v in data.items() if k != "dtype"}, "precision": data["dtype"]}
-    model = data.get("model", {})
-    if any("time_constant" in model.get(net, {}) for net in ("experts", "gating")):
-        # written before `time_constant` (which held ε, not τ) was renamed `epsilon`
-        model = {**model, **{net: {("epsilon" if k == "time_constant" else k): v
-                                   for k, v in model[net].items()}
-                             for net in ("experts", "gating") if net in model}}
-        data = {**data, "model": model}
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), data))
