@@ -24,7 +24,7 @@ CASES = (("phase 1, fixed rate", True), ("phase 1, adaptive rate", True),
 
 def rounds(runs: int, count: int, steps: int, base: int) -> dict[tuple[str, bool], list[float]]:
     """{(phase, reuse): [ms per network-epoch, one per round]}."""
-    fns = trainers("lissajous2", runs, "cpu", 1, 15, "float64")[0]
+    fns = trainers("lissajous2", runs, "cpu")[0]
     out = {case: [] for case in CASES}
     for phase, reuse in CASES:  # compile (or load) at the timed sizes
         lanes.Forwarded.enabled = reuse

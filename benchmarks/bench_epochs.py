@@ -24,9 +24,9 @@ import torch
 
 from moex.config import Config
 from moex.data import load_task
+from moex.jobs import run_seeds
 from moex.kernels import get_backend
 from moex.model import init_experts, init_gating
-from moex.run import run_seeds
 from moex.tasks import task_config
 from moex.train import train_experts, train_gating
 
@@ -66,8 +66,9 @@ def ratios(a: list[float], b: list[float], digits: int = 2, unit: str = "") -> s
     return f"{statistics.median(r):.{digits}f}{unit} ({min(r):.{digits}f}-{max(r):.{digits}f})"
 
 
-def trainers(task: str, runs: int, backend: str, threads: int, context_size: int, dtype: str,
-             device: str = "cpu", series: int = 0, length: int = 0) -> tuple[dict, bool]:
+def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_size: int = 15,
+             dtype: str = "float64", device: str = "cpu", series: int = 0,
+             length: int = 0) -> tuple[dict, bool]:
     """{phase name: fn(n) training n epochs of `runs` networks} and whether to synchronise CUDA;
     `series` and `length` (0: the task's) shrink the data."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
@@ -113,12 +114,12 @@ def trainers(task: str, runs: int, backend: str, threads: int, context_size: int
     return out, chosen.device.startswith("cuda")
 
 
-def bench(task: str, runs: int, backend: str, threads: int, steps: int, repeats: int,
+def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repeats: int,
           context_size: int, dtype: str, device: str = "cpu", series: int = 0,
           length: int = 0, base: int = 5) -> list[dict]:
     """Rows of ms per network-epoch (`trainers` for the arguments)."""
-    fns, sync = trainers(task, runs, backend, threads, context_size, dtype, device, series,
-                         length)
+    fns, sync = trainers(task, runs, backend, threads=threads, context_size=context_size,
+                         dtype=dtype, device=device, series=series, length=length)
     results = []
     for name, fn in fns.items():
         wall, cpu = _time(fn, steps, repeats, base, sync)
@@ -157,8 +158,10 @@ def main():
         for backend in args.backends:
             for threads in args.threads:
                 for size in args.context_sizes:
-                    bench(args.task, runs, backend, threads, args.steps, args.repeats, size,
-                          args.dtype, args.device, args.series, args.length, args.base)
+                    bench(args.task, runs, backend, threads=threads, steps=args.steps,
+                          repeats=args.repeats, context_size=size, dtype=args.dtype,
+                          device=args.device, series=args.series, length=args.length,
+                          base=args.base)
     if args.kernels:
         print_kernels()
 

@@ -17,9 +17,9 @@ from bench_epochs import print_kernels  # (benchmarks/ is the script's folder)
 
 from moex.closed_loop import closed_loop_lyapunov
 from moex.config import Config
+from moex.jobs import run_seeds
 from moex.kernels import get_backend
 from moex.model import init_experts, init_gating, random_state
-from moex.run import run_seeds
 
 
 def closed_loop(runs: int, samples: int, threads: int, backend: str, device: str):
@@ -45,7 +45,7 @@ def closed_loop(runs: int, samples: int, threads: int, backend: str, device: str
     return fn, device.startswith("cuda")
 
 
-def bench(runs: int, samples: int, steps: int, threads: int, backend: str, device: str,
+def bench(runs: int, samples: int, steps: int, *, threads: int, backend: str, device: str,
           repeats: int = 3) -> float:
     """Seconds per closed-loop step (with one tangent vector) for runs × samples trajectories,
     the best of `repeats` blocks of `steps` steps."""
@@ -77,8 +77,8 @@ def main():
     print("|---|---|---|---|---|---|")
     for backend in args.backends:
         for threads in args.threads:
-            per_step = bench(args.runs, args.samples, args.steps, threads, backend, args.device,
-                             args.repeats)
+            per_step = bench(args.runs, args.samples, args.steps, threads=threads,
+                             backend=backend, device=args.device, repeats=args.repeats)
             print(f"| {args.runs} x {args.samples} | {args.device} | {backend} | {threads} | "
                   f"{1e3 * per_step:.3f} | {per_step * 100_000:.0f} |", flush=True)
     if args.kernels:

@@ -25,10 +25,10 @@ from bench_epochs import trainers, warm_up
 from moex.config import Config
 from moex.config.train import ExpertPhaseConfig
 from moex.data import load_task
+from moex.jobs import run_seeds
 from moex.kernels.cpu import phases, threads
 from moex.kernels.cpu.phases import _BACKWARD, _FORWARD, _MIXTURE, _RUNS, _expert_items
 from moex.model import init_experts
-from moex.run import run_seeds
 from moex.tasks import task_config
 
 
@@ -48,7 +48,7 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: i
     fixed = {"tau": params.pop("tau")}
     params["beta"] = torch.zeros(R, S, T, K, dtype=series.dtype)
     problem = phases.ExpertProblem(series[:, :-1], series[:, 1:], cfg.model, ExpertPhaseConfig(),
-                                   R)
+                                   num_runs=R)
     grads = {k: torch.zeros_like(v) for k, v in params.items()}
     net = {**params, **fixed}
     active = torch.ones(R, dtype=torch.bool)
@@ -85,7 +85,7 @@ def loop_seconds(R: int, dtype: torch.dtype, steps: int) -> float:
     momentum update, checks and bookkeeping), from `steps` epochs (so that progress lines are as
     rare as in a training), the least of 3. Each epoch's own call is subtracted, not the least
     of many calls: an epoch's time includes all of the machine's jitter."""
-    epoch = trainers("lissajous2", R, "cpu", 1, 15, str(dtype).removeprefix("torch."))[0]
+    epoch = trainers("lissajous2", R, "cpu", dtype=str(dtype).removeprefix("torch."))[0]
     epoch = epoch["phase 1, fixed rate"]
     warm_up(epoch, steps, 1)
     inside = [0.0]

@@ -46,7 +46,7 @@ CHILD = ("import atexit, resource, sys; atexit.register(lambda: print('peak kB',
          "from moex.launch import main; main()")
 
 
-def train(data: Path, experts: int, runs: int, steps: int, threads: int, out: Path) -> dict:
+def train(data: Path, experts: int, runs: int, steps: int, *, threads: int, out: Path) -> dict:
     """One `moex train`: its phases' wall seconds and its peak resident set (bytes)."""
     env = {**os.environ, "NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": "1"}
     done = subprocess.run([sys.executable, "-c", CHILD, "train", "task=csv", f"task.path={data}",
@@ -85,10 +85,10 @@ def main():
         data = Path(scratch) / "recording.npy"
         recording(data, args.series, args.length, args.features, args.experts)
         for runs in args.runs:
-            short = train(data, args.experts, runs, args.steps, args.threads,
-                          Path(scratch) / f"short{runs}")
-            long = train(data, args.experts, runs, 2 * args.steps, args.threads,
-                         Path(scratch) / f"long{runs}")
+            short = train(data, args.experts, runs, args.steps, threads=args.threads,
+                          out=Path(scratch) / f"short{runs}")
+            long = train(data, args.experts, runs, 2 * args.steps, threads=args.threads,
+                         out=Path(scratch) / f"long{runs}")
             per = [(long[p] - short[p]) * 1e3 / args.steps for p in ("phase 1", "phase 2")]
             cfg = Config(task=task_config("csv"), num_runs=runs)
             cfg.model.num_experts, cfg.eval.enabled = args.experts, False  # eval=quick's

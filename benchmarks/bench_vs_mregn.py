@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         fields = dict(bin=work / "bin", data=target, cwd=work)
         subprocess.run(PHASE1.format(epochs=10, **fields).replace("mre.dat", "start.dat").split(),
                        cwd=work, check=True, stdout=subprocess.DEVNULL)
-        moex = {runs: trainers("lissajous2", runs, "cpu", 1, 15, "float64")[0]
+        moex = {runs: trainers("lissajous2", runs, "cpu")[0]
                 for runs in args.runs}
         for fns in moex.values():  # compile (or load) every kernel at the timed sizes first
             for fn in fns.values():

@@ -131,9 +131,9 @@ def record(size: str, evaluation: bool = True) -> list[Launch]:
     evaluation."""
     from moex.closed_loop import CHUNK, closed_loop_lyapunov, generate, trained_state
     from moex.data import load_task
+    from moex.jobs import run_seeds
     from moex.kernels import get_backend
     from moex.model import init_experts, init_gating, random_state
-    from moex.run import run_seeds
     from moex.train import phase2_targets, train_experts, train_gating
 
     cfg = config(SIZES[size][0])

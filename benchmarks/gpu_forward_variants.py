@@ -84,8 +84,8 @@ def forward_by_rows(X, XROW, U0J, W_IN, W_REC, W_OUT, B_C, B_O, TAU, U0, OUT, C,
             _put(OUT, lane * T + t, ok, o, _matvec(w_out, c) + b_o, NO)
 
 
-def table2_net(networks: int, device: str, dtype=torch.float64, series: int = 10, T: int = 999,
-               scale: float = 0.5):
+def table2_net(networks: int, device: str, *, dtype=torch.float64, series: int = 10,
+               T: int = 999, scale: float = 0.5):
     """Phase 1's expert networks at Table 2's sizes (2 experts of 10 units per run, 2 inputs and
     outputs), random parameters (weights of SD `scale`: 0.5 makes some of many networks chaotic,
     where two summation orders part ways over 999 steps; 0.1 contracts): the Net, its parameters
@@ -102,7 +102,7 @@ def table2_net(networks: int, device: str, dtype=torch.float64, series: int = 10
               "u0": rand(K * series, H)}
     X = torch.randn(series, T, D, generator=g, dtype=dtype).tanh().to(device)
     lanes = torch.arange(networks * series)
-    net = Net(networks, K, series, T, D, H, D, xrow=(lanes % series).numpy(),
+    net = Net(networks, K, series, T=T, NI=D, H=H, NO=D, xrow=(lanes % series).numpy(),
               u0j=((lanes // series) % K * series + lanes % series).numpy(), learn_eps=False,
               sums=False, dtype=dtype, device=device, keep=True)
     return net, params, X

@@ -60,7 +60,7 @@ def main():
     parser.add_argument("--chunks", type=int, default=2,
                         help="closed-loop chunks of 500 steps profiled (one tangent)")
     args = parser.parse_args()
-    fns, cuda = trainers("lissajous2", args.runs, args.backend, 1, 15, "float64", args.device)
+    fns, cuda = trainers("lissajous2", args.runs, args.backend, device=args.device)
     counts = {phase: (args.epochs, "epoch") for phase in fns}
     if args.samples:
         loop, _ = closed_loop(args.runs, args.samples, 1, args.backend, args.device)

@@ -20,9 +20,9 @@ from moex.config.evaluation import EvalConfig
 from moex.data import in_data_units, settled
 from moex.errors import check
 from moex.evaluation import evaluate
+from moex.jobs import Job, run_generators, train_jobs
 from moex.kernels import Backend, get_backend
 from moex.model import gate_estimates, random_state
-from moex.run import Job, run_generators, train_jobs
 from moex.segment import METHODS, Segmentation, responsibilities, segmentation
 from moex.tasks import Dataset, task_config, user_data
 from moex.tasks.scaling import fit_scale

@@ -34,7 +34,7 @@ from omegaconf import OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from moex import config, folders, packing, provenance, report, verbs
+from moex import config, folders, packing, provenance, verbs
 from moex.config import (
     Config,
     EvaluateConfig,
@@ -363,8 +363,11 @@ def _job(run, verb: str):
     return task_function
 
 
-VERBS = {name: (module.CONFIG, _job(module.run, name)) for name, module in verbs.VERBS.items()}
-VERBS_CHECK = {module.CONFIG: module.check for module in verbs.VERBS.values()}
+# the verbs Hydra composes a config for; the others (report) read their own arguments (`main`)
+VERBS = {name: (module.CONFIG, _job(module.run, name)) for name, module in verbs.VERBS.items()
+         if module.CONFIG is not None}
+VERBS_CHECK = {module.CONFIG: module.check for module in verbs.VERBS.values()
+               if module.CONFIG is not None}
 
 
 def _latest_run(task: str) -> Path:
@@ -433,11 +436,11 @@ def main(argv: list[str] | None = None) -> None:
     if verb in ("--shell-completion", "-sc"):
         _shell_completion(args)
         return
-    if verb == "report":  # a folder in, tables out: plain argparse, no Hydra
-        report.main(args)
+    if verb in verbs.VERBS and verb not in VERBS:  # folders in, tables out: argparse, no Hydra
+        verbs.VERBS[verb].main(args)
         return
     if verb not in VERBS:
-        print(f"moex: error: unknown verb {verb!r}; choose one of {', '.join(VERBS)}, report",
+        print(f"moex: error: unknown verb {verb!r}; choose one of {', '.join(verbs.VERBS)}",
               file=sys.stderr)
         sys.exit(2)
     config_name, task_function = VERBS[verb]

@@ -58,7 +58,7 @@ def generate(experts, gating, state: ClosedLoopState, steps: int, *, backend: Ba
     for _, size in chunks(steps, CHUNK):  # (well under a second each)
         stop_if_asked(stop, "the closed loop was")
         run = backend.closed_loop(experts, gating, state, size,
-                                  _noise(state, size, noise_std, generator))
+                                  noise=_noise(state, size, noise_std, generator))
         state = run.state
         parts.append((run.outputs, run.gates, run.gating_u))
     return {name: torch.cat([p[i] for p in parts], 2)
@@ -90,8 +90,9 @@ def closed_loop_lyapunov(experts, gating, state: ClosedLoopState, steps: int, tr
         nonlocal state
         keep = counted and done + size > steps - keep_potentials
         run = backend.closed_loop(experts, gating, state, size,
-                                  _noise(state, size, noise_std, generator), tangents, counted,
-                                  uniform_gates, keep)
+                                  noise=_noise(state, size, noise_std, generator),
+                                  tangents=tangents, count=counted, uniform_gates=uniform_gates,
+                                  potentials=keep)
         state = run.state
         if counted and on_chunk is not None:
             on_chunk(run)

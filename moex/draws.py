@@ -1,6 +1,6 @@
 """Random draws for R runs at once, each run from its own generator where one is given per run:
 what run r draws then does not depend on how many runs are drawn beside it, so a network's
-evaluation is the same in a batch of R as alone (as its training is, `moex.run.run_seeds`)."""
+evaluation is the same in a batch of R as alone (as its training is, `moex.jobs.run_seeds`)."""
 
 import torch
 

@@ -28,18 +28,13 @@ from moex.metrics.symbols import (
     symbolize_argmax,
     symbolize_threshold,
 )
+from moex.metrics.table import NOISY
 from moex.model import expert_forward, gate_estimates, gating_forward, random_state
 from moex.tasks import Dataset
 from moex.train import phase2_targets
 
 SYMBOLIZERS = dict(zip(SYMBOL_RULES, (symbolize_argmax, symbolize_threshold), strict=True))
 
-
-# computed on the closed loop with the noise of eval.noise_var added to x_n; every other metric
-# (max_lyapunov and its companions included, as in the paper) on the noiseless loop
-NOISY_METRICS = ("block_kl_test", "switch_prob", "switch_prob_gates", "switch_rate",
-                 "mean_residence", "censored_stays", "nonperiodic_fraction",
-                 "periodicity_samples", "max_lyapunov_noisy")
 
 
 class Evaluation(NamedTuple):
@@ -222,7 +217,7 @@ def evaluate(experts, beta, gating, dataset: Dataset, delay: int, *, cfg: EvalCo
         })
         if noisy is not None:
             row.update(max_lyapunov_noisy=float(noisy[r, :, 0].mean()),
-                       noise_enters=" ".join(NOISY_METRICS))
+                       noise_enters=" ".join(NOISY))
         if truth:
             row["data_switch_prob"] = switching.switch_probability(
                 [switching.segment_symbols(s, dataset.period) for s in truth])

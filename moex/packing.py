@@ -3,7 +3,7 @@ a batch are trained together, each group in one process as one batch of networks
 job runs as it would alone and finds its networks trained (its checkpoint says `done`), so it
 only writes its outputs: history, figures, evaluation, status and provenance.
 
-Jobs share a batch when `moex.run.packing_key` agrees (model, training, precision, backend,
+Jobs share a batch when `moex.jobs.packing_key` agrees (model, training, precision, backend,
 device; no tracking, no phase-1 cache), their data have one shape and their folders stand at the
 same saved step. Each job keeps its own data, seed and number of runs. A job that cannot share
 (a lone job, a bad override, a finished folder) runs alone, exactly as without this launcher.
@@ -21,8 +21,8 @@ from moex import budget, provenance
 from moex.config import Config
 from moex.data import load_task
 from moex.errors import ConfigError, Interrupted
+from moex.jobs import Job, packing_key, saved_position, train_jobs
 from moex.resume import open_checkpoint
-from moex.run import Job, packing_key, saved_position, train_jobs
 from moex.stop import StopRequest
 
 log = logging.getLogger(__name__)

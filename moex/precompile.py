@@ -34,7 +34,7 @@ def compile_later_phases(dtype: str) -> None:
     closed_loop(experts, gating, state, 2, None, tangents, True)
     ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype)
     problem = phases.GatingProblem(ghat, torch.zeros((1, 4, 2), dtype=torch_dtype), model,
-                                   GatingPhaseConfig(), [0])
+                                   GatingPhaseConfig(), seeds=[0])
     grads = {k: torch.zeros_like(v) for k, v in gating.items()}
     active = torch.ones(1, dtype=torch.bool)
     problem.value_and_grad(gating, grads, active)

@@ -2,7 +2,6 @@
 aggregate over runs, and write CSV, Markdown and figures at the multirun root."""
 
 import json
-import time
 from io import StringIO
 from pathlib import Path
 
@@ -418,48 +417,3 @@ def _figures(sweep_dir: Path, runs, summary, *, jobs, keys, fmt: str = "png") ->
             {p: tuple(np.concatenate(part) for part in zip(*h, strict=True))
              for p, h in hists.items()})
         plotting.save_figure(fig, figures / "residence_times.png", fmt)
-
-
-def main(argv: list[str] | None = None) -> None:
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="moex report", description=__doc__)
-    parser.add_argument("folders", type=Path, nargs="+",
-                        help="run or multirun folders (or any parents of jobs) to compare")
-    parser.add_argument("--out", type=Path, help="where to write the report (default: the one "
-                                                 "folder; with several, outputs/report/<date>)")
-    parser.add_argument("--format", default="png", choices=plotting.FORMATS,
-                        help="of the figures (pdf and svg are vector graphics)")
-    args = parser.parse_args(argv)
-    for folder in args.folders:
-        if not folder.is_dir():
-            parser.exit(2, f"moex: error: {folder} is not a folder\n")
-    out_dir = args.out or args.folders[0]
-    if len(args.folders) > 1 and args.out is None:  # a dated folder, as every other verb
-        out_dir = Path("outputs", "report", time.strftime("%Y-%m-%d_%H-%M-%S"))
-    try:
-        out = report(args.folders, out_dir, args.format)
-    except ConfigError as exc:
-        parser.exit(2, f"moex: error: {exc}\n")
-    jobs = out["jobs"]
-    if jobs.empty:
-        parser.exit(2, f"moex: error: {' '.join(map(str, args.folders))} holds no job folder "
-                       f"(.hydra/config.yaml)\n")
-    recorded = jobs.loc[jobs["provenance"] != "not recorded", "provenance"]
-    if recorded.nunique() > 1:
-        print(f"moex: warning: the jobs come from {recorded.nunique()} different machines or "
-              f"package versions (column provenance of tables/jobs.csv; each folder's "
-              f"provenance.json): their numbers are comparable, not bit-identical")
-    for _, job in jobs[jobs["status"] != "done"].iterrows():
-        print(f"job {job['job']}: {job['status']} {job['error']}".rstrip())
-    repeats = out.get("repeats", pd.DataFrame())
-    if len(repeats):
-        print(f"moex: {len(repeats)} run(s) are networks another job already holds (same "
-              f"settings, seed and run index: trained again, copied or evaluated again); each "
-              f"is counted once (tables/repeats.csv)")
-    if "summary" in out:
-        print(short_summary(out["summary"], out.get("keys", [])))
-    written = sorted(str(p.relative_to(out_dir)) for p in Path(out_dir).glob("tables/*.md"))
-    print("\n".join(packed(f"moex: {(jobs['status'] == 'done').sum()} of {len(jobs)} jobs done; "
-                           f"wrote", ["summary.csv", *written, "figures/"], width=100)))
-    print(f"moex: report written to {out_dir}")  # last: the one line a path may make long

@@ -22,11 +22,11 @@ import torch
 from moex import checkpoint
 from moex.closed_loop import closed_loop_lyapunov
 from moex.data import load_task
+from moex.jobs import initial_parameters, run_seeds
 from moex.kernels import get_backend
 from moex.model import random_state
 from moex.report import to_markdown
 from moex.resume import config_from_dict
-from moex.run import initial_parameters, run_seeds
 from moex.train import phase2_targets, train_gating
 from studies.common import DOCS
 

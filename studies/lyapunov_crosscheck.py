@@ -51,7 +51,7 @@ SAMPLES, TRANSIENT, STEPS, CHUNK, EPS = 4, 1000, 100_000, 10, 1e-8
 PAIRED_SAMPLES = 50  # as moex's evaluation draws (eval.num_samples)
 
 
-def two_trajectories(experts, gating, state, steps: int, backend, generator) -> torch.Tensor:
+def two_trajectories(experts, gating, state, steps: int, *, backend, generator) -> torch.Tensor:
     """(R, N) mean log growth per step of a perturbation of size `EPS` along a random direction,
     renormalised every `CHUNK` steps: the largest exponent without the Jacobian."""
     shift = torch.randn(state.flat().shape, generator=generator, dtype=state.flat().dtype)
@@ -79,7 +79,8 @@ def crosscheck(out: Path) -> pd.DataFrame:
                              num_features=saved.series.shape[-1],
                              delay=int(saved.config["model"]["delay"]), generator=generator)
         state = backend.closed_loop(saved.experts, saved.gating, state, TRANSIENT).state
-        growth = two_trajectories(saved.experts, saved.gating, state, STEPS, backend, generator)
+        growth = two_trajectories(saved.experts, saved.gating, state, STEPS, backend=backend,
+                                  generator=generator)
         tool = theirs[theirs["design"] == design].reset_index(drop=True)
         for r in range(len(ours)):
             rows.append({"design": design, "network": tool["network"][r],
@@ -105,7 +106,8 @@ def paired(out: Path, samples: int = PAIRED_SAMPLES, steps: int = STEPS) -> pd.D
         exact = closed_loop_lyapunov(saved.experts, saved.gating, start.like(start.flat().clone()),
                                      steps, TRANSIENT, generator=generator, backend=backend)[..., 0]
         state = backend.closed_loop(saved.experts, saved.gating, start, TRANSIENT).state
-        direct = two_trajectories(saved.experts, saved.gating, state, steps, backend, generator)
+        direct = two_trajectories(saved.experts, saved.gating, state, steps, backend=backend,
+                                  generator=generator)
         files = pd.read_csv(out / design / "moex" / "imported_from.csv")
         names = {int(r): Path(f).parent.name for r, f in zip(files["network"], files["file"],
                                                               strict=True)}

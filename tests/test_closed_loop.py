@@ -102,9 +102,9 @@ def test_gate_estimates_temperature():
 
 
 def test_a_runs_random_states_and_noise_do_not_depend_on_the_runs_beside_it():
-    """With a generator per run (`moex.run.run_generators`, as `moex generate` and the evaluation
+    """With a generator per run (`moex.jobs.run_generators`, as `moex generate` and the evaluation
     draw), run 0's samples from a batch of two equal its samples alone, bit for bit."""
-    from moex.run import run_generators
+    from moex.jobs import run_generators
 
     _, experts, gating = _model()
 

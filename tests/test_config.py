@@ -8,7 +8,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from moex.cli import CONF_DIR, _override_variants, register_configs, typed
 from moex.config import Config
 from moex.data import load_task
-from moex.run import phase1_cache
+from moex.jobs import phase1_cache
 
 TASKS = sorted(p.stem for p in (Path(CONF_DIR) / "task").glob("*.yaml"))
 

@@ -493,8 +493,8 @@ def test_two_trajectories_give_the_exponent_the_jacobian_gives():
         state = backend.closed_loop(mixture, gates, state, 500).state
         jacobian = closed_loop_lyapunov(mixture, gates, state, 5000, 0, backend=backend,
                                         generator=torch.Generator().manual_seed(5))[..., 0]
-        direct = check.two_trajectories(mixture, gates, state, 5000, backend,
-                                        torch.Generator().manual_seed(6))
+        direct = check.two_trajectories(mixture, gates, state, 5000, backend=backend,
+                                        generator=torch.Generator().manual_seed(6))
         assert torch.allclose(direct, jacobian, rtol=0.02, atol=1e-3), (direct, jacobian)
         found.append(float(jacobian))
     assert found[0] < -0.01 and found[1] > 0.05  # one contracting, one chaotic

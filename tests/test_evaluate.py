@@ -17,11 +17,11 @@ from moex.config.model import ModelConfig
 from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.data import load_task
 from moex.evaluation import _decided, _train_block_kl, evaluate
+from moex.jobs import initial_parameters
 from moex.kernels import get_backend
 from moex.metrics.lyapunov import chaos_label, standard_error
 from moex.metrics.switching import segment_symbols, switch_probability
 from moex.model import expert_forward, gate_estimates, gating_forward, random_state
-from moex.run import initial_parameters
 from moex.tasks import Dataset, TaskConfig, make_task, task_config
 from moex.train import phase2_targets, train_experts, train_gating
 from moex.verbs.train import run as run_train

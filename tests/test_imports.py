@@ -123,3 +123,24 @@ def test_no_module_imports_another_modules_private_names():
                 private += [(name, node.module, a.name) for a in node.names
                             if a.name.startswith("_") and not a.name.startswith("__")]
     assert private == []
+
+
+COMPILED = {"njit", "device", "triton.jit", "intrinsic"}  # numba and Triton: positional ABIs
+
+
+def test_functions_of_more_than_five_parameters_take_the_rest_by_keyword():
+    """A call of six or more arguments names them (`f(a, b, c, d, e, *, rest)`), except the
+    compiled kernels (numba, Triton), whose compilers take positions only."""
+    wide = []
+    for name, path in _modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                continue
+            decorators = {ast.unparse(d.func if isinstance(d, ast.Call) else d)
+                          for d in node.decorator_list}
+            positional = node.args.posonlyargs + node.args.args
+            if positional and positional[0].arg in ("self", "cls"):
+                positional = positional[1:]
+            if len(positional) > 5 and not decorators & COMPILED:
+                wide.append(f"{name}.{node.name}")
+    assert wide == []

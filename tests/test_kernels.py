@@ -160,7 +160,7 @@ def test_cpu_kernels_give_the_same_bits_on_any_number_of_threads(R):
                 out += [*_host(problem.value_and_grad(params, grads, torch.ones(R, dtype=bool)))
                         .values(), *_host(grads).values(),
                         *_host(problem.value(params, torch.ones(R, dtype=bool))).values()]
-            run = COMPILED.closed_loop(experts, gating, state, 20, None, tangents, True)
+            run = COMPILED.closed_loop(experts, gating, state, 20, tangents=tangents, count=True)
             out += [run.outputs.numpy(), run.gates.numpy(), run.growth.numpy()]
             results.append(out)
     finally:
@@ -331,8 +331,10 @@ def test_closed_loop_kernel_matches_reference(backend, K, D, delay, k, uniform, 
     tangents = torch.linalg.qr(torch.randn(state.flat().shape + (k,), dtype=dtype))[0] if k \
         else None
     noise = 0.1 * torch.randn(2, 3, steps, D, dtype=dtype)
-    ref = reference.closed_loop(experts, gating, state, steps, noise, tangents, True, uniform)
-    fast = backend.closed_loop(experts, gating, state, steps, noise, tangents, True, uniform)
+    ref = reference.closed_loop(experts, gating, state, steps, noise=noise, tangents=tangents,
+                                count=True, uniform_gates=uniform)
+    fast = backend.closed_loop(experts, gating, state, steps, noise=noise, tangents=tangents,
+                               count=True, uniform_gates=uniform)
     for a, b in zip(vars(ref.state).values(), vars(fast.state).values(), strict=True):
         torch.testing.assert_close(b, a, rtol=tol, atol=tol)
     for name in ("outputs", "gates", "gating_u", "growth"):

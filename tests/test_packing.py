@@ -1,5 +1,5 @@
-"""The packed launcher (`hydra/launcher=packed`, moex.packing) and the run core it shares with
-`moex train` (moex.run.train_jobs): a packed job equals the same job run alone, its folder holds
+"""The packed launcher (`hydra/launcher=packed`, moex.packing) and the training core it shares with
+`moex train` (moex.jobs.train_jobs): a packed job equals the same job run alone, its folder holds
 the same files, and an interrupted batch resumes (packed or alone) to the same networks."""
 
 import dataclasses
@@ -11,8 +11,8 @@ import torch
 
 from moex import checkpoint
 from moex.data import load_task
+from moex.jobs import Job, train_jobs
 from moex.packing import Planned, groups, prepare
-from moex.run import Job, train_jobs
 from moex.train import TrainingInterrupted
 from tests.test_cli import TINY, _moex
 

@@ -19,9 +19,9 @@ from moex import cli
 from moex.cli import register_configs
 from moex.config.model import ModelConfig
 from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
+from moex.jobs import run_seeds
 from moex.kernels import get_backend
 from moex.model import init_experts, init_gating
-from moex.run import run_seeds
 from moex.tasks import make_task, task_config
 from moex.train import train_experts
 from tests.helpers import generators

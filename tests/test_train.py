@@ -5,10 +5,10 @@ import torch
 
 from moex.config.model import ModelConfig
 from moex.config.train import AdaptiveLRConfig, ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
+from moex.jobs import run_seeds
 from moex.kernels import get_backend
 from moex.kernels.reference import expert_objective, gating_objective
 from moex.model import init_experts, init_gating
-from moex.run import run_seeds
 from moex.tasks import make_task, task_config
 from moex.train import Hooks, TrainingInterrupted, train_experts, train_gating
 from tests.helpers import generators

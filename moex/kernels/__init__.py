@@ -5,8 +5,8 @@ problems (`Problem`), a closed loop and a symbol readout, torch tensors in and o
 another device is moved; the cpu backend's kernels read numpy views of it), each honouring the
 device the `Backend` binds it to:
 
-- `ExpertProblem(inputs, targets, model, phase, num_runs, device)`: phase 1 (Eqs. 9-13);
-- `GatingProblem(gate_targets, inputs, model, phase, seeds, device)`: phase 2 (Eqs. 14-16);
+- `ExpertProblem(inputs, targets, model, phase, *, num_runs, device)`: phase 1 (Eqs. 9-13);
+- `GatingProblem(gate_targets, inputs, model, phase, *, seeds, device)`: phase 2 (Eqs. 14-16);
 - `closed_loop(experts, gating, state, steps, noise, tangents, count, ..., device)`: the
   autonomous mixture (Sec. 2.2) with Lyapunov tangent vectors;
 - `nearest_symbols(points, prototypes, prototype_symbols, device)`: the symbol of each point;
@@ -15,7 +15,7 @@ device the `Backend` binds it to:
 - `warm_up(precision)`: before a first training, start compiling what comes later (cpu only).
 
 The problems take data shared by all runs, (S, T, D), or data of each run's own, (R, S, T, D):
-jobs packed into one batch (`moex.run`).
+jobs packed into one batch (`moex.jobs`).
 
 `reference` is the model's equations in PyTorch with autograd (any device); it is the oracle the
 tests hold the others to. `cpu` (package `cpu/`) is the compiled numba implementation; `gpu`
@@ -81,7 +81,7 @@ class BackendModule(Protocol):
     ExpertProblem: type  # (inputs, targets, model, phase, num_runs, device) -> Problem
     GatingProblem: type  # (gate_targets, inputs, model, phase, seeds, device) -> Problem
 
-    def closed_loop(self, experts: dict, gating: dict, state: ClosedLoopState, steps: int,
+    def closed_loop(self, experts: dict, gating: dict, state: ClosedLoopState, steps: int, *,
                     noise: torch.Tensor | None = None, tangents: torch.Tensor | None = None,
                     count: bool = False, uniform_gates: bool = False, potentials: bool = True,
                     device: str = "cpu") -> ClosedLoopRun: ...
@@ -109,18 +109,22 @@ class Backend:
     caps: Capabilities = Capabilities()
 
     def expert_problem(self, inputs, targets, model, phase, num_runs) -> Problem:
-        return self.module.ExpertProblem(inputs, targets, model, phase, num_runs, self.device)
+        return self.module.ExpertProblem(inputs, targets, model, phase, num_runs=num_runs,
+                                         device=self.device)
 
     def gating_problem(self, gate_targets, inputs, model, phase, seeds) -> Problem:
-        return self.module.GatingProblem(gate_targets, inputs, model, phase, seeds, self.device)
+        return self.module.GatingProblem(gate_targets, inputs, model, phase, seeds=seeds,
+                                         device=self.device)
 
-    def closed_loop(self, experts: dict, gating: dict, state: ClosedLoopState, steps: int,
+    def closed_loop(self, experts: dict, gating: dict, state: ClosedLoopState, steps: int, *,
                     noise: torch.Tensor | None = None, tangents: torch.Tensor | None = None,
                     count: bool = False, uniform_gates: bool = False,
                     potentials: bool = True) -> ClosedLoopRun:
         """`steps` closed-loop steps on this backend's device (results where `state` is)."""
-        return self.module.closed_loop(experts, gating, state, steps, noise, tangents, count,
-                                       uniform_gates, potentials, device=self.device)
+        return self.module.closed_loop(experts, gating, state, steps, noise=noise,
+                                       tangents=tangents, count=count,
+                                       uniform_gates=uniform_gates, potentials=potentials,
+                                       device=self.device)
 
     def nearest_symbols(self, points: torch.Tensor, prototypes: torch.Tensor,
                         prototype_symbols: torch.Tensor) -> torch.Tensor:

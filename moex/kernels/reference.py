@@ -115,7 +115,7 @@ def _on(x, device) -> torch.Tensor:
 class ExpertProblem(_Problem):
     """Phase 1 of R runs; see `expert_objective`."""
 
-    def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
+    def __init__(self, inputs, targets, model, phase, *, num_runs, device="cpu"):
         super().__init__(expert_objective(_on(inputs, device), _on(targets, device), model,
                                           phase), device)
 
@@ -124,7 +124,7 @@ class GatingProblem(_Problem):
     """Phase 2 of R runs; see `gating_objective`. With `phase.input_noise_var`, every
     `resample(step)` adds fresh noise to the inputs x_n (`moex.kernels.noise`)."""
 
-    def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
+    def __init__(self, gate_targets, inputs, model, phase, *, seeds, device="cpu"):
         self.targets, self.inputs = _on(gate_targets, device), _on(inputs, device)
         self.model, self.phase, self.seeds = model, phase, seeds
         super().__init__(gating_objective(self.targets, self.inputs, model, phase), device)
@@ -139,7 +139,7 @@ class GatingProblem(_Problem):
 
 
 def closed_loop(experts: dict[str, torch.Tensor], gating: dict[str, torch.Tensor],
-                state: ClosedLoopState, steps: int, noise: torch.Tensor | None = None,
+                state: ClosedLoopState, steps: int, *, noise: torch.Tensor | None = None,
                 tangents: torch.Tensor | None = None, count: bool = False,
                 uniform_gates: bool = False, potentials: bool = True,
                 device: str = "cpu") -> ClosedLoopRun:

@@ -15,6 +15,9 @@ class Metric:
     scale: str = "linear"  # linear | log | symlog (an exponent: its sign matters)
     logged: bool = False  # in the per-run summary line of the log
     reported: bool = False  # a column of `moex report`'s tables
+    # computed on the closed loop with the noise of eval.noise_var added to x_n; every other
+    # metric (max_lyapunov and its companions included, as in the paper) on the noiseless loop
+    noisy: bool = False
 
 
 METRICS = {m.name: m for m in [
@@ -29,11 +32,11 @@ METRICS = {m.name: m for m in [
            "block KL train", "KL of symbol blocks, data against the closed loop (Eq. 21)",
            logged=True, reported=True),
     Metric("block_kl_test", r"block KL $D^{(m)}_{\mathrm{KL}}$, test data", "block KL test",
-           "the same against held-out series", logged=True, reported=True),
+           "the same against held-out series", logged=True, reported=True, noisy=True),
     Metric("max_lyapunov", r"$\lambda_{\max}$", "λ_max", "largest Lyapunov exponent of the "
            "closed loop, per step (Sec. 4)", "symlog", logged=True, reported=True),
     Metric("max_lyapunov_noisy", r"$\lambda_{\max}$ with noise", "λ_max with noise",
-           "the same with input noise of eval.noise_var", "symlog"),
+           "the same with input noise of eval.noise_var", "symlog", noisy=True),
     Metric("lyapunov_positive", r"share with $\lambda_{\max} > 0$", "λ_max > 0",
            "the paper's criterion of chaos, λ_max > 0, without its error (the column `chaos` "
            "has the label with it)"),
@@ -43,22 +46,22 @@ METRICS = {m.name: m for m in [
     Metric("positive_sample_fraction", r"share of samples with $\lambda > 0$",
            "samples with λ > 0", "share of initial states whose own exponent is positive"),
     Metric("switch_rate", "switches per step", "switch rate",
-           "changes of primitive per closed-loop step"),
+           "changes of primitive per closed-loop step", noisy=True),
     Metric("censored_stays", "stays cut off by a sample's end", "cut-off stays",
-           "stays at the end of a sample, counted at their observed length"),
+           "stays at the end of a sample, counted at their observed length", noisy=True),
     Metric("periodicity_samples", "samples judged for periodicity", "judged samples",
-           "samples long enough to test every period up to eval.max_period"),
+           "samples long enough to test every period up to eval.max_period", noisy=True),
     Metric("switch_prob", "switching probability", "switching prob.", "probability of "
-           "changing primitive at a primitive's end", logged=True, reported=True),
+           "changing primitive at a primitive's end", logged=True, reported=True, noisy=True),
     Metric("switch_prob_gates", "switching probability (gates)", "switching prob. (gates)",
-           "the same read off the winning gate", reported=True),
+           "the same read off the winning gate", reported=True, noisy=True),
     Metric("data_switch_prob", "switching probability of the data", "data switching prob.",
            "the same in the training data", logged=True, reported=True),
     Metric("mean_residence", "mean residence (repetitions)", "mean residence",
-           "repetitions of a primitive before a switch", reported=True),
+           "repetitions of a primitive before a switch", reported=True, noisy=True),
     Metric("nonperiodic_fraction", "share of nonperiodic samples", "nonperiodic",
            "samples whose symbol sequence has no period up to eval.max_period", logged=True,
-           reported=True),
+           reported=True, noisy=True),
     Metric("segment_ari", "adjusted Rand index", "ARI", "the winning expert per step of the "
            "training series (ĝ) against their labels: 1 the same segments, 0 chance",
            logged=True, reported=True),
@@ -109,3 +112,4 @@ def is_known(column: str) -> bool:
 
 LOGGED = [m.name for m in METRICS.values() if m.logged]
 REPORTED = [m.name for m in METRICS.values() if m.reported]
+NOISY = [m.name for m in METRICS.values() if m.noisy]

@@ -6,11 +6,11 @@ itself (`NAME`) and its Hydra config (`CONFIG`, a YAML in conf/) and has two fun
 - `run(cfg, out_dir, stop)`: the work, into the folder `out_dir`; `stop` (`moex.stop`) says
   when a signal asked it to stop.
 
-`moex report` (tables across run folders, `moex.report`) is not a run-folder verb: it reads
-folders and writes none of its own. A new verb is a module here, its entry in `VERBS` and its
-config under conf/.
+A verb whose arguments are not a config (`report`: folders; `CONFIG` None) reads them itself in
+`main(argv)`. A new verb is a module here, its entry in `VERBS` and its config under conf/.
 """
 
-from moex.verbs import evaluate, generate, importing, segment, train
+from moex.verbs import evaluate, generate, importing, report, segment, train
 
-VERBS = {module.NAME: module for module in (train, evaluate, generate, importing, segment)}
+VERBS = {module.NAME: module
+         for module in (train, evaluate, generate, importing, segment, report)}

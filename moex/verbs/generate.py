@@ -12,8 +12,8 @@ from moex.config import GenerateConfig
 from moex.data import in_data_units
 from moex.errors import never
 from moex.figures import plot_samples
+from moex.jobs import run_generators
 from moex.model import random_state
-from moex.run import run_generators
 from moex.train import phase2_targets
 from moex.verbs.trained import load_run
 

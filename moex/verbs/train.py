@@ -14,12 +14,12 @@ from moex.data import in_data_units, load_task, warn_ignored
 from moex.errors import never
 from moex.evaluation import evaluate
 from moex.figures import numbered, plot_samples, write_segments
+from moex.jobs import Job, run_generators, train_jobs
 from moex.kernels import Backend, check_backend, get_backend
 from moex.metrics.lyapunov import CHAOS_LABELS
 from moex.metrics.table import LOGGED, METRICS
 from moex.model import gate_estimates
 from moex.resume import open_checkpoint
-from moex.run import Job, run_generators, train_jobs
 from moex.tasks import TASKS, Dataset
 
 log = logging.getLogger(__name__)

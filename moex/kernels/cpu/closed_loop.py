@@ -322,7 +322,7 @@ def _check_shapes(experts, gating, state) -> None:
             raise ValueError(f"{name} has shape {shape}; the closed-loop state needs {want}")
 
 
-def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
+def closed_loop(experts, gating, state, steps: int, *, noise=None, tangents=None,
                 count: bool = False, uniform_gates: bool = False,
                 potentials: bool = True, device: str = "cpu") -> ClosedLoopRun:
     """`moex.kernels.reference.closed_loop` in one compiled call per thread: same arguments and

@@ -268,8 +268,8 @@ class Lanes:
     """Work arrays of one phase, block-major (NB, ..., LB) so that a block's history is one
     contiguous piece of memory: per-lane weights, histories and per-lane gradients."""
 
-    def __init__(self, T, H, NI, NO, num_lanes, lanes_per_run, num_runs, learn_tau, attraction,
-                 dtype):
+    def __init__(self, T, H, NI, NO, *, num_lanes, lanes_per_run, num_runs, learn_tau,
+                 attraction, dtype):
         NB = padded(num_lanes) // LB
 
         def blocks(*shape):

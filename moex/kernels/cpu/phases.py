@@ -318,7 +318,7 @@ class _Problem:
         # a gradient step right after an accepted adaptive trial finds its forward pass done
         stale = self.forwarded.stale(p, active) if want_grad else active
         with first_use(*self.KERNEL):
-            self._step(p, g, lanes, active, stale, want_grad)
+            self._step(p, g, lanes, active, stale=stale, want_grad=want_grad)
         if want_grad:
             self.forwarded.forget()  # the next call is at other parameters (a step was taken)
         else:
@@ -348,14 +348,15 @@ class ExpertProblem(_Problem):
     STATS = ("objective", "log_likelihood", "log_prior", "E")
     KERNEL = (_expert_items, "phase-1 kernel")
 
-    def __init__(self, inputs, targets, model, phase, num_runs, device="cpu"):
+    def __init__(self, inputs, targets, model, phase, *, num_runs, device="cpu"):
         inputs, targets = to_host(inputs), to_host(targets)
         S, T, D = targets.shape[-3:]
         R, K, M = num_runs, model.num_experts, model.experts.context_size
         dtype = np.dtype(inputs.dtype)
         self.shape, self.model, self.phase = (R, S, T, K), model, phase
-        self.lanes = Lanes(T, M, D, D, R * K * S, K * S, R, model.learn_time_constants,
-                           phase.attraction, dtype)
+        self.lanes = Lanes(T, M, D, D, num_lanes=R * K * S, lanes_per_run=K * S, num_runs=R,
+                           learn_tau=model.learn_time_constants, attraction=phase.attraction,
+                           dtype=dtype)
         # lane (r·K + k)·S + s reads series s of run r
         x = np.broadcast_to(inputs, (R, S, T, D)).transpose(2, 3, 0, 1)
         self.inputs = in_lanes(np.broadcast_to(x[:, :, :, None], (T, D, R, K, S)).reshape(
@@ -369,7 +370,7 @@ class ExpertProblem(_Problem):
             "beta": (R, S, T, K)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",))
 
-    def _step(self, p, g, lanes, active, stale, want_grad):
+    def _step(self, p, g, lanes, active, *, stale, want_grad):
         """One phase-1 step of every active run: whole chunks of runs, as many per thread
         (`_expert_items`), and the chunks left over (fewer than threads) stage by stage over
         their blocks, series and runs, shared out among the threads as well."""
@@ -413,15 +414,16 @@ class GatingProblem(_Problem):
     STATS = ("objective", "log_likelihood", "kl", "E_g")
     KERNEL = (gating_items, "phase-2 kernel")
 
-    def __init__(self, gate_targets, inputs, model, phase, seeds, device="cpu"):
+    def __init__(self, gate_targets, inputs, model, phase, *, seeds, device="cpu"):
         gate_targets, inputs = to_host(gate_targets), to_host(inputs)
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
         dtype = np.dtype(gate_targets.dtype)
         self.shape, self.model, self.phase = (R, S, T_g, K), model, phase
-        self.lanes = Lanes(T_g, H, K + D, K, R * S, S, R, model.learn_time_constants,
-                           phase.attraction, dtype)
+        self.lanes = Lanes(T_g, H, K + D, K, num_lanes=R * S, lanes_per_run=S, num_runs=R,
+                           learn_tau=model.learn_time_constants, attraction=phase.attraction,
+                           dtype=dtype)
         ghat = gate_targets
         x = np.broadcast_to(inputs, (R, S, T, D))
         # lane r·S + s reads [ĝ_n, x_n] of run r, series s and is fitted to ĝ_{n+τ} (Eq. 5)
@@ -438,7 +440,7 @@ class GatingProblem(_Problem):
             "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",))
 
-    def _step(self, p, g, lanes, active, stale, want_grad):
+    def _step(self, p, g, lanes, active, *, stale, want_grad):
         args = (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
                 lanes.lane_grads, per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),

@@ -308,7 +308,7 @@ def grid(num_runs: int, num_samples: int, block: int) -> tuple[int, int]:
 _NET = ("w_in", "w_rec", "w_out", "b_c", "b_o")
 
 
-def closed_loop(experts, gating, state, steps: int, noise=None, tangents=None,
+def closed_loop(experts, gating, state, steps: int, *, noise=None, tangents=None,
                 count: bool = False, uniform_gates: bool = False,
                 potentials: bool = True, device: str = "cpu") -> ClosedLoopRun:
     """`moex.kernels.reference.closed_loop` as one kernel launch: same arguments and results (on

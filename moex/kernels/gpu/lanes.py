@@ -102,7 +102,7 @@ class Net:
         learn_eps: ε learned (keep u_t, write ∂τ); sums: keep Σu, Σu² (the attraction).
         keep: buffers for gradients (else values only)."""
 
-    def __init__(self, networks, per_run, lanes_per_net, T, NI, H, NO, xrow, u0j, learn_eps,
+    def __init__(self, networks, per_run, lanes_per_net, *, T, NI, H, NO, xrow, u0j, learn_eps,
                  sums, dtype, device, keep=True):
         L = networks * lanes_per_net
         self.networks, self.learn_eps, self.attract = networks, learn_eps, sums
@@ -141,7 +141,7 @@ class Net:
                KEEP_SUMS=self.attract, **self.meta)
         return self.O
 
-    def backward(self, X, params, grads, active, attract, floor):
+    def backward(self, X, params, grads, active, *, attract, floor):
         """The networks' gradients for ∂L/∂O = self.DO, written into `grads` where `active`;
         `floor` (a device tensor, its first entry read): the attraction's variance floor σ̄².
         Two launches: the backward recurrence, then the weight matrices' sums over lanes."""

@@ -219,9 +219,10 @@ class _Problem:
         stats = torch.empty((len(self.STATS), len(active)), dtype=rnn.O.dtype,
                             device=self.device)
         rnn.forward(self.X, params, want)
-        self._objective(rnn, params, grads, active, stats, want)
+        self._objective(rnn, params, grads, active, stats=stats, want=want)
         if want:
-            rnn.backward(self.X, params, grads, active, self.phase.attraction, self.const)
+            rnn.backward(self.X, params, grads, active, attract=self.phase.attraction,
+                         floor=self.const)
         return dict(zip(self.STATS, stats.unbind(0), strict=True))
 
 
@@ -235,7 +236,7 @@ class ExpertProblem(_Problem):
 
     STATS = ("objective", "log_likelihood", "log_prior", "E")
 
-    def __init__(self, inputs, targets, model, phase, num_runs, device="cuda"):
+    def __init__(self, inputs, targets, model, phase, *, num_runs, device="cuda"):
         S, T, D = targets.shape[-3:]
         K, M = model.num_experts, model.experts.context_size
         self.device = torch.device(device)
@@ -257,11 +258,12 @@ class ExpertProblem(_Problem):
         S, T, K, D, M = self.shape
         lane = np.arange(copies * self.num_runs * K * S)
         r, k, s = lane // (K * S) % self.num_runs, lane // S % K, lane % S
-        return Net(copies * self.num_runs * K, K, S, T, D, M, D, r * S * self.own + s, s * K + k,
-                   self.model.learn_time_constants, self.phase.attraction, self.dtype,
-                   self.device, keep=copies == 1)
+        return Net(copies * self.num_runs * K, K, S, T=T, NI=D, H=M, NO=D,
+                   xrow=r * S * self.own + s, u0j=s * K + k,
+                   learn_eps=self.model.learn_time_constants, sums=self.phase.attraction,
+                   dtype=self.dtype, device=self.device, keep=copies == 1)
 
-    def _objective(self, rnn, params, grads, active, stats, want):
+    def _objective(self, rnn, params, grads, active, *, stats, want):
         g = grads if want else params  # (not written without WANT)
         launch(mixture_objective, len(active), rnn.O, self.targets, params["beta"],
                params["log_sigma"], rnn.S, params["u0"], rnn.u0j, self.const, active,
@@ -278,7 +280,7 @@ class GatingProblem(_Problem):
 
     STATS = ("objective", "log_likelihood", "kl", "E_g")
 
-    def __init__(self, gate_targets, inputs, model, phase, seeds, device="cuda"):
+    def __init__(self, gate_targets, inputs, model, phase, *, seeds, device="cuda"):
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
@@ -301,9 +303,10 @@ class GatingProblem(_Problem):
         """The lanes of `copies` x R runs; run r' reads the inputs of run r' mod R."""
         R, S, T_g, K, D, H = self.shape
         lane = np.arange(copies * R * S)
-        return Net(copies * R, 1, S, T_g, K + D, H, K, lane % (R * S), lane % S,
-                   self.model.learn_time_constants, self.phase.attraction, self.dtype,
-                   self.device, keep=copies == 1)
+        return Net(copies * R, 1, S, T=T_g, NI=K + D, H=H, NO=K, xrow=lane % (R * S),
+                   u0j=lane % S, learn_eps=self.model.learn_time_constants,
+                   sums=self.phase.attraction, dtype=self.dtype, device=self.device,
+                   keep=copies == 1)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""
@@ -315,7 +318,7 @@ class GatingProblem(_Problem):
         noise = torch.as_tensor(noise[:, :, :T_g].reshape(R * S, T_g, D), device=self.device)
         self.X[:, :, K:] = self.clean[:, :, K:] + noise
 
-    def _objective(self, rnn, params, grads, active, stats, want):
+    def _objective(self, rnn, params, grads, active, *, stats, want):
         launch(softmax_objective, len(active), rnn.O, self.targets, self.entropy, rnn.S,
                params["u0"], rnn.u0j, self.const, active, rnn.DO, *strides(params, ("u0",)),
                len(active), self.num_runs, STATS=stats, WANT=want,

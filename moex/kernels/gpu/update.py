@@ -74,7 +74,7 @@ def momentum_kernel(THETA, GRAD, VELOCITY, DELTA, RATE, LR_SCALE, OBJECTIVE, FAI
                 tl.store(VELOCITY + row + c, tl.zeros((BP,), dtype=d.dtype), mask=ok & bad)
 
 
-def _launch(theta, grad, velocity, delta, rate, lr_scale, objective, failed, momentum,
+def _launch(theta, grad, velocity, delta, *, rate, lr_scale, objective, failed, momentum,
             paper_form, apply, frozen_only, tau):
     R, P = theta.shape
     key = (momentum, theta.dtype, theta.device)
@@ -89,11 +89,13 @@ def _launch(theta, grad, velocity, delta, rate, lr_scale, objective, failed, mom
 def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, failed,
                   momentum: float, paper_form: bool, apply: bool, tau=None) -> None:
     """`moex.kernels.reference.momentum_step`, bit for bit, in one launch."""
-    _launch(theta, grad, velocity, delta, rate, lr_scale, objective, failed, momentum,
-            paper_form, apply, False, tau)
+    _launch(theta, grad, velocity, delta, rate=rate, lr_scale=lr_scale, objective=objective,
+            failed=failed, momentum=momentum, paper_form=paper_form, apply=apply,
+            frozen_only=False, tau=tau)
 
 
 def apply_step(theta, delta, velocity, frozen, *, paper_form: bool, tau=None) -> None:
     """`moex.kernels.reference.apply_step`, bit for bit, in one launch (`frozen` is read only)."""
-    _launch(theta, delta, velocity, delta, delta, delta, delta, frozen, 0.0, paper_form, False,
-            True, tau)
+    _launch(theta, delta, velocity, delta, rate=delta, lr_scale=delta, objective=delta,
+            failed=frozen, momentum=0.0, paper_form=paper_form, apply=False, frozen_only=True,
+            tau=tau)

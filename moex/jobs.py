@@ -1,5 +1,5 @@
-"""The run core: the networks of one or more jobs trained as one batch, phase 1 then phase 2
-(paper Sec. 2.1). `moex train`, the packed launcher (`hydra/launcher=packed`) and `moex.fit`
+"""The training core: the runs (networks) of one or more jobs trained as one batch, phase 1 then
+phase 2 (paper Sec. 2.1). `moex train`, the packed launcher (`hydra/launcher=packed`) and `moex.fit`
 all train through `train_jobs`.
 
 A job is a config, its data set and, for the CLI, its run folder (a checkpoint every
