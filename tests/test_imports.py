@@ -144,3 +144,21 @@ def test_functions_of_more_than_five_parameters_take_the_rest_by_keyword():
             if len(positional) > 5 and not decorators & COMPILED:
                 wide.append(f"{name}.{node.name}")
     assert wide == []
+
+
+# what the config dataclasses may build on: errors, the block KL's formulas (EvalConfig.block_kl),
+# the common task config and the default task's (Config's default); no registry (backends,
+# tasks), nothing that trains or evaluates
+CONFIG_FLOOR = {"moex.errors", "moex.metrics.symbols", "moex.tasks.base", "moex.tasks.lissajous"}
+
+
+def test_the_configs_sit_at_the_bottom_and_import_no_registry():
+    graph = _graph(_modules())
+    configs = {name for name in graph if name == "moex.config" or name.startswith("moex.config.")}
+    assert configs >= {"moex.config", "moex.config.model", "moex.config.train",
+                       "moex.config.evaluation", "moex.config.plot"}
+    upward = {(name, dep) for name in configs for dep in graph[name]
+              if dep not in configs and dep not in CONFIG_FLOOR}
+    assert upward == set()
+    for task in ("moex.tasks.base", "moex.tasks.lissajous"):  # not the registry either
+        assert "moex.tasks" not in graph[task] and "moex.kernels" not in graph[task]
