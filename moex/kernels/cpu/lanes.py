@@ -300,10 +300,10 @@ class Staging:
     def __init__(self, shapes: dict, dtype):
         self.params = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
         self.grads = {n: np.zeros(shape, dtype) for n, shape in shapes.items()}
-        # (tensor, its numpy view, whether the kernels take it as it is) per (group, copy_in):
-        # the training loop hands the same views every step, not to be converted and checked
-        # again
-        self.seen: dict[tuple[str, bool], tuple] = {}
+        # (tensor, its numpy view, whether the kernels take it as it is), the last few per
+        # (group, copy_in): the training loop hands the same views every step (the parameters'
+        # and, in turn, the adaptive rate's candidates'), not to be converted and checked again
+        self.seen: dict[tuple[str, bool], list[tuple]] = {}
 
     def load(self, params: dict) -> dict:
         """The arrays holding `params` for the kernels to read."""
@@ -320,10 +320,12 @@ class Staging:
         """The numpy view of `value` where the kernels can take it as it is (`_usable`), else
         `own`, with the value copied in if `copy_in`; the view and its check are remembered for
         the group's last tensor."""
-        seen = self.seen.get((name, copy_in))
-        if seen is None or seen[0] is not value:
+        recent = self.seen.setdefault((name, copy_in), [])
+        seen = next((entry for entry in recent if entry[0] is value), None)
+        if seen is None:
             x = to_host(value)
-            seen = self.seen[name, copy_in] = (value, x, _usable(x, own))
+            seen = (value, x, _usable(x, own))
+            recent[:] = [seen, *recent[:SEEN - 1]]
         _, x, usable = seen
         if usable:
             return x
@@ -336,6 +338,9 @@ class Staging:
         for name, value in (grads or {}).items():
             if written[name] is self.grads[name]:
                 np.copyto(to_host(value), self.grads[name])
+
+
+SEEN = 4  # tensors remembered per group: the parameters, the candidates, and spares
 
 
 def _usable(x: np.ndarray, own: np.ndarray) -> bool:
