@@ -179,11 +179,20 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         while left > 0:
             n = min(batch, left)
             torch.add(theta, delta, out=scratch)
-            if n > 1:  # the shrunk steps Δθ·α_dec^j, multiplied in the order one by one would
-                shrunk[0].copy_(delta)
-                for j in range(n):
-                    torch.mul(shrinks[j], decrease, out=shrinks[j + 1])
-                torch.add(theta, shrunk[1:n], out=candidates[1:n])
+            if n == 1:  # one candidate per run: the backend judges it (one call on cpu)
+                values = evaluate(candidate_net, pending)[criterion].view(batch, R)[0]
+                left -= 1
+                if not backend.adaptive_trial(
+                        delta, values, base, pending, lr_scale, retries,
+                        decrease=rule.adaptive.decrease, increase=rule.adaptive.increase,
+                        max_ratio=rule.adaptive.max_ratio):
+                    break
+                continue
+            # k candidates: the shrunk steps Δθ·α_dec^j, multiplied in the order one by one would
+            shrunk[0].copy_(delta)
+            for j in range(n):
+                torch.mul(shrinks[j], decrease, out=shrinks[j + 1])
+            torch.add(theta, shrunk[1:n], out=candidates[1:n])
             values = evaluate(candidate_net, pending)[criterion].view(batch, R)[:n]
             ratio = values / base
             accepted = ratio <= rule.adaptive.max_ratio  # NaN fails too
@@ -194,17 +203,13 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
             took = pending & (first < n)
             lr_scale.mul_(torch.where(took & (ratio.gather(0, first.clamp(max=n - 1)[None])[0]
                                               < 1), inc, one))
-            if n > 1:  # each run's accepted step, or Δθ·α_dec^n
-                delta.copy_(shrunk.gather(0, first.view(1, R, 1).expand(1, R, layout.size))[0])
+            # each run's accepted step, or Δθ·α_dec^n
+            delta.copy_(shrunk.gather(0, first.view(1, R, 1).expand(1, R, layout.size))[0])
             retries += first
             pending &= ~took
             left -= n
             if not bool(pending.any()):
                 break
-            if n == 1:  # a retry shrinks the whole step, momentum included: with the momentum
-                # term left whole (a strict reading of Sec. 2.1.4) r can stay above r_th for
-                # every α, and the rate collapsed to 0.7^1000 in a measured two-Lissajous run
-                delta.mul_(torch.where(pending, dec, one).to(delta.dtype)[:, None])
         if adaptive:  # ---- the update; runs still rejected give up their step
             backend.apply_step(theta, delta, velocity, pending | failed, paper_form=paper_form,
                                tau=tau)

@@ -1,7 +1,8 @@
-"""The training loop's momentum step on every backend (`momentum_step`, `apply_step`): the
-reference's PyTorch operators give the bits, and the compiled call (cpu) and the launch (gpu)
-must give the same bits, with failed runs, non-finite gradients and objectives, a step that
-overflows, τ's clamp, both momentum forms and both precisions."""
+"""The training loop's momentum step on every backend (`momentum_step`, `apply_step`) and the
+adaptive rate's trial (`adaptive_trial`): the reference's PyTorch operators give the bits, and
+the compiled call (cpu) and the launch (gpu) must give the same bits, with failed runs,
+non-finite gradients and objectives, a step that overflows, τ's clamp, a ratio at its threshold,
+both momentum forms and both precisions."""
 
 import pytest
 import torch
@@ -72,3 +73,43 @@ def test_an_adaptive_steps_update_gives_the_references_bits(backend, paper_form)
     _same(want, got)
     assert (want["grad"][frozen] == 0).all()
     assert torch.equal(want["theta"][1, 30:], _buffers(torch.float64)["theta"][1, 30:])
+
+
+def _trial(dtype) -> dict:
+    """Runs: 0 accepts (r < 1: its rate grows), 1 accepts at r = r_th exactly (in the values'
+    type), 2 rejects, 3 a NaN candidate (rejects), 4 not pending, 5 rejects with r = inf."""
+    gen = torch.Generator().manual_seed(5)
+    base = torch.tensor([2.0, 1.0, 1.0, 1.0, 1.0, 1.0], dtype=torch.float64).to(dtype)
+    values = torch.tensor([1.0, 1.1, 1.3, float("nan"), 9.0, float("inf")],
+                          dtype=torch.float64).to(dtype)
+    delta = torch.randn(R, P, generator=gen, dtype=torch.float64).to(dtype)
+    delta[2, 3] = -0.0
+    return dict(delta=delta, values=values, base=base,
+                pending=torch.tensor([True, True, True, True, False, True]),
+                lr_scale=0.9 ** torch.arange(R, dtype=torch.float64),
+                retries=torch.arange(R, dtype=torch.int64))
+
+
+@pytest.mark.parametrize("backend", backend_params(reference=False), indirect=True)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_an_adaptive_trial_gives_the_references_bits(backend, dtype):
+    want, got = _trial(dtype), _trial(dtype)
+    got = {k: v.to(backend.device) for k, v in got.items()}
+    left = [chosen.adaptive_trial(b["delta"], b["values"], b["base"], b["pending"],
+                                  b["lr_scale"], b["retries"], decrease=0.7, increase=1.05,
+                                  max_ratio=1.1)
+            for chosen, b in ((get_backend("reference"), want), (backend, got))]
+    _same(want, got)
+    assert left == [True, True]
+    assert want["pending"].tolist() == [False, False, True, True, False, True]
+    assert want["retries"].tolist() == [0, 1, 3, 4, 4, 6]
+    start = 0.9 ** torch.arange(R, dtype=torch.float64)
+    assert want["lr_scale"].tolist() == [start[0] * 1.05, start[1], start[2] * 0.7,
+                                         start[3] * 0.7, start[4], start[5] * 0.7]
+    assert torch.equal(want["delta"][:2], _trial(dtype)["delta"][:2])  # accepted: unchanged
+    assert want["delta"][2, 3].item() == 0.0 and torch.signbit(want["delta"][2, 3])
+    every = _trial(dtype)
+    every["pending"][:] = False
+    assert not get_backend("reference").adaptive_trial(
+        every["delta"], every["values"], every["base"], every["pending"], every["lr_scale"],
+        every["retries"], decrease=0.7, increase=1.05, max_ratio=1.1)

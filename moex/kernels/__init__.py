@@ -7,11 +7,12 @@ device the `Backend` binds it to:
 
 - `ExpertProblem(inputs, targets, model, phase, *, num_runs, device)`: phase 1 (Eqs. 9-13);
 - `GatingProblem(gate_targets, inputs, model, phase, *, seeds, device)`: phase 2 (Eqs. 14-16);
-- `closed_loop(experts, gating, state, steps, noise, tangents, count, ..., device)`: the
+- `closed_loop(experts, gating, state, steps, *, noise, tangents, count, ..., device)`: the
   autonomous mixture (Sec. 2.2) with Lyapunov tangent vectors;
 - `nearest_symbols(points, prototypes, prototype_symbols, device)`: the symbol of each point;
 - `momentum_step(...)`, `apply_step(...)`: the training loop's update of its (R, P) buffers
   (Eqs. 17-18), the reference's PyTorch operators as one compiled call (cpu) or launch (gpu);
+- `adaptive_trial(...)`: one trial of the adaptive rate (Sec. 2.1.4), one compiled call (cpu);
 - `warm_up(precision)`: before a first training, start compiling what comes later (cpu only).
 
 The problems take data shared by all runs, (S, T, D), or data of each run's own, (R, S, T, D):
@@ -78,8 +79,8 @@ class Capabilities:
 class BackendModule(Protocol):
     """What each backend module (`reference`, `cpu`, `gpu`) defines, with the same names."""
 
-    ExpertProblem: type  # (inputs, targets, model, phase, num_runs, device) -> Problem
-    GatingProblem: type  # (gate_targets, inputs, model, phase, seeds, device) -> Problem
+    ExpertProblem: type  # (inputs, targets, model, phase, *, num_runs, device) -> Problem
+    GatingProblem: type  # (gate_targets, inputs, model, phase, *, seeds, device) -> Problem
 
     def closed_loop(self, experts: dict, gating: dict, state: ClosedLoopState, steps: int, *,
                     noise: torch.Tensor | None = None, tangents: torch.Tensor | None = None,
@@ -97,6 +98,9 @@ class BackendModule(Protocol):
 
     def apply_step(self, theta, delta, velocity, frozen, *, paper_form: bool,
                    tau=None) -> None: ...
+
+    def adaptive_trial(self, delta, values, base, pending, lr_scale, retries, *,
+                       decrease: float, increase: float, max_ratio: float) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -145,6 +149,12 @@ class Backend:
         """θ += Δθ for the runs not frozen (`moex.kernels.reference.apply_step`)."""
         self.module.apply_step(theta, delta, velocity, frozen, **kwargs)
 
+    def adaptive_trial(self, delta, values, base, pending, lr_scale, retries, **kwargs) -> bool:
+        """One trial of the adaptive rate (`moex.kernels.reference.adaptive_trial`): whether a
+        run is still pending."""
+        return self.module.adaptive_trial(delta, values, base, pending, lr_scale, retries,
+                                          **kwargs)
+
 
 def _gpu_module():
     try:
@@ -191,7 +201,7 @@ def _gpu(device: str) -> Backend:
 LOADERS = {"reference": _reference, "cpu": _cpu, "gpu": _gpu}
 REGISTRY = tuple(LOADERS)  # `available` says which run here
 INTERFACE = ("ExpertProblem", "GatingProblem", "closed_loop", "nearest_symbols", "warm_up",
-             "momentum_step", "apply_step")  # `BackendModule`
+             "momentum_step", "apply_step", "adaptive_trial")  # `BackendModule`
 
 
 def check_name(name: str) -> str:

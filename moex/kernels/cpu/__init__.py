@@ -27,10 +27,10 @@ install()  # numba's cache keyed on all of this package's sources, before any ke
 from moex.kernels.cpu.closed_loop import closed_blocks, closed_loop  # noqa: E402
 from moex.kernels.cpu.phases import ExpertProblem, GatingProblem, gating_items  # noqa: E402
 from moex.kernels.cpu.symbols import nearest_symbols  # noqa: E402
-from moex.kernels.cpu.update import apply_step, momentum_step  # noqa: E402
+from moex.kernels.cpu.update import adaptive_trial, apply_step, momentum_step  # noqa: E402
 
-__all__ = ["ExpertProblem", "GatingProblem", "apply_step", "closed_loop", "momentum_step",
-           "nearest_symbols", "warm_up"]
+__all__ = ["ExpertProblem", "GatingProblem", "adaptive_trial", "apply_step", "closed_loop",
+           "momentum_step", "nearest_symbols", "warm_up"]
 LATER = (closed_blocks, gating_items)  # the helper's two large kernels (`warm.cached`)
 
 

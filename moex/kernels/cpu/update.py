@@ -76,6 +76,36 @@ def _applies(lo, hi, theta, delta, velocity, frozen, paper_form, tau_start, tau_
         _apply(r, theta, delta, velocity, frozen[r], paper_form, tau_start, tau_end)
 
 
+@njit(**JIT)
+def _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, decrease_cast,
+            increase, max_ratio):
+    """Runs lo..hi-1 of one adaptive-rate trial (`reference.adaptive_trial`'s operations)."""
+    for r in range(lo, hi):
+        if not pending[r]:
+            continue
+        ratio = values[r] / base[r]
+        if ratio <= max_ratio:  # (NaN fails too)
+            pending[r] = False
+            if ratio < 1.0:
+                lr_scale[r] = lr_scale[r] * increase
+            continue
+        lr_scale[r] = lr_scale[r] * decrease
+        retries[r] += 1
+        for p in range(delta.shape[1]):
+            delta[r, p] = delta[r, p] * decrease_cast
+
+
+def adaptive_trial(delta, values, base, pending, lr_scale, retries, *, decrease: float,
+                   increase: float, max_ratio: float) -> bool:
+    """`moex.kernels.reference.adaptive_trial`, bit for bit: a rejecting run's Δθ times α_dec
+    rounded to Δθ's type, r compared with r_th in the values' type, as PyTorch does."""
+    arrays = [to_host(x) for x in (delta, values, base, pending, lr_scale, retries)]
+    kind = arrays[0].dtype.type
+    threads.over(_trials, len(arrays[0]), *arrays, float(decrease), kind(decrease),
+                 float(increase), arrays[1].dtype.type(max_ratio))
+    return bool(arrays[3].any())
+
+
 def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, failed,
                   momentum: float, paper_form: bool, apply: bool, tau=None) -> None:
     """`moex.kernels.reference.momentum_step`, bit for bit."""

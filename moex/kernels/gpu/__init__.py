@@ -19,9 +19,10 @@ from moex.kernels.gpu.phases import ExpertProblem, GatingProblem
 from moex.kernels.gpu.rnn import INTERPRET
 from moex.kernels.gpu.symbols import nearest_symbols
 from moex.kernels.gpu.update import apply_step, momentum_step
+from moex.kernels.reference import adaptive_trial  # (a few operators on (R,) tensors)
 
-__all__ = ["ExpertProblem", "GatingProblem", "apply_step", "available", "closed_loop",
-           "kernel_report", "momentum_step", "nearest_symbols", "warm_up"]
+__all__ = ["ExpertProblem", "GatingProblem", "adaptive_trial", "apply_step", "available",
+           "closed_loop", "kernel_report", "momentum_step", "nearest_symbols", "warm_up"]
 
 
 def warm_up(precision: str) -> None:
