@@ -61,7 +61,8 @@ def register_configs() -> None:
         node = OmegaConf.structured(schema)
         if issubclass(schema, Config):
             node = OmegaConf.structured(make_dataclass(
-                schema.__name__, [("task", Any, field(default_factory=dict))], bases=(schema,)))
+                schema.__name__, [("task", Any, field(default_factory=dict))], bases=(schema,),
+                namespace={"SCHEMA": schema}))
             OmegaConf.set_struct(node.task, False)
         ConfigStore.instance().store(name=name, node=node)
 
@@ -193,8 +194,9 @@ def _search_path(args: list[str], flags: list[str]) -> list[str]:
 def typed(composed, choices=None) -> object:
     """The dataclass of a composed config; `eval=paper` of `moex evaluate` sets paper_sizes."""
     schema = OmegaConf.get_type(composed)
-    if issubclass(schema, Config):  # the open schema of `register_configs`: its base, typed
-        cfg = typed_config(schema.__mro__[1], OmegaConf.to_container(composed, resolve=True))
+    if issubclass(schema, Config):  # (the open schema of `register_configs` names its own)
+        cfg = typed_config(getattr(schema, "SCHEMA", schema),
+                           OmegaConf.to_container(composed, resolve=True))
     else:
         cfg = OmegaConf.to_object(composed)
     if isinstance(cfg, EvaluateConfig) and (choices or {}).get("eval") == "paper":

@@ -91,7 +91,8 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     `problem.value_and_grad` call, in-place updates, and with the adaptive rate one
     `problem.value` call per trial, or one `problem.value_of_candidates` call per `trials`
     trials where the backend evaluates several at once (gpu); the update is the backend's
-    `momentum_step` (one compiled call or launch on cpu and gpu). The host reads one flag per such
+    `momentum_step` (one compiled call or launch on cpu and gpu) and a trial of one candidate is
+    judged by its `adaptive_trial` (one compiled call on cpu). The host reads one flag per such
     call and per-run statistics when it logs. A run whose objective or gradient becomes
     non-finite is marked failed and frozen; the other runs go on untouched. Without the adaptive
     rate, a step that makes a run's parameters non-finite is rolled back and the run marked failed.
