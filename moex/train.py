@@ -146,7 +146,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     rate = layout.per_entry(rates)
     paper_form = rule.momentum_form == "paper"
     tau = layout.bounds.get("tau")  # (its columns: ε <= 1 kept, as in the C code)
-    no_retries = torch.zeros(R, dtype=torch.int64, device=device)
+    no_retries, tries = (torch.zeros(R, dtype=torch.int64, device=device) for _ in range(2))
 
     def save(step):
         hooks.save({"step": step, "params": _host(views), "velocity": _host(moments),
@@ -176,7 +176,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         pending = ~failed if adaptive else None
         base, left = stats[criterion], rule.adaptive.max_retries if adaptive else 0
         if left > 0:
-            retries = torch.zeros(R, dtype=torch.int64, device=device)
+            retries = tries.zero_()  # (read into the history at once when logged)
         while left > 0:
             n = min(batch, left)
             torch.add(theta, delta, out=scratch)
@@ -184,7 +184,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
                 values = evaluate(candidate_net, pending)[criterion].view(batch, R)[0]
                 left -= 1
                 if not backend.adaptive_trial(
-                        delta, values, base, pending, lr_scale, retries,
+                        delta, values, base, pending, lr_scale, retries=retries,
                         decrease=rule.adaptive.decrease, increase=rule.adaptive.increase,
                         max_ratio=rule.adaptive.max_ratio):
                     break

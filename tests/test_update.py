@@ -96,8 +96,8 @@ def test_an_adaptive_trial_gives_the_references_bits(backend, dtype):
     want, got = _trial(dtype), _trial(dtype)
     got = {k: v.to(backend.device) for k, v in got.items()}
     left = [chosen.adaptive_trial(b["delta"], b["values"], b["base"], b["pending"],
-                                  b["lr_scale"], b["retries"], decrease=0.7, increase=1.05,
-                                  max_ratio=1.1)
+                                  b["lr_scale"], retries=b["retries"], decrease=0.7,
+                                  increase=1.05, max_ratio=1.1)
             for chosen, b in ((get_backend("reference"), want), (backend, got))]
     _same(want, got)
     assert left == [True, True]
@@ -112,4 +112,4 @@ def test_an_adaptive_trial_gives_the_references_bits(backend, dtype):
     every["pending"][:] = False
     assert not get_backend("reference").adaptive_trial(
         every["delta"], every["values"], every["base"], every["pending"], every["lr_scale"],
-        every["retries"], decrease=0.7, increase=1.05, max_ratio=1.1)
+        retries=every["retries"], decrease=0.7, increase=1.05, max_ratio=1.1)

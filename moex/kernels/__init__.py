@@ -99,7 +99,7 @@ class BackendModule(Protocol):
     def apply_step(self, theta, delta, velocity, frozen, *, paper_form: bool,
                    tau=None) -> None: ...
 
-    def adaptive_trial(self, delta, values, base, pending, lr_scale, retries, *,
+    def adaptive_trial(self, delta, values, base, pending, lr_scale, *, retries,
                        decrease: float, increase: float, max_ratio: float) -> bool: ...
 
 
@@ -149,11 +149,10 @@ class Backend:
         """θ += Δθ for the runs not frozen (`moex.kernels.reference.apply_step`)."""
         self.module.apply_step(theta, delta, velocity, frozen, **kwargs)
 
-    def adaptive_trial(self, delta, values, base, pending, lr_scale, retries, **kwargs) -> bool:
+    def adaptive_trial(self, delta, values, base, pending, lr_scale, **kwargs) -> bool:
         """One trial of the adaptive rate (`moex.kernels.reference.adaptive_trial`): whether a
         run is still pending."""
-        return self.module.adaptive_trial(delta, values, base, pending, lr_scale, retries,
-                                          **kwargs)
+        return self.module.adaptive_trial(delta, values, base, pending, lr_scale, **kwargs)
 
 
 def _gpu_module():

@@ -214,7 +214,7 @@ def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, fa
         apply_step(theta, delta, velocity, failed, paper_form=paper_form, tau=tau)
 
 
-def adaptive_trial(delta, values, base, pending, lr_scale, retries, *, decrease: float,
+def adaptive_trial(delta, values, base, pending, lr_scale, *, retries, decrease: float,
                    increase: float, max_ratio: float) -> bool:
     """One trial of the adaptive rate (Sec. 2.1.4) for the runs still `pending` (R,) whose
     candidate θ + Δθ scored `values` (R,) against the current point's `base` (R,): r = values /

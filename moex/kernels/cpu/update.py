@@ -95,7 +95,7 @@ def _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, d
             delta[r, p] = delta[r, p] * decrease_cast
 
 
-def adaptive_trial(delta, values, base, pending, lr_scale, retries, *, decrease: float,
+def adaptive_trial(delta, values, base, pending, lr_scale, *, retries, decrease: float,
                    increase: float, max_ratio: float) -> bool:
     """`moex.kernels.reference.adaptive_trial`, bit for bit: a rejecting run's Δθ times α_dec
     rounded to Δθ's type, r compared with r_th in the values' type, as PyTorch does."""
