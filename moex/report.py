@@ -1,6 +1,7 @@
 """Sweeps into tables (paper Tables 1-2, Figs. 9, 14, 16): gather every job of a multirun folder,
 aggregate over runs, and write CSV, Markdown and figures at the multirun root."""
 
+import dataclasses
 import json
 from io import StringIO
 from pathlib import Path
@@ -15,6 +16,7 @@ from moex.errors import ConfigError, check
 from moex.metrics.lyapunov import CHAOS_LABELS, chaos_labels
 from moex.metrics.table import REPORTED
 from moex.progress import packed
+from moex.tasks import TASKS
 from moex.tasks.paper import PAPER_TABLES
 
 # settings the paper's tables and figures are keyed by: a column under its config key even where
@@ -55,6 +57,23 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
     return out
 
 
+def _task_keys(config: dict) -> dict:
+    """A job's config with its task's keys as its task's own config has them, defaults filled:
+    a job written before tasks had their own configs holds every task's keys, one written since
+    those its YAML and overrides set; both name the same settings alike (a key of another task,
+    or a value the task refuses, leaves the config as it was written)."""
+    task = config.get("task")
+    if not isinstance(task, dict) or task.get("name") not in TASKS:
+        return config
+    own = TASKS[task["name"]].config
+    keys = {f.name for f in dataclasses.fields(own)}
+    try:
+        typed = own(**{k: v for k, v in task.items() if k in keys})
+    except (ConfigError, TypeError, ValueError):
+        return config
+    return {**config, "task": dataclasses.asdict(typed)}
+
+
 def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
     """Every job folder below each of `folders` (a sweep, a run, or any parent of them: a job is
     a folder with .hydra/config.yaml), and every re-evaluation `moex evaluate` wrote inside one
@@ -85,7 +104,7 @@ def gather(folders) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
         name = root.name if inside == "." else inside
         if len(roots) > 1 and inside != ".":
             name = f"{root.name}/{inside}"
-        config = _flatten(_read(config_path, yaml.safe_load, dict))
+        config = _flatten(_task_keys(_read(config_path, yaml.safe_load, dict)))
         hydra_path = config_path.with_name("hydra.yaml")
         choices = (_read(hydra_path, lambda text: yaml.safe_load(text)["hydra"]["runtime"]
                          ["choices"], dict) if hydra_path.exists() else {})

@@ -7,7 +7,14 @@ import pandas as pd
 import pytest
 import torch
 
-from moex.report import aggregate, report, short_summary, to_markdown, wilson_interval
+from moex.report import (
+    aggregate,
+    gather,
+    report,
+    short_summary,
+    to_markdown,
+    wilson_interval,
+)
 from tests.test_cli import TINY
 
 MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
@@ -418,3 +425,19 @@ def test_imported_runs_are_done_and_their_source_folders_are_no_setting(tmp_path
     assert set(out["jobs"]["status"]) == {"done"}
     assert len(out["summary"]) == 1 and out["summary"]["num_runs"].iloc[0] == 4
     assert "source" not in out["summary"] and out["repeats"].empty
+
+
+def test_jobs_written_before_and_after_tasks_had_their_own_configs_pool(tmp_path):
+    """A job folder of an older moex holds every task's keys in .hydra/config.yaml, one of this
+    version the keys its task YAML set: the same settings are one setting, not two."""
+    old = ("task:\n  name: lissajous2\n  num_series: 10\n  length: 1000\n  num_test_series: 10\n"
+           "  period: 25.0\n  switch_prob: 0.5\n  transition_rule: paper\n  choice_prob: 0.5\n"
+           "  burn_in: 100\n  primitives: []\n  transition: []\n  path: ''\n  labels: ''\n"
+           "  columns: []\n  scale: none\n  data_seed: -1\nseed: 0\n")
+    new = ("task:\n  name: lissajous2\n  num_series: 10\n  length: 1000\n  switch_prob: 0.5\n"
+           "seed: 1\n")
+    for job, config in (("old", old), ("new", new)):
+        _fake_job(tmp_path / job, config, {"max_lyapunov": [0.01, -0.01], "E_g": [0.1, 0.2]})
+    runs, jobs, varying = gather(tmp_path)
+    assert varying == [] and len(jobs) == 2 and len(runs) == 4
+    assert set(runs["task.switch_prob"]) == {0.5}
