@@ -36,7 +36,6 @@ from moex.train import phase2_targets
 SYMBOLIZERS = dict(zip(SYMBOL_RULES, (symbolize_argmax, symbolize_threshold), strict=True))
 
 
-
 class Evaluation(NamedTuple):
     """rows: one dict of metrics per run; samples: numpy arrays for the figures and
     samples.npz (the first sample's last `plot_steps` steps of every run, residence-time

@@ -21,9 +21,8 @@ import pandas as pd
 import torch
 
 from moex import checkpoint, io, provenance
-from moex.closed_loop import never
 from moex.config import Config
-from moex.errors import check
+from moex.errors import check, never
 from moex.evaluation import track_metrics
 from moex.kernels import Backend, get_backend
 from moex.model import init_experts, init_gating

@@ -16,7 +16,7 @@ from moex.errors import ConfigError, check
 from moex.metrics.lyapunov import CHAOS_LABELS, chaos_labels
 from moex.metrics.table import REPORTED
 from moex.progress import packed
-from moex.tasks import TASKS
+from moex.tasks import TASKS, own_keys
 from moex.tasks.paper import PAPER_TABLES
 
 # settings the paper's tables and figures are keyed by: a column under its config key even where
@@ -60,15 +60,13 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
 def _task_keys(config: dict) -> dict:
     """A job's config with its task's keys as its task's own config has them, defaults filled:
     a job written before tasks had their own configs holds every task's keys, one written since
-    those its YAML and overrides set; both name the same settings alike (a key of another task,
-    or a value the task refuses, leaves the config as it was written)."""
+    those its YAML and overrides set; both name the same settings alike (a task this version does
+    not know, or a value its task refuses, leaves the config as it was written)."""
     task = config.get("task")
     if not isinstance(task, dict) or task.get("name") not in TASKS:
         return config
-    own = TASKS[task["name"]].config
-    keys = {f.name for f in dataclasses.fields(own)}
     try:
-        typed = own(**{k: v for k, v in task.items() if k in keys})
+        typed = TASKS[task["name"]].config(**own_keys(task, task["name"]))
     except (ConfigError, TypeError, ValueError):
         return config
     return {**config, "task": dataclasses.asdict(typed)}

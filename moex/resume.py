@@ -8,7 +8,7 @@ from pathlib import Path
 from moex import checkpoint
 from moex.config import Config
 from moex.errors import ConfigError
-from moex.tasks import task_config, typed_config
+from moex.tasks import own_keys, typed_config
 
 
 def check_same_training(saved: dict, cfg: Config, path: Path) -> None:
@@ -55,7 +55,5 @@ def config_from_dict(data: dict) -> Config:
                                    for k, v in model[net].items()}
                              for net in ("experts", "gating") if net in model}}
         data = {**data, "model": model}
-    task = dict(data.get("task", {}))
-    own = type(task_config(task.get("name", Config().task.name)))
-    task = {k: v for k, v in task.items() if k in {f.name for f in dataclasses.fields(own)}}
+    task = own_keys(dict(data.get("task", {})), Config().task.name)
     return typed_config(Config, {**data, "task": task})

@@ -24,21 +24,31 @@ TASKS: dict[str, Task] = {task.name: task for module in (lissajous, primitives, 
                           for task in module.TASKS}
 
 
+def task_class(name: str) -> type[TaskConfig]:
+    """The config class of task `name` (a `ConfigError` naming the tasks for an unknown one)."""
+    check(name in TASKS, f"task.name={name!r} is unknown; choose one of "
+                         f"{', '.join(closest_first(name, TASKS))}")
+    return TASKS[name].config
+
+
+def own_keys(task: dict, default: str) -> dict:
+    """The keys of `task` (a plain dict) that the task it names (else `default`) has: a dict
+    written before each task had its own config holds every task's keys."""
+    names = {f.name for f in dataclasses.fields(task_class(task.get("name", default)))}
+    return {k: v for k, v in task.items() if k in names}
+
+
 def check_task(cfg: TaskConfig) -> None:
     """A known task whose config is its own class (`task.name=reber` given to another task's
     keys is refused here: choose the task with `task=reber`)."""
-    check(cfg.name in TASKS, f"task.name={cfg.name!r} is unknown; choose one of "
-                             f"{', '.join(closest_first(cfg.name, TASKS))}")
-    own = TASKS[cfg.name].config
+    own = task_class(cfg.name)
     check(isinstance(cfg, own), f"task.name={cfg.name!r} with the keys of another task "
                                 f"({type(cfg).__name__}); choose the task with task={cfg.name}")
 
 
 def task_config(name: str, **keys) -> TaskConfig:
     """The config of task `name` with `keys` (a `ConfigError` for an unknown task or key)."""
-    check(name in TASKS, f"task.name={name!r} is unknown; choose one of "
-                         f"{', '.join(closest_first(name, TASKS))}")
-    own = TASKS[name].config
+    own = task_class(name)
     unknown = sorted(set(keys) - {f.name for f in dataclasses.fields(own)})
     check(not unknown, f"task.{unknown[0] if unknown else ''} is not a key of task {name}")
     return own(**keys)
@@ -49,8 +59,8 @@ def typed_config(schema: type, data: dict):
     (`Config` or a subclass) whose `task` is the config class of the task it names (default:
     the schema's); an unknown task or key is refused in one line naming the task's keys."""
     task = dict(data.get("task") or {})
-    default = next(f for f in dataclasses.fields(schema) if f.name == "task").default_factory()
-    own = type(task_config(task.get("name", default.name)))
+    default = next(f for f in dataclasses.fields(schema) if f.name == "task").default_factory
+    own = task_class(task.get("name", default.name))
     keys = [f.name for f in dataclasses.fields(own)]
     unknown = sorted(set(task) - set(keys))
     if unknown:
@@ -102,4 +112,5 @@ def task_of_run(cfg: TaskConfig, seed: int, series: np.ndarray, *, scale: Scale,
 
 
 __all__ = ["TaskConfig", "Dataset", "Scale", "Task", "check_task", "make_task", "planned_shape",
-           "task_config", "task_of_run", "typed_config", "user_data", "TASKS"]
+           "own_keys", "task_class", "task_config", "task_of_run", "typed_config", "user_data",
+           "TASKS"]

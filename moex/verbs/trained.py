@@ -39,7 +39,6 @@ def load_run(tool: RunFolder) -> TrainedRun:
         overrides = {k: v for k, v in dataclasses.asdict(tool.eval).items() if v is not None}
         sizes = paper_eval_sizes(cfg.task.name) if tool.paper_sizes else {}
         cfg.eval = EvalConfig(**{**dataclasses.asdict(cfg.eval), **sizes, **overrides})
-    if isinstance(tool, EvaluateConfig):
         budget.check_evaluate(cfg)
     if isinstance(tool, GenerateConfig):
         budget.check_generate(cfg, tool.steps, tool.num_samples)

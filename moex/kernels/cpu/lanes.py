@@ -319,7 +319,7 @@ class Staging:
     def _direct(self, name: str, value, own: np.ndarray, copy_in: bool) -> np.ndarray:
         """The numpy view of `value` where the kernels can take it as it is (`_usable`), else
         `own`, with the value copied in if `copy_in`; the view and its check are remembered for
-        the group's last tensor."""
+        the group's last `SEEN` tensors."""
         recent = self.seen.setdefault((name, copy_in), [])
         seen = next((entry for entry in recent if entry[0] is value), None)
         if seen is None:
