@@ -18,10 +18,10 @@ from moex.tasks.scaling import WINDOW, noise_floor
 log = logging.getLogger(__name__)
 
 
-_BUILT: dict[tuple, Dataset] = {}  # generated data sets of this process by their settings, oldest
-
-
-_BUILT_BYTES = 256 * 2**20  # first; the oldest go when their arrays exceed this
+# generated data sets of this process by their settings, oldest first; the oldest go when their
+# arrays exceed _BUILT_BYTES
+_BUILT: dict[tuple, Dataset] = {}
+_BUILT_BYTES = 256 * 2**20
 
 
 def _nbytes(dataset: Dataset | None) -> int:
