@@ -10,8 +10,10 @@ Each channel is standardised with the training series' mean and SD.
 
 Then, with the CLI: `moex train task=csv task.labels=<file> task.scale=auto` (4 experts, 3 runs,
 σ̄ from the data as the csv task does by default; once with the paper's β prior ς = 10 and once
-with ς = 1) and `moex segment` on the held-out series; beside it hmmlearn's GaussianHMM (4
-states, Viterbi path, 3 seeds; full covariances, and one variance per state as moex's σ_k² I)
+with ς = 1) and `moex segment` on the held-out series (with the run's own ς, and with ς
+chosen on those series by cross-validation, `gate_prior_std=auto`); beside it hmmlearn's
+GaussianHMM (4 states, Viterbi path, 3 seeds; full covariances, and one variance per state as
+moex's σ_k² I)
 and scikit-learn's KMeans (4 clusters on the steps' 6-vectors; 3 seeds), fitted to the
 training series and applied to both. Every method is scored by moex.metrics.segmentation:
 adjusted Rand index, normalised mutual information, accuracy after the best one-to-one matching.
@@ -119,7 +121,7 @@ def moex_rows(out: Path, train, train_labels, test, test_labels, steps,
         np.save(out / f"{name}.npy", array)
     rows = []
     for i, (method, keys) in enumerate(variants.items()):
-        run, segmented = out / f"run{i}", out / f"run{i}" / "segment"
+        run = out / f"run{i}"
         if not (run / "metrics.csv").is_file():
             subprocess.run(MOEX + ["train", "task=csv", f"task.path={out}/train.npy",
                                    f"task.labels={out}/train_labels.npy", "task.scale=auto",
@@ -127,16 +129,18 @@ def moex_rows(out: Path, train, train_labels, test, test_labels, steps,
                                    "eval=quick", f"train.experts.steps={steps[0]}",
                                    f"train.gating.steps={steps[1]}", *keys,
                                    f"hydra.run.dir={run}"], check=True)
-        if not (segmented / "segment_scores.csv").is_file():
-            subprocess.run(MOEX + ["segment", f"run_dir={run}", f"task.path={out}/test.npy",
-                                   f"task.labels={out}/test_labels.npy",
-                                   f"out_dir={segmented}"], check=True)
         columns = ["segment_ari", "segment_nmi", "segment_accuracy"]
-        trained = pd.read_csv(run / "metrics.csv")[["run", *columns]]
-        tested = pd.read_csv(segmented / "segment_scores.csv")[["run", *columns]]
-        rows += [{"method": method, "data": data, **row}
-                 for data, frame in (("train", trained), ("test", tested))
-                 for row in frame.to_dict("records")]
+        rows += [{"method": method, "data": "train", **row}
+                 for row in pd.read_csv(run / "metrics.csv")[["run", *columns]].to_dict("records")]
+        for prior_std, named in (("0", method), ("auto", f"{method}, held-out ς auto")):
+            segmented = run / f"segment_{prior_std}"
+            if not (segmented / "segment_scores.csv").is_file():
+                subprocess.run(MOEX + ["segment", f"run_dir={run}", f"task.path={out}/test.npy",
+                                       f"task.labels={out}/test_labels.npy",
+                                       f"gate_prior_std={prior_std}", f"out_dir={segmented}"],
+                               check=True)
+            tested = pd.read_csv(segmented / "segment_scores.csv")[["run", *columns]]
+            rows += [{"method": named, "data": "test", **row} for row in tested.to_dict("records")]
     return rows
 
 

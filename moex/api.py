@@ -15,7 +15,7 @@ import torch
 from moex import checkpoint, io, provenance
 from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import trained_state
-from moex.config import Config, RunFolder
+from moex.config import Config, RunFolder, check_prior_std
 from moex.config.evaluation import EvalConfig
 from moex.data import in_data_units, settled
 from moex.errors import check
@@ -105,10 +105,11 @@ class Fitted:
         return pd.DataFrame(result.rows)
 
     def segment(self, series: np.ndarray | None = None, labels: np.ndarray | None = None,
-                method: str = "smooth", gate_prior_std: float = 0.0) -> Segmentation:
+                method: str = "smooth", gate_prior_std: float | str = "auto") -> Segmentation:
         """Which expert explains which step of `series` ((S, T, D) or (T, D), in the data's own
         units; None: the training series): on new data by `method` (`smooth`: phase 1's
-        estimate with the experts held fixed, ς = `gate_prior_std` or the run's own; `filter`:
+        estimate with the experts held fixed, ς = `gate_prior_std`: `auto` chosen per run by
+        cross-validation on these data, 0 the run's own, or a number; `filter`:
         causal, the gating network's opening as the prior; see `moex.segment`), on the training
         series ĝ = softmax(β) of phase 1. Returns segments.csv's table (run, series, step, expert,
         label, gate_k) and, with labels ((S, T) or (T,) integers, -1 unknown; the training
@@ -127,12 +128,13 @@ class Fitted:
                   f"series must be (S, T, {D}) or (T, {D}) with T >= {delay + 2}, got shape "
                   f"{series.shape}")
             check(method in METHODS, f"method={method!r}; choose one of {', '.join(METHODS)}")
+            check_prior_std("gate_prior_std", gate_prior_std)
             gates = responsibilities(self.experts, self.gating,
                                      torch.as_tensor(self.dataset.scale.to_model(series)),
                                      delay, sigma_min=self.config.model.sigma_min, method=method,
                                      prior_std=(gate_prior_std
                                                 or self.config.train.experts.gate_prior_std)
-                                     ).numpy()
+                                     ).gates.numpy()
         if labels is not None:
             labels = _labels(labels, (gates.shape[1], gates.shape[2] + delay))
         return segmentation(gates, labels, delay)

@@ -99,12 +99,14 @@ def plot_samples(samples: dict, dataset: Dataset, cfg: Config, out_dir: Path,
 
 
 def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, *, cfg: Config,
-                   what: str, table: bool = True,
-                   scores: bool = True) -> segment.Segmentation:
+                   what: str, table: bool = True, scores: bool = True,
+                   prior_std: np.ndarray | None = None) -> segment.Segmentation:
     """figures/segments.png of the run with the best adjusted Rand index (else run 0), with
     `table` segments.csv, with `scores` and labels segment_scores.csv (a training run has its
-    scores in metrics.csv)."""
+    scores in metrics.csv; `prior_std`, the ς each run smoothed with, becomes a column)."""
     result = segment.segmentation(gates, labels, cfg.model.delay)
+    if prior_std is not None and len(result.scores):
+        result.scores["gate_prior_std"] = prior_std[result.scores["run"].to_numpy()]
     if table:
         io.write_csv(out_dir / io.SEGMENTS, result.table)
     run, matching, scored = 0, None, ""

@@ -9,6 +9,12 @@ the data) in one of two ways:
   Σ_n ln Σ_k softmax(β_n)_k N(y_{n+τ}; y^k_n, σ_k² I) + ln φ(β) (Eqs. 10-13) with the trained
   experts held fixed (Adam, a fixed number of steps from β = 0), and ĝ_n = softmax(β_n). It
   uses the whole series: the Brownian prior φ (scale ς) ties each step to its neighbours.
+  ς is the run's own, a number, or `auto`: chosen per run by cross-validation on the data
+  being segmented, the ς of PRIOR_GRID under which the steps left out of the fit are best
+  predicted. The steps are split into FOLDS sets by n mod FOLDS; β is fitted with one set's
+  likelihoods left out (the prior alone bridges those steps), and a left-out step scores
+  ln Σ_k softmax(β_n)_k N(y_{n+τ}; y^k_n, σ_k² I). Too small a ς cannot follow the switches,
+  too large a one follows every step's noise and bridges the gaps badly.
 - `filter`: causal, with the gating network's opening g_n (Eqs. 5-8) run on the data as the
   prior of the mixture's posterior,
 
@@ -53,18 +59,30 @@ def log_likelihoods(experts, series: torch.Tensor, delay: int,
 
 
 METHODS = ("smooth", "filter")
+PRIOR_GRID = 2.0 ** np.arange(-2, 5)  # the ς `auto` tries: 0.25, 0.5, ..., 16
+FOLDS = 2  # `auto`'s cross-validation: step n is left out in fold n mod FOLDS
+
+
+class Responsibilities(NamedTuple):
+    """Each expert's responsibility (R, S, N, K) and, for `smooth`, the ς each run used (R,)."""
+
+    gates: torch.Tensor
+    prior_std: np.ndarray | None
 
 
 def responsibilities(experts, gating, series: torch.Tensor, delay: int, *, sigma_min: float,
-                     method: str = "smooth", prior_std: float = 10.0,
-                     steps: int = 500) -> torch.Tensor:
+                     method: str = "smooth", prior_std: float | str = 10.0,
+                     steps: int = 500) -> Responsibilities:
     """Each expert's responsibility (R, S, T - τ, K) for the steps of series (S, T, D) in
-    model units, by `method` (the module's docstring): `prior_std` is ς and `steps` the
-    optimiser's steps of `smooth`."""
+    model units, by `method` (the module's docstring): `prior_std` is ς (a number, or `auto`)
+    and `steps` the optimiser's steps of `smooth`."""
     with torch.no_grad():
         log_p = log_likelihoods(experts, series.to(experts["w_in"].dtype), delay, sigma_min)
     if method == "smooth":
-        return smoothed(log_p, prior_std, steps)
+        stds = (chosen_prior_std(log_p, steps)[0] if prior_std == "auto"
+                else np.full(len(log_p), float(prior_std)))
+        return Responsibilities(torch.cat([smoothed(log_p[r:r + 1], std, steps)
+                                           for r, std in enumerate(stds)]), stds)
     with torch.no_grad():
         R, S, N, K = log_p.shape
         gating = _from_mean_state(gating, S)
@@ -81,12 +99,36 @@ def responsibilities(experts, gating, series: torch.Tensor, delay: int, *, sigma
                 log_g = torch.log_softmax(torch.einsum("rkh,rsh->rsk", gating["w_out"], c)
                                           + gating["b_o"][:, None], -1)
             out[:, :, n] = torch.softmax(log_g + log_p[:, :, n], -1)
-        return out
+        return Responsibilities(out, None)
 
 
-def smoothed(log_p: torch.Tensor, prior_std: float, steps: int = 500,
-             rate: float = 0.1) -> torch.Tensor:
+def smoothed(log_p: torch.Tensor, prior_std: float, steps: int = 500) -> torch.Tensor:
     """ĝ (R, S, N, K) of the `smooth` method from the experts' log-likelihoods (R, S, N, K)."""
+    return torch.softmax(_map_beta(log_p, prior_std, steps), -1)
+
+
+def chosen_prior_std(log_p: torch.Tensor, steps: int = 500) -> tuple[np.ndarray, np.ndarray]:
+    """`auto`'s ς per run (R,) from the experts' log-likelihoods (R, S, N, K), and the
+    cross-validation's table (R, len(PRIOR_GRID)): the left-out steps' summed ln Σ_k ĝ^k p^k
+    (the module's docstring)."""
+    R, S, N, K = log_p.shape
+    held = torch.arange(N) % FOLDS == torch.arange(FOLDS)[:, None]  # (F, N)
+    masked = torch.where(held[:, None, None, :, None], 0.0, log_p).reshape(FOLDS * R, S, N, K)
+    every = log_p.repeat(FOLDS, 1, 1, 1)
+    scored = held.repeat_interleave(R, 0)[:, None]  # (F R, 1, N)
+    table = []
+    for std in PRIOR_GRID:
+        beta = _map_beta(masked, float(std), steps)
+        predicted = torch.logsumexp(torch.log_softmax(beta, -1) + every, -1)  # (F R, S, N)
+        table.append((predicted * scored).reshape(FOLDS, R, S, N).sum((0, 2, 3)))
+    table = torch.stack(table, 1).numpy()
+    return PRIOR_GRID[table.argmax(1)], table
+
+
+def _map_beta(log_p: torch.Tensor, prior_std: float, steps: int,
+              rate: float = 0.1) -> torch.Tensor:
+    """β (R, S, N, K) maximising Σ ln Σ_k softmax(β_n)_k p^k_n + ln φ(β) (Eqs. 10-13), Adam
+    from β = 0, for log-likelihoods (R, S, N, K)."""
     beta = torch.zeros_like(log_p, requires_grad=True)
     optimiser = torch.optim.Adam([beta], lr=rate)
     for _ in range(steps):
@@ -95,7 +137,7 @@ def smoothed(log_p: torch.Tensor, prior_std: float, steps: int = 500,
                      + gate_prior_log_density(beta, prior_std).sum())
         (-objective).backward()
         optimiser.step()
-    return torch.softmax(beta.detach(), -1)
+    return beta.detach()
 
 
 def table(gates: np.ndarray, labels: np.ndarray | None, delay: int) -> pd.DataFrame:
@@ -151,9 +193,8 @@ def evaluation_scores(experts, beta, gating, dataset, *, delay: int, sigma_min: 
     rows = [_numbers(run) for run in found]
     test = dataset.test
     if test is not None and (test.labels >= 0).any():
-        gates = responsibilities(experts, gating, torch.as_tensor(test.series), delay,
-                                 sigma_min=sigma_min,
-                                 prior_std=prior_std)
+        gates, _ = responsibilities(experts, gating, torch.as_tensor(test.series), delay,
+                                    sigma_min=sigma_min, prior_std=prior_std)
         for row, more in zip(rows, run_scores(gates.numpy(), test.labels, delay, "_test"),
                              strict=True):
             row.update(more)

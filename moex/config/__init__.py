@@ -7,7 +7,7 @@ lives (`moex.kernels.check_name`, `moex.tasks.check_task`), by the verbs before 
 
 from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 import yaml
@@ -122,21 +122,28 @@ class NewData:
         check(self.length >= 0, f"task.length={self.length} must be >= 0")
 
 
+def check_prior_std(key: str, value) -> None:
+    """ς for segmenting new data: auto, 0 (the run's own) or a positive number."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    check(value == "auto" or (number and value >= 0),
+          f"{key}={value!r} must be auto, 0 (the run's own) or a positive number")
+
+
 @dataclass
 class SegmentConfig(RunFolder):
     """`moex segment`: which expert explains which step of new data."""
 
     task: NewData = field(default_factory=NewData)
     method: str = "smooth"  # smooth: phase 1's estimate, experts fixed | filter: causal
-    gate_prior_std: float = 0.0  # ς of `smooth` (0: the run's train.experts.gate_prior_std)
+    gate_prior_std: Any = "auto"  # ς of `smooth`: auto (cross-validated on the data), 0 (the
+    # run's train.experts.gate_prior_std) or a number
     smooth_steps: int = 500  # optimiser steps of `smooth`
 
     def __post_init__(self):
         super().__post_init__()
         check(self.method in ("smooth", "filter"), f"method={self.method!r}; choose smooth "
                                                     f"or filter")
-        check(self.gate_prior_std >= 0, f"gate_prior_std={self.gate_prior_std} must be >= 0 "
-                                        f"(0: the run's own)")
+        check_prior_std("gate_prior_std", self.gate_prior_std)
         check(self.smooth_steps >= 1, f"smooth_steps={self.smooth_steps} must be >= 1")
 
 

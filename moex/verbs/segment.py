@@ -56,14 +56,21 @@ def run(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
     cfg, saved = run.cfg, run.saved
     log.info("segmenting %s of %s (%d series x %d steps) with %s by %s", source, tool.run_dir,
              len(series), series.shape[1], progress.counted(cfg.num_runs, "run"), tool.method)
-    prior_std = tool.gate_prior_std or cfg.train.experts.gate_prior_std
-    gates = segment.responsibilities(saved.experts, saved.gating, torch.as_tensor(series),
+    found = segment.responsibilities(saved.experts, saved.gating, torch.as_tensor(series),
                                      cfg.model.delay, sigma_min=cfg.model.sigma_min,
-                                     method=tool.method, prior_std=prior_std,
-                                     steps=tool.smooth_steps).numpy()
-    how = (f"smoothed (ς = {prior_std:g})" if tool.method == "smooth"
-           else "filtered with the gating network")
-    result = write_segments(Path(out_dir), gates, labels, cfg=cfg, what=f"{source}, {how}")
+                                     method=tool.method,
+                                     prior_std=tool.gate_prior_std
+                                     or cfg.train.experts.gate_prior_std,
+                                     steps=tool.smooth_steps)
+    how = "filtered with the gating network"
+    if found.prior_std is not None:
+        stds = ", ".join(f"{s:g}" for s in found.prior_std)
+        how = f"smoothed (ς = {stds})"
+        if tool.gate_prior_std == "auto":
+            log.info("ς per run, cross-validated on these data over %s: %s",
+                     ", ".join(f"{s:g}" for s in segment.PRIOR_GRID), stds)
+    result = write_segments(Path(out_dir), found.gates.numpy(), labels, cfg=cfg,
+                            what=f"{source}, {how}", prior_std=found.prior_std)
     if len(result.scores):
         for line in progress.packed("scores against the labels (median over runs):", [
                 f"{name} {result.scores[column].median():.3f}" for column, name in (
