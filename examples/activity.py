@@ -9,12 +9,12 @@ exemplars (1000 steps) from the training exemplars, 4 held-out series from the t
 Each channel is standardised with the training series' mean and SD.
 
 Then, with the CLI: `moex train task=csv task.labels=<file> task.scale=auto` (4 experts, 3 runs,
-σ̄ from the data as the csv task does by default; once with the paper's β prior ς = 10 and once
-with ς = 1) and `moex segment` on the held-out series (with the run's own ς, and with ς
-chosen on those series by cross-validation, `gate_prior_std=auto`); beside it hmmlearn's
-GaussianHMM (4 states, Viterbi path, 3 seeds; full covariances, and one variance per state as
-moex's σ_k² I)
-and scikit-learn's KMeans (4 clusters on the steps' 6-vectors; 3 seeds), fitted to the
+σ̄ from the data as the csv task does by default; with the paper's β prior ς = 10, with ς = 1,
+and with ς chosen by a pilot run, `train.experts.gate_prior_std=auto`) and `moex segment` on
+the held-out series (with the run's own ς, and with ς chosen on those series by
+cross-validation, `gate_prior_std=auto`); beside it hmmlearn's GaussianHMM (4 states, Viterbi
+path, 3 seeds; full covariances, and one variance per state as moex's σ_k² I) and
+scikit-learn's KMeans (4 clusters on the steps' 6-vectors; 3 seeds), fitted to the
 training series and applied to both. Every method is scored by moex.metrics.segmentation:
 adjusted Rand index, normalised mutual information, accuracy after the best one-to-one matching.
 
@@ -25,6 +25,7 @@ Re-running the same command keeps finished work (the trained run, the segmentati
 """
 
 import argparse
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -36,9 +37,10 @@ from moex.metrics.segmentation import scores
 from moex.tasks.scaling import fit_scale
 
 STAY = 0.5  # the Markov chain's probability of repeating an activity
-VARIANTS = {  # moex's rows: the csv task's defaults (σ̄ from the data), and a tighter β prior
-    "moex": [],
+VARIANTS = {  # moex's rows: the csv task's defaults (σ̄ from the data), a tighter β prior, ς
+    "moex": [],  # chosen by a pilot run
     "moex, ς = 1": ["train.experts.gate_prior_std=1"],
+    "moex, ς auto": ["train.experts.gate_prior_std=auto"],
 }
 ABLATION = {  # --ablation: the paper's σ̄ = 0.05 instead of the data's, each ς (one factor each)
     "moex, σ̄ = 0.05": ["model.sigma_min=0.05"],
@@ -112,6 +114,12 @@ def _scores(truth, found) -> dict:
     return {k: float(v) for k, v in got.items() if k != "label_of_expert"}
 
 
+def folder_name(method: str) -> str:
+    """A variant's run folder: "moex, σ̄ = 0.05, ς = 1" -> "moex_floor_0.05_prior_1"."""
+    named = method.replace("σ̄", "floor").replace("ς", "prior")
+    return "_".join(re.findall(r"[A-Za-z0-9.]+", named))
+
+
 def moex_rows(out: Path, train, train_labels, test, test_labels, steps,
               variants: dict) -> list[dict]:
     """moex trained and segmenting with the CLI, once per entry of `variants`; its scores on
@@ -120,8 +128,8 @@ def moex_rows(out: Path, train, train_labels, test, test_labels, steps,
                         ("test_labels", test_labels)):
         np.save(out / f"{name}.npy", array)
     rows = []
-    for i, (method, keys) in enumerate(variants.items()):
-        run = out / f"run{i}"
+    for method, keys in variants.items():
+        run = out / folder_name(method)
         if not (run / "metrics.csv").is_file():
             subprocess.run(MOEX + ["train", "task=csv", f"task.path={out}/train.npy",
                                    f"task.labels={out}/train_labels.npy", "task.scale=auto",

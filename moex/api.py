@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import checkpoint, io, provenance
+from moex import checkpoint, io, pilot, provenance
 from moex.closed_loop import generate as run_closed_loop
 from moex.closed_loop import trained_state
 from moex.config import Config, RunFolder, check_prior_std
@@ -224,6 +224,7 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
     dataset = user_data(*fit_scale(series, scale, "series"), labels)
     cfg.model = settled(cfg.model, dataset.series)
     backend = get_backend(cfg.backend, cfg.device)
+    pilot.settle(cfg, dataset, backend)
     with provenance.kept("fit", cfg.backend, cfg.device, cfg.precision) as record:
         provenance.note(backend=backend.name)
         [done] = train_jobs([Job(cfg, dataset)], backend=backend)  # the core `moex train` runs

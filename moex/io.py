@@ -17,6 +17,7 @@ FIGURES = "figures"
 SEGMENTS = "segments.csv"
 SEGMENT_SCORES = "segment_scores.csv"
 LABEL_STAYS = "label_stays.csv"
+GATE_PRIOR = "gate_prior.csv"  # train.experts.gate_prior_std=auto: the pilot's choice (moex.pilot)
 EVAL_SETTINGS = "eval_config.yaml"  # the evaluation settings `moex evaluate` used
 
 
@@ -38,6 +39,16 @@ def atomic_write(path: Path, write: Callable[[str], None]) -> Path:
 def write_csv(path: Path, rows: list[dict] | pd.DataFrame) -> Path:
     frame = rows if isinstance(rows, pd.DataFrame) else pd.DataFrame(rows)
     return atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False))
+
+
+def chosen_gate_prior(folder: Path) -> float | None:
+    """The ς a pilot chose for the run folder (its GATE_PRIOR table's chosen row); None where
+    no pilot ran."""
+    path = Path(folder) / GATE_PRIOR
+    if not path.is_file():
+        return None
+    table = pd.read_csv(path)
+    return float(table.loc[table["chosen"], "gate_prior_std"].iloc[0])
 
 
 def write_yaml(path: Path, data: dict) -> Path:

@@ -5,7 +5,7 @@ evaluation settings aside)."""
 import dataclasses
 from pathlib import Path
 
-from moex import checkpoint
+from moex import checkpoint, io
 from moex.config import Config
 from moex.errors import ConfigError
 from moex.tasks import own_keys, typed_config
@@ -14,6 +14,9 @@ from moex.tasks import own_keys, typed_config
 def check_same_training(saved: dict, cfg: Config, path: Path) -> None:
     """A checkpoint may only be resumed by the config that wrote it (eval settings aside)."""
     now = dataclasses.asdict(cfg)
+    if now["train"]["experts"]["gate_prior_std"] == "auto":  # the pilot's choice, if it ran
+        chosen = io.chosen_gate_prior(Path(path).parent)
+        now["train"]["experts"]["gate_prior_std"] = "auto" if chosen is None else chosen
     saved = dataclasses.asdict(config_from_dict(saved))
     for key in ("task", "model", "train", "seed", "num_runs", "precision"):
         if saved[key] != now[key]:

@@ -53,6 +53,9 @@ def _has_experts(out_dir: Path) -> bool:
                                                    ["phase"])
 
 
+CHOSEN = ", chosen from the data by a pilot run: gate_prior.csv"
+
+
 def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
     """Write `out_dir`/report.md from the config, the metric table (None when not evaluated)
     and the figures in `out_dir`/figures."""
@@ -62,7 +65,9 @@ def write(out_dir: Path, cfg, metrics: pd.DataFrame | None, title: str) -> Path:
              f"Task `{task.name}`, {cfg.num_runs} network(s) from seed {cfg.seed}; "
              f"{model.num_experts} experts of M = {model.experts.context_size}, gating RNN of "
              f"NC = {model.gating.context_size}, σ̄ = {model.sigma_min:.3g} (the floor of the "
-             f"experts' σ); {trained_steps(out_dir, cfg)}; "
+             f"experts' σ), ς = {cfg.train.experts.gate_prior_std:g} (the β prior's scale"
+             f"{CHOSEN if (out_dir / io.GATE_PRIOR).is_file() else ''}); "
+             f"{trained_steps(out_dir, cfg)}; "
              f"{cfg.precision}, backend {cfg.backend} on {cfg.device}.", ""]
     if metrics is not None:
         ev = cfg.eval

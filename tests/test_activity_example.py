@@ -35,6 +35,8 @@ def test_the_chain_stays_with_the_stated_probability_and_moves_uniformly():
 
 def test_the_tutorial_page_quotes_the_table_its_scores_give():
     activity = _example()
+    variants = {**activity.VARIANTS, **activity.ABLATION}  # one run folder each
+    assert len({activity.folder_name(method) for method in variants}) == len(variants)
     frame = pd.read_csv(ROOT / "docs" / "activity_scores.csv")
     assert {"moex", "moex, ς = 1", "Gaussian HMM", "k-means"} <= set(frame["method"])
     page = (ROOT / "docs" / "activity.md").read_text()

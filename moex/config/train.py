@@ -2,6 +2,7 @@
 rate of Sec. 2.1.4, the departures studied beside the paper, checkpoints."""
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from moex.errors import check, check_positive, check_range
 
@@ -34,7 +35,9 @@ class PhaseConfig:
 class ExpertPhaseConfig(PhaseConfig):
     steps: int = 30000
     adaptive_lr: bool = False  # as the C code's -a; criterion: the mixture MSE E
-    gate_prior_std: float = 10.0  # ς of the Brownian prior on β (Eq. 13)
+    gate_prior_std: Any = 10.0  # ς of the Brownian prior on β (Eq. 13); auto: a pilot
+    # run chooses it from the data (moex.pilot)
+    pilot_steps: int = 2000  # phase-1 steps of gate_prior_std=auto's pilot (at most `steps`)
 
 
 @dataclass
@@ -69,7 +72,14 @@ class TrainConfig:
             check_positive(f"{key}.learning_rate", phase.learning_rate)
             check_range(f"{key}.momentum", phase.momentum, 0.0, 1.0)
             check(phase.log_every >= 1, f"{key}.log_every={phase.log_every} must be >= 1")
-        check_positive("train.experts.gate_prior_std", self.experts.gate_prior_std)
+        if self.experts.gate_prior_std != "auto":
+            number = isinstance(self.experts.gate_prior_std, int | float)
+            check(number and self.experts.gate_prior_std > 0,
+                  f"train.experts.gate_prior_std={self.experts.gate_prior_std!r} must be "
+                  f"positive, or auto")
+            self.experts.gate_prior_std = float(self.experts.gate_prior_std)
+        check(self.experts.pilot_steps >= 1,
+              f"train.experts.pilot_steps={self.experts.pilot_steps} must be >= 1")
         check(self.gating.target_temperature >= 0,
               f"train.gating.target_temperature={self.gating.target_temperature} must be >= 0 "
               f"(1 = the paper's ĝ, 0 = one-hot)")

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from moex import checkpoint, io, plotting, progress, provenance, run_page, segment
+from moex import checkpoint, io, pilot, plotting, progress, provenance, run_page, segment
 from moex.config import Config
 from moex.data import in_data_units, load_task, warn_ignored
 from moex.errors import never
@@ -30,7 +30,7 @@ NAME, CONFIG = "train", "config"  # the verb and its Hydra config
 def check(cfg: Config) -> None:
     """Everything `run` refuses, before its folder is made: the backend, the task, its data."""
     check_backend(cfg.backend, cfg.device)
-    load_task(cfg)
+    pilot.check_pilot(cfg, load_task(cfg))
 
 
 def run(cfg: Config, out_dir: Path, stop=never) -> checkpoint.Checkpoint:
@@ -53,12 +53,13 @@ def run(cfg: Config, out_dir: Path, stop=never) -> checkpoint.Checkpoint:
     """
     out_dir = Path(out_dir)
     dataset = load_task(cfg)  # (first: it settles the data's defaults the checkpoint holds)
+    backend = get_backend(cfg.backend, cfg.device)
+    pilot.settle(cfg, dataset, backend, out_dir)  # (so does gate_prior_std=auto)
     saved = open_checkpoint(cfg, out_dir)
     if saved is not None and saved.phase != "done":
         step = (saved.train_state or {}).get("step")
         log.info("resuming %s: %s phase from step %s", out_dir / checkpoint.NAME, saved.phase,
                  step if step is not None else "0 (its start)")
-    backend = get_backend(cfg.backend, cfg.device)
     provenance.note(backend=backend.name)
     warn_ignored(cfg, dataset)
     if saved is None or saved.phase != "done":
