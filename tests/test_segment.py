@@ -13,6 +13,7 @@ import torch
 
 import moex
 from moex import segment
+from moex.config import SegmentConfig
 from moex.errors import ConfigError
 from moex.metrics.segmentation import (
     adjusted_rand,
@@ -165,6 +166,15 @@ def test_auto_prior_std_segments_near_the_best_of_its_grid(stay, separation):
     best = max(accuracy(s) for s in segment.PRIOR_GRID)
     assert accuracy(chosen[0]) >= best - 0.04
     assert accuracy(chosen[0]) >= accuracy(10.0) + 0.05
+
+
+@pytest.mark.parametrize("value", [-1.0, "wide", True])
+def test_a_bad_segmenting_prior_is_refused_in_one_line(value):
+    """`moex segment gate_prior_std=` and `Fitted.segment(gate_prior_std=)` take auto, 0 or a
+    positive number."""
+    with pytest.raises(ConfigError, match=r"gate_prior_std=.* must be auto, 0 \(the run's own\) "
+                                          r"or a positive number"):
+        SegmentConfig(run_dir="somewhere", gate_prior_std=value)
 
 
 def test_auto_prior_std_is_chosen_per_run():
