@@ -56,6 +56,9 @@ def run(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
     cfg, saved = run.cfg, run.saved
     log.info("segmenting %s of %s (%d series x %d steps) with %s by %s", source, tool.run_dir,
              len(series), series.shape[1], progress.counted(cfg.num_runs, "run"), tool.method)
+    if tool.method == "smooth" and tool.gate_prior_std == "auto":  # (no silent pause)
+        log.info("gate_prior_std=auto: choosing ς by %d smoothing fits (one per ς and left-out "
+                 "half, every run at once)", len(segment.PRIOR_GRID) * segment.FOLDS)
     found = segment.responsibilities(saved.experts, saved.gating, torch.as_tensor(series),
                                      cfg.model.delay, sigma_min=cfg.model.sigma_min,
                                      method=tool.method,
