@@ -41,6 +41,17 @@ def check_positive(key: str, value: float) -> None:
     check(value > 0, f"{key}={value} must be positive")
 
 
+def positive_or_auto(key: str, value):
+    """`value` as a float where it is a positive number, or "auto" (a value the data settle
+    later); a `ConfigError` naming `key` otherwise."""
+    if value == "auto":
+        return value
+    number = isinstance(value, int | float)
+    check(number and value > 0, f"{key}={float(value) if number else value} must be positive, "
+                                f"or auto")
+    return float(value)
+
+
 def closest_first(word: str, choices) -> list[str]:
     """`choices` ordered by their likeness to `word` (the closest spelling first)."""
     import difflib

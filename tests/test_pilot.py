@@ -72,7 +72,7 @@ def test_moex_train_writes_the_choice_states_it_and_reuses_it(tmp_path):
 
 @pytest.mark.parametrize("value, message", [
     (-1.0, "train.experts.gate_prior_std=-1.0 must be positive, or auto"),
-    ("wide", "train.experts.gate_prior_std='wide' must be positive, or auto"),
+    ("wide", "train.experts.gate_prior_std=wide must be positive, or auto"),
 ])
 def test_a_bad_prior_is_refused_in_one_line(value, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(")):

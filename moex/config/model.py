@@ -3,7 +3,7 @@
 from dataclasses import dataclass, field
 from typing import Any
 
-from moex.errors import check, check_range
+from moex.errors import check, check_range, positive_or_auto
 
 INIT_SCHEMES = ("paper", "mregn")
 
@@ -42,12 +42,7 @@ class ModelConfig:
     def __post_init__(self):
         check(self.num_experts >= 1, f"model.num_experts={self.num_experts} must be >= 1")
         check(self.delay >= 1, f"model.delay={self.delay} must be >= 1 (τ >= 1)")
-        if self.sigma_min != "auto":
-            number = isinstance(self.sigma_min, int | float)
-            check(number and self.sigma_min > 0, f"model.sigma_min="
-                  f"{float(self.sigma_min) if number else self.sigma_min} must be positive, "
-                  f"or auto")
-            self.sigma_min = float(self.sigma_min)
+        self.sigma_min = positive_or_auto("model.sigma_min", self.sigma_min)
         check(self.init in INIT_SCHEMES, f"model.init={self.init!r}; choose paper or mregn")
         for key, sub in (("model.experts", self.experts), ("model.gating", self.gating)):
             check(sub.context_size >= 1, f"{key}.context_size={sub.context_size} must be >= 1")

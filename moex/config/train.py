@@ -4,7 +4,7 @@ rate of Sec. 2.1.4, the departures studied beside the paper, checkpoints."""
 from dataclasses import dataclass, field
 from typing import Any
 
-from moex.errors import check, check_positive, check_range
+from moex.errors import check, check_positive, check_range, positive_or_auto
 
 MOMENTUM_FORMS = ("paper", "mregn")
 
@@ -72,12 +72,8 @@ class TrainConfig:
             check_positive(f"{key}.learning_rate", phase.learning_rate)
             check_range(f"{key}.momentum", phase.momentum, 0.0, 1.0)
             check(phase.log_every >= 1, f"{key}.log_every={phase.log_every} must be >= 1")
-        if self.experts.gate_prior_std != "auto":
-            number = isinstance(self.experts.gate_prior_std, int | float)
-            check(number and self.experts.gate_prior_std > 0,
-                  f"train.experts.gate_prior_std={self.experts.gate_prior_std!r} must be "
-                  f"positive, or auto")
-            self.experts.gate_prior_std = float(self.experts.gate_prior_std)
+        self.experts.gate_prior_std = positive_or_auto("train.experts.gate_prior_std",
+                                                       self.experts.gate_prior_std)
         check(self.experts.pilot_steps >= 1,
               f"train.experts.pilot_steps={self.experts.pilot_steps} must be >= 1")
         check(self.gating.target_temperature >= 0,
