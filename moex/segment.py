@@ -81,8 +81,11 @@ def responsibilities(experts, gating, series: torch.Tensor, delay: int, *, sigma
     if method == "smooth":
         stds = (chosen_prior_std(log_p, steps)[0] if prior_std == "auto"
                 else np.full(len(log_p), float(prior_std)))
-        return Responsibilities(torch.cat([smoothed(log_p[r:r + 1], std, steps)
-                                           for r, std in enumerate(stds)]), stds)
+        gates = torch.empty_like(log_p)
+        for std in np.unique(stds):  # one fit for the runs of one ς
+            runs = torch.as_tensor(np.flatnonzero(stds == std))
+            gates[runs] = smoothed(log_p[runs], float(std), steps)
+        return Responsibilities(gates, stds)
     with torch.no_grad():
         R, S, N, K = log_p.shape
         gating = _from_mean_state(gating, S)
