@@ -224,7 +224,7 @@ def fit(series: np.ndarray, *, num_experts: int = 2, expert_steps: int = 30000,
     dataset = user_data(*fit_scale(series, scale, "series"), labels)
     cfg.model = settled(cfg.model, dataset.series)
     backend = get_backend(cfg.backend, cfg.device)
-    pilot.settle(cfg, dataset, backend)
+    pilot.settle(cfg, dataset, backend=backend)
     with provenance.kept("fit", cfg.backend, cfg.device, cfg.precision) as record:
         provenance.note(backend=backend.name)
         [done] = train_jobs([Job(cfg, dataset)], backend=backend)  # the core `moex train` runs

@@ -22,7 +22,6 @@ from moex.config import Config
 from moex.data import load_task
 from moex.errors import ConfigError, Interrupted
 from moex.jobs import Job, packing_key, saved_position, train_jobs
-from moex.kernels import get_backend
 from moex.resume import open_checkpoint
 from moex.stop import StopRequest
 
@@ -50,7 +49,7 @@ def prepare(cfg: Config, out_dir: Path) -> Planned:
     """A job ready to pack, or one left to run alone (its own run reports any error)."""
     try:
         dataset = load_task(cfg)  # (first: it settles the data's defaults, sigma_min=auto)
-        pilot.settle(cfg, dataset, get_backend(cfg.backend, cfg.device), out_dir)
+        pilot.settle(cfg, dataset, out_dir)
         saved = open_checkpoint(cfg, out_dir)
         if saved is not None and saved.phase == "done":
             return Planned(cfg, out_dir)

@@ -24,7 +24,7 @@ from moex import io
 from moex.config import Config
 from moex.errors import check
 from moex.jobs import initial_parameters
-from moex.kernels import Backend
+from moex.kernels import Backend, get_backend
 from moex.model import expert_forward, expert_variances
 from moex.objectives import expert_log_densities
 from moex.segment import PRIOR_GRID, chosen_prior_std
@@ -67,10 +67,11 @@ def check_pilot(cfg: Config, dataset: Dataset) -> None:
           f"only")
 
 
-def settle(cfg: Config, dataset: Dataset, backend: Backend, out_dir: Path | None = None) -> None:
+def settle(cfg: Config, dataset: Dataset, out_dir: Path | None = None, *,
+           backend: Backend | None = None) -> None:
     """Replace `train.experts.gate_prior_std=auto` in `cfg` by the pilot's ς (read from
     `out_dir`/gate_prior.csv where an earlier start wrote it), said in the log; nothing for a
-    number."""
+    number. The pilot trains on `backend` (default: the config's)."""
     experts = cfg.train.experts
     if experts.gate_prior_std != "auto":
         return
@@ -79,7 +80,7 @@ def settle(cfg: Config, dataset: Dataset, backend: Backend, out_dir: Path | None
     if chosen is None:
         log.info("train.experts.gate_prior_std=auto: a pilot of %d phase-1 steps at ς = %g",
                  _steps(cfg), PILOT_PRIOR_STD)
-        table = pilot_table(cfg, dataset, backend)
+        table = pilot_table(cfg, dataset, backend or get_backend(cfg.backend, cfg.device))
         if out_dir is not None:
             io.write_csv(Path(out_dir) / io.GATE_PRIOR, table)
         chosen = float(table.loc[table["chosen"], "gate_prior_std"].iloc[0])

@@ -54,7 +54,7 @@ def run(cfg: Config, out_dir: Path, stop=never) -> checkpoint.Checkpoint:
     out_dir = Path(out_dir)
     dataset = load_task(cfg)  # (first: it settles the data's defaults the checkpoint holds)
     backend = get_backend(cfg.backend, cfg.device)
-    pilot.settle(cfg, dataset, backend, out_dir)  # (so does gate_prior_std=auto)
+    pilot.settle(cfg, dataset, out_dir, backend=backend)  # (so does gate_prior_std=auto)
     saved = open_checkpoint(cfg, out_dir)
     if saved is not None and saved.phase != "done":
         step = (saved.train_state or {}).get("step")
