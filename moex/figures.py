@@ -103,7 +103,8 @@ def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, 
                    prior_std: np.ndarray | None = None) -> segment.Segmentation:
     """figures/segments.png of the run with the best adjusted Rand index (else run 0), with
     `table` segments.csv, with `scores` and labels segment_scores.csv (a training run has its
-    scores in metrics.csv; `prior_std`, the ς each run smoothed with, becomes a column)."""
+    scores in metrics.csv; `prior_std`, the ς each run smoothed with, becomes a column and the
+    drawn run's enters the title)."""
     result = segment.segmentation(gates, labels, cfg.model.delay)
     if prior_std is not None and len(result.scores):
         result.scores["gate_prior_std"] = prior_std[result.scores["run"].to_numpy()]
@@ -116,6 +117,8 @@ def write_segments(out_dir: Path, gates: np.ndarray, labels: np.ndarray | None, 
         best = result.scores.loc[result.scores["segment_ari"].idxmax()]
         run, matching = int(best["run"]), result.label_of_expert[int(best["run"])]
         scored = f"; ARI {best['segment_ari']:.3f}, accuracy {best['segment_accuracy']:.3f}"
+    if prior_std is not None:
+        what += f" (ς = {prior_std[run]:g})"
     fig = plotting.plot_segments(gates[run], labels, cfg.model.delay, matching,
                                  f"winning expert per step, run {run}: {what}{scored}")
     plotting.save_figure(fig, out_dir / io.FIGURES / "segments.png", cfg.plot.format)

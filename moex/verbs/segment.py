@@ -65,13 +65,11 @@ def run(tool: SegmentConfig, out_dir: Path, stop=never) -> pd.DataFrame:
                                      prior_std=tool.gate_prior_std
                                      or cfg.train.experts.gate_prior_std,
                                      steps=tool.smooth_steps)
-    how = "filtered with the gating network"
-    if found.prior_std is not None:
-        stds = ", ".join(f"{s:g}" for s in found.prior_std)
-        how = f"smoothed (ς = {stds})"
-        if tool.gate_prior_std == "auto":
-            log.info("ς per run, cross-validated on these data over %s: %s",
-                     ", ".join(f"{s:g}" for s in segment.PRIOR_GRID), stds)
+    how = "filtered with the gating network" if found.prior_std is None else "smoothed"
+    if found.prior_std is not None and tool.gate_prior_std == "auto":
+        log.info("ς per run, cross-validated on these data over %s: %s",
+                 ", ".join(f"{s:g}" for s in segment.PRIOR_GRID),
+                 ", ".join(f"{s:g}" for s in found.prior_std))
     result = write_segments(Path(out_dir), found.gates.numpy(), labels, cfg=cfg,
                             what=f"{source}, {how}", prior_std=found.prior_std)
     if len(result.scores):
