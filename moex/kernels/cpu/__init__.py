@@ -4,9 +4,10 @@ share per thread, one per thread for each of three stages).
 
 Layout. Every independent recurrence is a *lane*: an (expert, series) pair of one run in phase 1
 (lane (r·K + k)·S + s), a series of one run in phase 2 (lane r·S + s), a (run, sample) trajectory
-of the closed loop. Lanes are the last axis of every work array, padded to whole blocks of `LB`
-(`simd`); each lane carries its own copy of its network's weights, so a block of lanes is one SIMD
-vector whichever networks its lanes belong to. A block runs its whole time loop with the lane
+of the closed loop. Lanes are the last axis of every work array, padded to whole blocks of
+`simd.width` lanes (8 in float64, 16 in float32 on a CPU with AVX-512); each lane carries its own
+copy of its network's weights, so a block of lanes is one SIMD vector whichever networks its
+lanes belong to. A block runs its whole time loop with the lane
 loop innermost; blocks are shared out among threads (`threads`). The per-lane weight gradients
 are summed over the lanes of each network at the end.
 

@@ -7,7 +7,7 @@ from numba import njit
 
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import NET, first_use, in_lanes
-from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log, stack, tanh, zeros
+from moex.kernels.cpu.simd import JIT, exp, fma, lanes, log, stack, tanh, width, zeros
 from moex.model import ClosedLoopRun
 
 
@@ -15,10 +15,11 @@ from moex.model import ClosedLoopRun
 def _spread_run(lane, N, params, lane_params):  # pragma: no cover
     """Copy the weights of run lane // N into `lane`: params (R, K', ...) -> (NB, K', ..., LB),
     1/τ for the last entry; padding lanes copy the last run (they are discarded)."""
-    b, v = lane // LB, lane % LB
-    r = min(lane // N, params[0].shape[0] - 1)
     w_in, w_rec, w_out, b_c, b_o, tau = params
     lane_w_in, lane_w_rec, lane_w_out, lane_b_c, lane_b_o, eps = lane_params
+    LB = width(lane_b_c)
+    b, v = lane // LB, lane % LB
+    r = min(lane // N, params[0].shape[0] - 1)
     for k in range(w_in.shape[1]):
         for i in range(w_rec.shape[2]):
             lane_b_c[b, k, i, v] = b_c[r, k, i]
@@ -51,6 +52,7 @@ def closed_blocks(lo, hi, N, experts, gating, E_all, G_all, state_all, V_all, no
     E_w_in, E_w_rec, E_w_out, E_b_c, E_b_o, E_eps = E_all
     G_w_in, G_w_rec, G_w_out, G_b_c, G_b_o, G_eps = G_all
     EU, GU, XL, GL = state_all
+    LB = width(EU)
     KE, M = E_w_in.shape[1], E_w_in.shape[2]
     H, K = G_w_rec.shape[2], G_w_out.shape[2]
     TAU = GL.shape[1] // K
@@ -337,6 +339,7 @@ def closed_loop(experts, gating, state, steps: int, *, noise=None, tangents=None
     _check_shapes(experts, gating, state)
     B = R * N
     dtype = np.dtype(str(state.gates.dtype).removeprefix("torch."))
+    LB = width(dtype)
 
     def lanes_of(x, per_trajectory_shape):  # (R, N, ...) -> (NB, ..., LB)
         flat = np.asarray(x.detach().cpu().numpy(), dtype).reshape((B,) + per_trajectory_shape)

@@ -1,8 +1,8 @@
 """Parameters to lanes and back, and the work arrays of a phase (layout: `moex.kernels.cpu`).
 
-Lane l is entry l % LB of block l // LB; network g (an expert of a run, or a run's gating RNN)
-owns lanes g·S .. g·S + S - 1, one per series. Lanes past the last network are padding: zero
-weights, no data.
+Lane l is entry l % LB of block l // LB (LB = `simd.width` of the run's dtype); network g (an
+expert of a run, or a run's gating RNN) owns lanes g·S .. g·S + S - 1, one per series. Lanes past
+the last network are padding: zero weights, no data.
 """
 
 import contextlib
@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from moex.kernels.cpu.simd import JIT, LB, padded, zeros
+from moex.kernels.cpu.simd import JIT, padded, width, zeros
 
 
 @njit(inline="always", **JIT)
@@ -23,7 +23,7 @@ def spread(lane, S, params, u0, net):  # pragma: no cover
     (R, S, K', H)."""
     w_in, w_rec, w_out, b_c, b_o, tau = params
     lane_w_in, lane_w_rec, lane_w_out, lane_b_c, lane_b_o, eps, u0_lane = net
-    R, KK = w_in.shape[0], w_in.shape[1]
+    R, KK, LB = w_in.shape[0], w_in.shape[1], width(lane_b_c)
     b, v = lane // LB, lane % LB
     g, s = lane // S, lane % S
     r, k = min(g // KK, R - 1), g % KK
@@ -46,7 +46,7 @@ def spread(lane, S, params, u0, net):  # pragma: no cover
 @njit(inline="always", **JIT)
 def lane_sum(x, lo, hi):  # pragma: no cover
     """Σ over lanes lo..hi-1 of x (NB, LB)."""
-    total = 0.0
+    total, LB = 0.0, width(x)
     for lane in range(lo, hi):
         total += x[lane // LB, lane % LB]
     return total
@@ -82,7 +82,7 @@ def run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
     """After the backward pass, for the lanes of run r: the C code's attraction of u_0 to the
     mean μ of its own trajectory {u_0..u_T} (not in the paper; value returned, gradient
     (μ - u_0)/max(var, floor) added) and the u_0 gradients copied out to g_u0 (R, S, K', H)."""
-    value = 0.0
+    value, LB = 0.0, width(u0_lane)
     KK = g_u0.shape[2]
     for lane in range(r * KK * S, (r + 1) * KK * S):
         b, v = lane // LB, lane % LB
@@ -99,8 +99,8 @@ def run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
     return value
 
 
-def runs_of_blocks(num_blocks, lanes_per_run, num_runs):
-    """(NB, 2): the first and last run each block of lanes touches."""
+def runs_of_blocks(num_blocks, lanes_per_run, num_runs, LB):
+    """(NB, 2): the first and last run each block of LB lanes touches."""
     starts = np.arange(num_blocks) * LB
     first = np.minimum(starts // lanes_per_run, num_runs - 1)
     last = np.minimum((starts + LB - 1) // lanes_per_run, num_runs - 1)
@@ -125,12 +125,13 @@ class Forwarded:
 
     Args:
         block_runs: (NB, 2) the first and last run of each block (`runs_of_blocks`).
-        lanes_per_run: lanes of one run; names: the parameters the forward pass reads.
+        lanes_per_run: lanes of one run; names: the parameters the forward pass reads;
+        LB: lanes per block.
     """
 
     enabled = True  # False: every call runs its forward pass (the tests compare the two)
 
-    def __init__(self, block_runs, lanes_per_run: int, names: tuple[str, ...]):
+    def __init__(self, block_runs, lanes_per_run: int, names: tuple[str, ...], LB: int):
         R = int(block_runs[-1, 1]) + 1
         first, last = np.arange(R) * lanes_per_run, (np.arange(R) + 1) * lanes_per_run - 1
         self.first_block, self.last_block = first // LB, last // LB
@@ -255,10 +256,10 @@ def per_network(params: dict, experts: bool) -> tuple:
 
 def in_lanes(per_lane: np.ndarray) -> np.ndarray:
     """(..., NL) -> (NB, ..., LB), lanes padded with zeros to whole blocks."""
-    NL = per_lane.shape[-1]
-    padded_lanes = np.zeros(per_lane.shape[:-1] + (padded(NL),), per_lane.dtype)
+    NL, LB, NP = per_lane.shape[-1], width(per_lane), padded(per_lane.shape[-1], per_lane.dtype)
+    padded_lanes = np.zeros(per_lane.shape[:-1] + (NP,), per_lane.dtype)
     padded_lanes[..., :NL] = per_lane
-    blocks = np.moveaxis(padded_lanes.reshape(per_lane.shape[:-1] + (padded(NL) // LB, LB)), -2, 0)
+    blocks = np.moveaxis(padded_lanes.reshape(per_lane.shape[:-1] + (NP // LB, LB)), -2, 0)
     out = zeros(blocks.shape, per_lane.dtype)
     out[...] = blocks
     return out
@@ -270,7 +271,8 @@ class Lanes:
 
     def __init__(self, T, H, NI, NO, *, num_lanes, lanes_per_run, num_runs, learn_tau,
                  attraction, dtype):
-        NB = padded(num_lanes) // LB
+        self.width = LB = width(dtype)
+        NB = padded(num_lanes, dtype) // LB
 
         def blocks(*shape):
             return zeros((NB,) + shape + (LB,), dtype)
@@ -282,7 +284,7 @@ class Lanes:
                      blocks(*((T, H) if learn_tau else (0, 0))), zeros(sums), zeros(sums),
                      blocks(T, NO)]
         self.lane_grads = tuple(zeros(x.shape, dtype) for x in self.net)
-        self.block_runs = runs_of_blocks(NB, lanes_per_run, num_runs)
+        self.block_runs = runs_of_blocks(NB, lanes_per_run, num_runs, LB)
         self.num_lanes = NB * LB
         self.out = np.zeros((4, num_runs), dtype)
 

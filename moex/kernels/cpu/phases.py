@@ -25,7 +25,7 @@ from moex.kernels.cpu.lanes import (
     to_host,
 )
 from moex.kernels.cpu.rnn import backward_pass, forward_pass
-from moex.kernels.cpu.simd import JIT, LB, exp, fma, lanes, log
+from moex.kernels.cpu.simd import JIT, exp, fma, lanes, log, width
 from moex.kernels.noise import input_noise
 
 # phase 1: the experts and β (Eqs. 9-13)
@@ -39,7 +39,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). Every loop runs over time, innermost;
     the strided inputs are copied to contiguous arrays first."""
     S, T, D = targets.shape[1:]
-    K = beta.shape[3]
+    K, LB = beta.shape[3], width(Y)
     prior_std = var[r, K]
     y = np.empty((K, D, T))
     target = np.empty((D, T))
@@ -196,7 +196,7 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
     R, S, T, K = beta.shape
-    NB = w_in.shape[0]
+    NB, LB = w_in.shape[0], width(X)
     if stage == _CHUNKS:
         for c in range(lo, hi):
             first, last = c * chunk, min((c + 1) * chunk, R)
@@ -237,7 +237,7 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
 def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
     """One block: log_lik (LB,) = Σ_t Σ_k ĝ_k ln softmax(o_t)_k (Eq. 15 without ln Z) and, with
     want_grad, DY (T, K, LB) = ∂/∂o_t = ĝ - g Σ_k ĝ_k."""
-    T, K = Y.shape[0], Y.shape[1]
+    T, K, LB = Y.shape[0], Y.shape[1], width(Y)
     total, top, norm, mass = lanes(Y), lanes(Y), lanes(Y), lanes(Y)
     for v in range(LB):
         total[v] = 0.0
@@ -277,7 +277,7 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
     C0, C, Y, U, S1, S2, DY, log_lik = work
     w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
-    S = u0.shape[1]
+    S, LB = u0.shape[1], width(X)
     T, K = targets.shape[1], targets.shape[2]
     for i in range(lo, hi):
         if blocks:
@@ -363,12 +363,13 @@ class ExpertProblem(_Problem):
             T, D, R * K * S))
         self.targets = np.ascontiguousarray(targets.reshape(-1, S, T, D))
         self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype)]
+        LB = self.lanes.width
         self.chunk = LB // math.gcd(K * S, LB)  # the fewest runs whose lanes fill whole blocks
         self.staging = Staging({
             "w_in": (R, K, M, D), "w_rec": (R, K, M, M), "w_out": (R, K, D, M), "b_c": (R, K, M),
             "b_o": (R, K, D), "tau": (R, K, M), "log_sigma": (R, K), "u0": (R, S, K, M),
             "beta": (R, S, T, K)}, dtype)
-        self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",))
+        self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",), LB)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         """One phase-1 step of every active run: whole chunks of runs, as many per thread
@@ -389,7 +390,7 @@ class ExpertProblem(_Problem):
         if first == R:
             return
         _variances(first, R, p["log_sigma"], floor, prior_std, lanes.work[8])
-        blocks = range(first * K * S // LB, lanes.net[0].shape[0])
+        blocks = range(first * K * S // lanes.width, lanes.net[0].shape[0])
         for stage, items in ((_FORWARD, blocks), (_MIXTURE, range(first * S, R * S)),
                              (_BACKWARD, blocks if want_grad else range(0))):
             threads.over(_expert_items, items, stage, *args)
@@ -434,11 +435,12 @@ class GatingProblem(_Problem):
         self.targets = in_lanes(targets.transpose(2, 3, 0, 1).reshape(T_g, K, R * S))
         with np.errstate(divide="ignore", invalid="ignore"):
             self.entropy = np.where(targets > 0, targets * np.log(targets), 0.0).sum((1, 2, 3))
+        LB = self.lanes.width
         self.lanes.work.append(np.zeros((self.lanes.num_lanes // LB, LB), dtype))
         self.staging = Staging({
             "w_in": (R, H, K + D), "w_rec": (R, H, H), "w_out": (R, K, H), "b_c": (R, H),
             "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
-        self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",))
+        self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",), LB)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         args = (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),

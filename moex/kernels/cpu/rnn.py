@@ -1,5 +1,6 @@
 """The leaky RNN of Eqs. 1-3 / 5-8 over one block of lanes, teacher forced: the forward pass and its
-backward pass (BPTT), compiled with numba. Every array is the block's (..., LB) part.
+backward pass (BPTT), compiled with numba. Every array is the block's (..., LB) part
+(LB = `width(X)` lanes).
 
 Forward, per lane (T steps, H units, NI inputs, NO outputs):
     c_{-1} = tanh(u_0 + b_c),  u_t = (1-ε) u_{t-1} + ε (W_in x_t + W_rec c_{t-1}),
@@ -18,7 +19,7 @@ and at the start, where c_{-1} = tanh(u_0 + b_c) feeds step 0:
 
 from numba import njit
 
-from moex.kernels.cpu.simd import JIT, LB, fma, lanes, stack, tanh
+from moex.kernels.cpu.simd import JIT, fma, lanes, stack, sums, tanh, width
 
 
 @njit(**JIT)
@@ -27,12 +28,12 @@ def forward_pass(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, 
     """One block of lanes (every array is that block's (..., LB) part): Y (T, NO, LB) = tanh(o_t)
     if `squash` else o_t; C (T, H, LB), U (T, H, LB) and the sums S1, S2 (H, LB) of u and u²
     over {u_0..u_T} are filled where their arrays are not empty."""
-    T, NI = X.shape[0], X.shape[1]
+    T, NI, LB = X.shape[0], X.shape[1], width(X)
     H, NO = w_rec.shape[0], w_out.shape[0]
     keep_c, keep_u, keep_sums = C.shape[0] > 0, U.shape[0] > 0, S1.shape[0] > 0
     u, c, y = stack(X, H), stack(X, H), stack(X, NO)
     flat = y.reshape(NO * LB)
-    s1, s2 = stack(S1, H), stack(S1, H)  # float64 sums: the variance is taken by difference
+    s1, s2 = sums(X, H), sums(X, H)  # float64 sums: the variance is taken by difference
     acc, acc2 = lanes(X), lanes(X)
     for i in range(H):
         for v in range(LB):
@@ -99,7 +100,7 @@ def _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps
                learn_eps):  # pragma: no cover
     """One step of BPTT, from t + 1 to t: a (∂L/∂u_t), ea = ε ⊙ a_t, back = W_recᵀ ea, and the
     sums of ∂b_c and ∂ε."""
-    H, NO = w_rec.shape[0], w_out.shape[0]
+    H, NO, LB = w_rec.shape[0], w_out.shape[0], width(a)
     for i in range(H):  # a_t = (1 - c_t²)(W_outᵀ δo_t + back) + (1 - ε) a_{t+1}
         for v in range(LB):
             acc[v] = back[i, v]
@@ -132,7 +133,7 @@ def backward_pass(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_o
     """One block of lanes, given DY (T, NO, LB) = ∂L/∂o_t: every per-lane gradient (BPTT). g_eps
     is filled when U holds the potentials (learned time constants). Gradients are summed in
     stack arrays (they cannot alias the histories they read) and written once."""
-    T, NI = X.shape[0], X.shape[1]
+    T, NI, LB = X.shape[0], X.shape[1], width(X)
     H, NO = w_rec.shape[0], w_out.shape[0]
     learn_eps = U.shape[0] > 0
     a, back = stack(X, H), stack(X, H)  # ∂L/∂u_t, W_recᵀ(ε ⊙ a_{t+1})

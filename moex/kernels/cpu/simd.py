@@ -3,22 +3,38 @@
 Without Intel's SVML (not in the PyPI llvmlite), LLVM cannot vectorise calls to libm's exp, log
 or tanh; `exp`, `log` and `tanh` below are written with arithmetic and bit casts only, so a loop
 over lanes compiles to vector instructions. `lanes` is a small stack array: in a loop over its
-`LB` entries with a literal bound, LLVM keeps it in registers (a heap accumulator is stored and
+`width(x)` entries (a constant where the kernel is compiled: 8 float64, 16 float32 on AVX-512),
+LLVM keeps it in registers (a heap accumulator is stored and
 reloaded on every iteration because it might alias the arrays it reads). numba leaves LLVM's SLP
 vectoriser off by default; it is what turns those unrolled lane loops into vector instructions.
 """
 
+import math
+
 import numba
 import numpy as np
 from llvmlite import ir
+from llvmlite.binding import get_host_cpu_features
 from numba import njit, types
 from numba.core import cgutils
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
+from numba.np.numpy_support import as_dtype
 
 numba.config.SLP_VECTORIZE = 1  # read when numba builds its pass manager, before compiling
+_FEATURES = get_host_cpu_features().flatten()
+# LLVM's tuning for Intel's AVX-512 server CPUs prefers 256-bit vectors (a guard against clock
+# drops on early ones); the lane loops then run as two halves. Turned off here (unless the user
+# chose NUMBA_CPU_FEATURES): 1.1-1.2x per epoch on an Emerald Rapids VM, the same bits (every
+# lane is computed alone). numba reads it when it first compiles and keys its cache on it.
+if numba.config.CPU_FEATURES is None and "+avx512f" in _FEATURES:
+    numba.config.CPU_FEATURES = _FEATURES + ",-prefer-256-bit"
 
-LB = 8  # lanes per block: one AVX-512 vector of float64 (two AVX2 vectors)
-# Stack arrays start on a cache line: a vector of LB float64 (64 bytes) then never straddles
+# Lanes per block: one AVX-512 vector (two AVX2 vectors) of float64, and of float32 where the CPU
+# has AVX-512 (16 lanes; on a CPU without it 8, one AVX2 vector). numba compiles for this CPU and
+# keys its cache on the CPU's features, so the width a kernel was compiled with is this one.
+WIDTHS = {np.dtype(np.float64): 8,
+          np.dtype(np.float32): 16 if "+avx512f" in _FEATURES else 8}
+# Stack arrays start on a cache line: a vector of 8 float64 (64 bytes) then never straddles
 # two lines (a split load or store costs about twice as much, and where a stack array lands
 # depends on where the process's stack does: up to 25 % of a kernel's time varied between runs).
 ALIGN = 64
@@ -56,6 +72,22 @@ def _as_bits(typingctx, x):
 
 
 @intrinsic
+def _as_bits32(typingctx, x):
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(32))
+
+    return types.int32(types.float32), codegen
+
+
+@intrinsic
+def _as_float32(typingctx, x):  # the low 32 bits of an int64 (numba widens int32 arithmetic)
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(builder.trunc(args[0], ir.IntType(32)), ir.FloatType())
+
+    return types.float32(types.int64), codegen
+
+
+@intrinsic
 def _as_float(typingctx, x):
     def codegen(context, builder, signature, args):
         return builder.bitcast(args[0], ir.DoubleType())
@@ -63,7 +95,19 @@ def _as_float(typingctx, x):
     return types.float64(types.int64), codegen
 
 
-def _stack_array(context, builder, dtype, rows):
+def width(x) -> int:
+    """Lanes per block for x's dtype (x: an array or a dtype); in a compiled kernel, a constant
+    (`width(X)` of an argument X), so that loops over a block's lanes have a literal bound."""
+    return WIDTHS[np.dtype(x.dtype if isinstance(x, np.ndarray) else x)]
+
+
+@overload(width, inline="always")
+def _width(x):
+    lb = WIDTHS[np.dtype(as_dtype(x.dtype))]
+    return lambda x: lb
+
+
+def _stack_array(context, builder, dtype, rows, LB):
     """A C-contiguous (rows, LB) array in an alloca at the current position."""
     array_type = types.Array(dtype, 2, "C")
     llvm_type = context.get_value_type(dtype)
@@ -81,9 +125,10 @@ def _stack_array(context, builder, dtype, rows):
 
 @intrinsic
 def lanes(typingctx, like):
-    """A 1-D array of `LB` elements of `like`'s dtype on the stack (uninitialised); in a loop
-    over its entries with the literal bound `LB` it lives in a vector register."""
+    """A 1-D array of `width(like)` elements of `like`'s dtype on the stack (uninitialised); in a
+    loop over its entries with that constant bound it lives in a vector register."""
     dtype = like.dtype
+    LB = WIDTHS[np.dtype(as_dtype(dtype))]
     array_type = types.Array(dtype, 1, "C")
 
     def codegen(context, builder, signature, args):
@@ -101,14 +146,28 @@ def lanes(typingctx, like):
 
 @intrinsic
 def stack(typingctx, like, rows):
-    """A (rows, LB) array of `like`'s dtype on the stack (uninitialised), for the state of one
-    block of lanes. Unlike a heap array it cannot alias the arrays a kernel reads, so LLVM may
-    reorder loads and stores around it and vectorise the lane loops. Call it once per function,
-    outside loops (the memory lives until the function returns)."""
+    """A (rows, width(like)) array of `like`'s dtype on the stack (uninitialised), for the state
+    of one block of lanes. Unlike a heap array it cannot alias the arrays a kernel reads, so LLVM
+    may reorder loads and stores around it and vectorise the lane loops. Call it once per
+    function, outside loops (the memory lives until the function returns)."""
     array_type = types.Array(like.dtype, 2, "C")
+    LB = WIDTHS[np.dtype(as_dtype(like.dtype))]
 
     def codegen(context, builder, signature, args):
-        return _stack_array(context, builder, like.dtype, args[1])._getvalue()
+        return _stack_array(context, builder, like.dtype, args[1], LB)._getvalue()
+
+    return array_type(like, types.intp), codegen
+
+
+@intrinsic
+def sums(typingctx, like, rows):
+    """`stack` in float64 whatever `like`'s dtype (rows of width(like) lanes): for sums that a
+    float32 run keeps in float64."""
+    array_type = types.Array(types.float64, 2, "C")
+    LB = WIDTHS[np.dtype(as_dtype(like.dtype))]
+
+    def codegen(context, builder, signature, args):
+        return _stack_array(context, builder, types.float64, args[1], LB)._getvalue()
 
     return array_type(like, types.intp), codegen
 
@@ -170,14 +229,60 @@ def log(x):
 
 
 @njit(inline="always", **JIT)
-def tanh(x):
+def _tanh64(x):
     """tanh x with absolute error below 1e-14."""
     return 1.0 - 2.0 / (exp(2.0 * x) + 1.0)
 
 
+_F = np.float32
+_ROUND32 = _F(12582912.0)  # 1.5 · 2^23: x + _ROUND32 holds round(x) in its low bits
+_LN2_HI32, _LN2_LO32 = _F(0.693359375), _F(-2.12194440e-4)  # ln 2 = hi + lo, k · hi exact
+_C2, _C3, _C4, _C5, _C6, _C7, _C8 = (_F(1.0 / math.factorial(n)) for n in range(2, 9))
+# (tanh x - x) / x³ as a polynomial in x² on |x| <= 0.625: weighted least squares (relative error
+# of tanh) at Chebyshev nodes, rounded to float32; within 0.8 ulp there in float32 arithmetic
+_T0, _T1, _T2, _T3, _T4, _T5 = (_F(c) for c in (
+    -0.3333333134651184, 0.1333320140838623, -0.053946252912282944, 0.021698208525776863,
+    -0.008171784691512585, 0.0021382225677371025))
+
+
+@njit(inline="always", **JIT)
+def _tanh32(x):
+    """tanh x in float32 arithmetic (16 lanes a vector), within 2 ulp of the exact value
+    (tests/test_kernels.py): for |x| <= 0.625 x + x³ P(x²); above, tanh |x| = e / (e + 2) with
+    e = e^{2|x|} - 1 = 2^k (e^r - 1) + 2^k - 1, e^r - 1 = r + r²(1/2! + ... + r^6/8!)
+    (|r| <= ln 2 / 2). Both are computed and one selected (vectorised)."""
+    z = x * x
+    near = fma(fma(fma(fma(fma(_T5, z, _T4), z, _T3), z, _T2), z, _T1), z, _T0)
+    near = fma(x * z, near, x)
+    y = abs(x + x)
+    y = y if y < _F(80.0) else _F(80.0)  # tanh(40) rounds to 1 in float32
+    shifted = fma(y, _F(1.4426950408889634), _ROUND32)
+    k = shifted - _ROUND32  # round(y / ln 2)
+    r = fma(k, -_LN2_LO32, fma(k, -_LN2_HI32, y))
+    p = fma(fma(fma(fma(fma(fma(_C8, r, _C7), r, _C6), r, _C5), r, _C4), r, _C3), r, _C2)
+    q = fma(r * r, p, r)  # e^r - 1
+    scale = _as_float32((_as_bits32(shifted) + 127) << 23)  # 2^k
+    e = fma(scale, q, scale - _F(1.0))
+    far = e / (e + _F(2.0))
+    far = far if x >= _F(0.0) else -far
+    return near if y <= _F(1.25) else far
+
+
+def tanh(x):
+    """tanh x in x's precision, vectorisable (see `_tanh64`, `_tanh32`)."""
+    return math.tanh(x)
+
+
+@overload(tanh, inline="always", jit_options=dict(fastmath=FASTMATH, error_model="numpy"))
+def _tanh(x):
+    if x == types.float32:
+        return lambda x: _tanh32(x)
+    return lambda x: _tanh64(x)
+
+
 def zeros(shape: tuple, dtype=np.float64) -> np.ndarray:
     """np.zeros whose data start on a cache line (`ALIGN` bytes; numpy gives small arrays 16),
-    for arrays of blocks of lanes: with rows of LB float64 every row is then one line."""
+    for arrays of blocks of lanes: with rows of 8 float64 every row is then one line."""
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
     raw = np.zeros(size + ALIGN, np.uint8)
@@ -185,6 +290,6 @@ def zeros(shape: tuple, dtype=np.float64) -> np.ndarray:
     return raw[start:start + size].view(dtype).reshape(shape)
 
 
-def padded(count: int) -> int:
-    """`count` lanes rounded up to whole blocks."""
-    return -(-count // LB) * LB
+def padded(count: int, dtype) -> int:
+    """`count` lanes rounded up to whole blocks of `dtype`."""
+    return -(-count // width(dtype)) * width(dtype)

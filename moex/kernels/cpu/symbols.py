@@ -6,14 +6,14 @@ from numba import njit
 
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import first_use
-from moex.kernels.cpu.simd import JIT, LB, fma, lanes, padded
+from moex.kernels.cpu.simd import JIT, fma, lanes, padded, width
 
 
 @njit(nogil=True, **JIT)
 def _nearest(lo, hi, points, prototypes, symbols, out):  # pragma: no cover
     """out[n] = symbols[argmin_p ‖points[:, n] - prototypes[p]‖²] for points (D, n), LB points
     at a time (blocks lo..hi-1 of them)."""
-    P, D = prototypes.shape
+    (P, D), LB = prototypes.shape, width(points)
     for b in range(lo, hi):
         best, index, dist = lanes(points), lanes(points), lanes(points)
         for v in range(LB):
@@ -40,11 +40,11 @@ def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
     points = torch.as_tensor(points).detach().cpu().numpy()
     D = points.shape[-1]
     flat = np.asarray(points, np.float64).reshape(-1, D)
-    by_coordinate = np.zeros((D, padded(len(flat))))
+    by_coordinate = np.zeros((D, padded(len(flat), np.float64)))
     by_coordinate[:, :len(flat)] = flat.T
     out = np.empty(by_coordinate.shape[1], np.int64)
     with first_use(_nearest, "symbol kernel"):
-        threads.over(_nearest, by_coordinate.shape[1] // LB, by_coordinate,
+        threads.over(_nearest, by_coordinate.shape[1] // width(by_coordinate), by_coordinate,
                      np.ascontiguousarray(torch.as_tensor(prototypes).cpu().numpy(), np.float64),
                      np.ascontiguousarray(torch.as_tensor(prototype_symbols).cpu().numpy(),
                                           np.int64), out)
