@@ -1,7 +1,7 @@
 """Where a phase-1 step's time goes on the cpu backend: each stage of the compiled step timed
 alone, one thread, with its arithmetic per element.
 
-    python benchmarks/bench_phase1_parts.py [--runs 1 30] [--repeats 30]
+    python benchmarks/bench_phase1_parts.py [--runs 1 30] [--repeats 30] [--dtype float32]
 
 The step (`moex.kernels.cpu.phases.ExpertProblem`) is called stage by stage, as it runs when
 there are fewer chunks of runs than threads: the forward pass of every block of lanes (Eqs. 1-3
@@ -44,7 +44,7 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: i
     S, L, D = series.shape
     T, K = L - 1, cfg.model.num_experts
     gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, R)]
-    params = init_experts(cfg.model, S, D, gens)
+    params = init_experts(cfg.model, S, D, gens, series.dtype)
     fixed = {"tau": params.pop("tau")}
     params["beta"] = torch.zeros(R, S, T, K, dtype=series.dtype)
     problem = phases.ExpertProblem(series[:, :-1], series[:, 1:], cfg.model, ExpertPhaseConfig(),
@@ -115,11 +115,12 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--steps", type=int, default=100,
                         help="epochs of the timed training (the training loop's row)")
+    parser.add_argument("--dtype", default="float64", choices=["float64", "float32"])
     args = parser.parse_args(argv)
     numba.set_num_threads(1)
     torch.set_num_threads(1)
     cfg = Config(task=task_config("lissajous2"))
-    series = torch.as_tensor(load_task(cfg).series)
+    series = torch.as_tensor(load_task(cfg).series).to(getattr(torch, args.dtype))
     S, L, D = series.shape
     K, M = cfg.model.num_experts, cfg.model.experts.context_size
     work = flops_per_lane_step(M, D)

@@ -3,6 +3,8 @@ reference: objectives, every gradient group, whole training trajectories, closed
 exponents. Each law test runs on every backend through the `backend` fixture."""
 
 import dataclasses
+import os
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -564,6 +566,70 @@ def test_vectorised_tanh_is_within_2_ulp_in_float32_and_1e_14_in_float64():
     out64 = np.empty_like(x64)
     apply(x64, out64)
     assert np.abs(out64 - np.tanh(x64)).max() < 1e-14
+
+
+_WIDTH_PROBE = """
+import sys
+import numpy as np
+from moex.kernels.cpu import simd
+simd.WIDTHS[np.dtype(np.float32)] = int(sys.argv[1])  # before anything compiles
+from moex.kernels.cpu import rnn
+from tests.test_kernels import rnn_blocks
+np.save(sys.argv[2], rnn_blocks(rnn, simd.width(np.float32)))
+"""
+
+
+def rnn_blocks(rnn, LB, lanes=16, T=7, NI=3, H=5, NO=2):
+    """The float32 forward pass and BPTT (learned τ) of `lanes` random lanes, run in blocks of LB
+    lanes; every output of every lane, flattened in lane order."""
+    g = np.random.default_rng(3)
+
+    def draw(*shape, scale=1.0):
+        return (scale * g.standard_normal(shape + (lanes,))).astype(np.float32)
+
+    X, w_in, w_rec, w_out = draw(T, NI), draw(H, NI), draw(H, H, scale=0.5), draw(NO, H)
+    b_c, b_o, u0, DY = draw(H), draw(NO), draw(H), draw(T, NO)
+    eps = g.uniform(0.1, 1.0, (H, lanes)).astype(np.float32)
+    out = []
+    for lo in range(0, lanes, LB):
+        def part(x, lo=lo):
+            return np.ascontiguousarray(x[..., lo:lo + LB])
+
+        def new(*shape, dtype=np.float32):
+            return np.zeros(shape + (LB,), dtype)
+
+        C0, C, Y, U = new(H), new(T, H), new(T, NO), new(T, H)
+        S1, S2 = new(H, dtype=np.float64), new(H, dtype=np.float64)
+        rnn.forward_pass(part(X), part(w_in), part(w_rec), part(w_out), part(b_c), part(b_o),
+                         part(eps), part(u0), True, C0, C, Y, U, S1, S2)
+        grads = (new(H, NI), new(H, H), new(NO, H), new(H), new(NO), new(H), new(H))
+        rnn.backward_pass(part(DY), part(X), C0, C, U, part(u0), part(w_rec), part(w_out),
+                          part(eps), *grads)
+        out.append(np.concatenate([np.moveaxis(a, -1, 0).reshape(LB, -1).astype(np.float64)
+                                   for a in (C0, C, Y, U, S1, S2) + grads], 1))
+    return np.concatenate(out)
+
+
+def test_float32_blocks_of_8_and_16_lanes_give_the_same_bits(tmp_path):
+    """The block width is a compile-time constant (`simd.width`: 16 float32 lanes on a CPU with
+    AVX-512, 8 without) and no lane reads another: the forward pass and BPTT of 16 float32 lanes
+    give the same bits in blocks of 16 as in blocks of 8 (the other width compiled in a process of
+    its own, with a cache of its own), so float32 results do not depend on the CPU's width."""
+    import subprocess
+    import sys
+
+    from moex.kernels.cpu import rnn, simd
+
+    here = simd.width(np.float32)
+    other = 24 - here
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    done = subprocess.run([sys.executable, "-c", _WIDTH_PROBE, str(other), str(tmp_path / "o")],
+                          capture_output=True, text=True, env=env, timeout=600,
+                          cwd=Path(__file__).parents[1])
+    assert done.returncode == 0, done.stderr
+    theirs, ours = np.load(tmp_path / "o.npy"), rnn_blocks(rnn, here)
+    assert ours.shape == theirs.shape and np.isfinite(ours).all() and ours[:, :5].any()
+    np.testing.assert_array_equal(ours, theirs)
 
 
 def test_forward_pass_record_of_runs_whose_lanes_share_blocks():

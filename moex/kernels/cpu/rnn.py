@@ -19,7 +19,7 @@ and at the start, where c_{-1} = tanh(u_0 + b_c) feeds step 0:
 
 from numba import njit
 
-from moex.kernels.cpu.simd import JIT, fma, lanes, stack, sums, tanh, width
+from moex.kernels.cpu.simd import JIT, fma, lanes, stack, sums, tanh, typed, width
 
 
 @njit(**JIT)
@@ -100,7 +100,7 @@ def _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps
                learn_eps):  # pragma: no cover
     """One step of BPTT, from t + 1 to t: a (∂L/∂u_t), ea = ε ⊙ a_t, back = W_recᵀ ea, and the
     sums of ∂b_c and ∂ε."""
-    H, NO, LB = w_rec.shape[0], w_out.shape[0], width(a)
+    H, NO, LB, one = w_rec.shape[0], w_out.shape[0], width(a), typed(a, 1.0)
     for i in range(H):  # a_t = (1 - c_t²)(W_outᵀ δo_t + back) + (1 - ε) a_{t+1}
         for v in range(LB):
             acc[v] = back[i, v]
@@ -108,9 +108,9 @@ def _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps
             for v in range(LB):
                 acc[v] = fma(w_out[o, i, v], DY[t, o, v], acc[v])
         for v in range(LB):
-            dq = fma(-C[t, i, v], C[t, i, v], 1.0) * acc[v]
+            dq = fma(-C[t, i, v], C[t, i, v], one) * acc[v]
             sum_b_c[i, v] += dq
-            a[i, v] = fma(1.0 - eps[i, v], a[i, v], dq)
+            a[i, v] = fma(one - eps[i, v], a[i, v], dq)
             ea[i, v] = eps[i, v] * a[i, v]
     if learn_eps:  # ∂u_t/∂ε = s_t - u_{t-1} = (u_t - u_{t-1}) / ε
         u_prev = U[t - 1] if t > 0 else u0
@@ -134,7 +134,7 @@ def backward_pass(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_o
     is filled when U holds the potentials (learned time constants). Gradients are summed in
     stack arrays (they cannot alias the histories they read) and written once."""
     T, NI, LB = X.shape[0], X.shape[1], width(X)
-    H, NO = w_rec.shape[0], w_out.shape[0]
+    H, NO, one, zero = w_rec.shape[0], w_out.shape[0], typed(X, 1.0), typed(X, 0.0)
     learn_eps = U.shape[0] > 0
     a, back = stack(X, H), stack(X, H)  # ∂L/∂u_t, W_recᵀ(ε ⊙ a_{t+1})
     ea, ea2 = stack(X, H), stack(X, H)  # ε ⊙ a of the two steps in hand
@@ -171,7 +171,7 @@ def backward_pass(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_o
             for i in range(H):
                 for v in range(LB):
                     ea2[i, v] = 0.0
-        weight = 1.0 if second else 0.0
+        weight = one if second else zero
         prev, prev2 = C[t - 1] if t > 0 else C0, C[s - 1] if s > 0 else C0
         for o in range(NO):  # each sum read and written once per two steps, added in time order
             for v in range(LB):
@@ -191,9 +191,9 @@ def backward_pass(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_o
                         ea[i, v], prev[j, v], sum_w_rec[i * H + j, v]))
     for i in range(H):  # c_{-1} = tanh(u_0 + b_c) feeds step 0
         for v in range(LB):
-            dq = (1.0 - C0[i, v] * C0[i, v]) * back[i, v]
+            dq = (one - C0[i, v] * C0[i, v]) * back[i, v]
             g_b_c[i, v] = sum_b_c[i, v] + dq
-            g_u0[i, v] = (1.0 - eps[i, v]) * a[i, v] + dq
+            g_u0[i, v] = (one - eps[i, v]) * a[i, v] + dq
             g_eps[i, v] = sum_eps[i, v]
         for d in range(NI):
             for v in range(LB):

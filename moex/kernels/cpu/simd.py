@@ -107,6 +107,18 @@ def _width(x):
     return lambda x: lb
 
 
+def typed(x, value):
+    """`value` in x's dtype (x an array): a float literal is float64 in numba, and one in a float32
+    expression would turn the whole expression into float64 (half the lanes per vector)."""
+    return x.dtype.type(value)
+
+
+@overload(typed, inline="always")
+def _typed(x, value):
+    kind = np.float32 if x.dtype == types.float32 else np.float64
+    return lambda x, value: kind(value)
+
+
 def _stack_array(context, builder, dtype, rows, LB):
     """A C-contiguous (rows, LB) array in an alloca at the current position."""
     array_type = types.Array(dtype, 2, "C")
