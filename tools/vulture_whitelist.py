@@ -10,6 +10,7 @@ __dir__  # moex/__init__.py: the same, for dir(moex)
 _.SLP_VECTORIZE  # moex/kernels/cpu/simd.py: a numba setting numba reads
 _.align  # moex/kernels/cpu/simd.py: the alignment of an llvmlite alloca, which llvmlite prints
 _.get_source_stamp  # moex/kernels/cpu/cache.py: numba's cache locator interface, numba calls it
+_width, _typed, _tanh  # moex/kernels/cpu/simd.py: numba overloads, registered by @overload
 TerminalFormatter  # conf/hydra/job_logging/moex.yaml names the log formatter
 BarOrLines  # conf/hydra/job_logging/moex.yaml names the console filter
 PackedLauncher  # conf: hydra/launcher=packed (Hydra instantiates it by its _target_)
