@@ -98,14 +98,17 @@ def _as_float(typingctx, x):
 
 
 def width(x) -> int:
-    """Lanes per block for x's dtype (x: an array or a dtype); in a compiled kernel, a constant
-    (`width(X)` of an argument X), so that loops over a block's lanes have a literal bound."""
-    return WIDTHS[np.dtype(x.dtype if isinstance(x, np.ndarray) else x)]
+    """Lanes per block for x's dtype (x: an array or a dtype, numpy's or numba's); in a compiled
+    kernel, a constant (`width(X)` of an argument X), so that loops over a block's lanes have a
+    literal bound."""
+    if isinstance(x, np.ndarray | types.Array):
+        x = x.dtype
+    return WIDTHS[np.dtype(as_dtype(x) if isinstance(x, types.Type) else x)]
 
 
 @overload(width, inline="always")
 def _width(x):
-    lb = WIDTHS[np.dtype(as_dtype(x.dtype))]
+    lb = width(x)
     return lambda x: lb
 
 
@@ -141,8 +144,7 @@ def _stack_array(context, builder, dtype, rows, LB):
 def lanes(typingctx, like):
     """A 1-D array of `width(like)` elements of `like`'s dtype on the stack (uninitialised); in a
     loop over its entries with that constant bound it lives in a vector register."""
-    dtype = like.dtype
-    LB = WIDTHS[np.dtype(as_dtype(dtype))]
+    dtype, LB = like.dtype, width(like)
     array_type = types.Array(dtype, 1, "C")
 
     def codegen(context, builder, signature, args):
@@ -164,26 +166,24 @@ def stack(typingctx, like, rows):
     of one block of lanes. Unlike a heap array it cannot alias the arrays a kernel reads, so LLVM
     may reorder loads and stores around it and vectorise the lane loops. Call it once per
     function, outside loops (the memory lives until the function returns)."""
-    array_type = types.Array(like.dtype, 2, "C")
-    LB = WIDTHS[np.dtype(as_dtype(like.dtype))]
-
-    def codegen(context, builder, signature, args):
-        return _stack_array(context, builder, like.dtype, args[1], LB)._getvalue()
-
-    return array_type(like, types.intp), codegen
+    return _stack_of(like, like.dtype)
 
 
 @intrinsic
 def sums(typingctx, like, rows):
     """`stack` in float64 whatever `like`'s dtype (rows of width(like) lanes): for sums that a
     float32 run keeps in float64."""
-    array_type = types.Array(types.float64, 2, "C")
-    LB = WIDTHS[np.dtype(as_dtype(like.dtype))]
+    return _stack_of(like, types.float64)
+
+
+def _stack_of(like, dtype):
+    """The signature and code of a (rows, width(like)) stack array of `dtype` (`stack`, `sums`)."""
+    LB = width(like)
 
     def codegen(context, builder, signature, args):
-        return _stack_array(context, builder, types.float64, args[1], LB)._getvalue()
+        return _stack_array(context, builder, dtype, args[1], LB)._getvalue()
 
-    return array_type(like, types.intp), codegen
+    return types.Array(dtype, 2, "C")(like, types.intp), codegen
 
 
 _LOG2E = 1.4426950408889634
