@@ -80,11 +80,12 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: i
     return best
 
 
-def loop_seconds(R: int, dtype: torch.dtype, steps: int) -> float:
+def loop_seconds(R: int, dtype: torch.dtype, steps: int, base: int = 10) -> float:
     """Seconds per fixed-rate epoch of `train_experts` outside its `value_and_grad` calls (the
-    momentum update, checks and bookkeeping), from `steps` epochs (so that progress lines are as
-    rare as in a training), the least of 3. Each epoch's own call is subtracted, not the least
-    of many calls: an epoch's time includes all of the machine's jitter."""
+    momentum update, checks and bookkeeping): the marginal time of `steps` epochs over `base`
+    epochs (so that setting up the problem and the last evaluation cancel out), the least of 3.
+    Each epoch's own call is subtracted, not the least of many calls: an epoch's time includes
+    all of the machine's jitter."""
     epoch = trainers("lissajous2", R, "cpu", dtype=str(dtype).removeprefix("torch."))[0]
     epoch = epoch["phase 1, fixed rate"]
     warm_up(epoch, steps, 1)
@@ -97,16 +98,16 @@ def loop_seconds(R: int, dtype: torch.dtype, steps: int) -> float:
         inside[0] += time.perf_counter() - start
         return out
 
+    def outside(n: int) -> float:
+        inside[0], start = 0.0, time.perf_counter()
+        epoch(n)
+        return time.perf_counter() - start - inside[0]
+
     phases.ExpertProblem.value_and_grad = timed
     try:
-        best = float("inf")
-        for _ in range(3):
-            inside[0], start = 0.0, time.perf_counter()
-            epoch(steps)
-            best = min(best, (time.perf_counter() - start - inside[0]) / steps)
+        return min((outside(steps) - outside(base)) / (steps - base) for _ in range(3))
     finally:
         phases.ExpertProblem.value_and_grad = call
-    return best
 
 
 def main(argv=None) -> None:

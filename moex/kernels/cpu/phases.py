@@ -31,20 +31,40 @@ from moex.kernels.noise import input_noise
 # phase 1: the experts and β (Eqs. 9-13)
 
 
+@njit(inline="always", **JIT)
+def _total(x, n):  # pragma: no cover
+    """x[0] + ... + x[n-1] as width(x) partial sums (x[t] into sum t mod width, a vector's
+    lanes) added in a fixed order: a sum over time that vectorises and rounds alike every run."""
+    acc, W = lanes(x), width(x)
+    for v in range(W):
+        acc[v] = 0.0
+    for t0 in range(0, n - n % W, W):
+        for v in range(W):
+            acc[v] += x[t0 + v]
+    for t in range(n - n % W, n):
+        acc[t % W] += x[t]
+    total = 0.0
+    for v in range(W):
+        total += acc[v]
+    return total
+
+
 @njit(**JIT)
 def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pragma: no cover
     """Series s of run r: ln p(y | X, β, γ) in log space (Eqs. 10-12), the Brownian prior on β
     (Eq. 13) and the E error; with want_grad ∂/∂o of every expert output and ∂/∂β (Eq. 19).
     partial[r·S + s] gets (ln p, ln φ(β), Σ‖ŷ - y‖², then per expert ∂ ln p/∂s of
-    σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). Every loop runs over time, innermost;
-    the strided inputs are copied to contiguous arrays first."""
+    σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). The strided inputs are copied to
+    contiguous float64 arrays first; every loop runs over time, innermost, element by element
+    (LLVM vectorises them, exp and log included), and sums over time are `_total`'s."""
     S, T, D = targets.shape[1:]
     K, LB = beta.shape[3], width(Y)
     prior_std = var[r, K]
     y = np.empty((K, D, T))
     target = np.empty((D, T))
-    log_ghat, z, ghat, b = np.empty((K, T)), np.empty((K, T)), np.empty((K, T)), np.empty((K, T))
-    top, total = np.empty(T), np.empty(T)
+    b = np.empty((K, T + 1))  # (a last column, so that β_{t+1} - β_t reads within the array)
+    log_ghat, z, ghat = np.empty((K, T)), np.empty((K, T)), np.empty((K, T))
+    top, total, sq = np.empty(T), np.empty(T), np.empty(T)
     for k in range(K):
         lane = (r * K + k) * S + s
         for d in range(D):
@@ -57,6 +77,8 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     for t in range(T):
         for k in range(K):
             b[k, t] = beta[r, s, t, k]
+    for k in range(K):
+        b[k, T] = b[k, T - 1]
     # ln ĝ = β - ln Σ exp β (Eq. 9)
     for t in range(T):
         top[t] = b[0, t]
@@ -76,6 +98,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     # z_k = ln ĝ_k + ln N(y; y^k, σ_k² NI); ln p = ln Σ_k exp z_k
     for k in range(K):
         norm = -0.5 * D * log(2.0 * math.pi * var[r, k])
+        scale = 2.0 * var[r, k]
         for t in range(T):
             z[k, t] = 0.0
         for d in range(D):
@@ -83,7 +106,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
                 diff = y[k, d, t] - target[d, t]
                 z[k, t] = fma(diff, diff, z[k, t])
         for t in range(T):
-            z[k, t] = log_ghat[k, t] + norm - z[k, t] / (2.0 * var[r, k])
+            z[k, t] = log_ghat[k, t] + norm - z[k, t] / scale
     for t in range(T):
         top[t] = z[0, t]
         total[t] = 0.0
@@ -93,11 +116,11 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     for k in range(K):
         for t in range(T):
             total[t] += exp(z[k, t] - top[t])
-    log_lik = 0.0
     for t in range(T):
-        top[t] += log(total[t])
-        log_lik += top[t]
-    error = 0.0  # E: the mixture Σ_k ĝ_k y^k against the target
+        top[t] += log(total[t])  # ln p
+    partial[r * S + s, 0] = _total(top, T)
+    for t in range(T):  # E: the mixture Σ_k ĝ_k y^k against the target
+        sq[t] = 0.0
     for d in range(D):
         for t in range(T):
             total[t] = -target[d, t]
@@ -105,42 +128,42 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             for t in range(T):
                 total[t] = fma(ghat[k, t], y[k, d, t], total[t])
         for t in range(T):
-            error = fma(total[t], total[t], error)
-    prior = 0.0
+            sq[t] = fma(total[t], total[t], sq[t])
+    partial[r * S + s, 2] = _total(sq, T)
     inv = 1.0 / (prior_std * prior_std)
     log_norm = 0.5 * log(2.0 * math.pi * prior_std * prior_std)
-    for k in range(K):
-        for t in range(T - 1):
+    for t in range(T):
+        sq[t] = 0.0
+    for k in range(K):  # the prior (Eq. 13): its terms per step t < T - 1
+        for t in range(T):
             diff = b[k, t + 1] - b[k, t]
-            prior -= 0.5 * diff * diff * inv + log_norm
-    partial[r * S + s, 0] = log_lik
-    partial[r * S + s, 1] = prior
-    partial[r * S + s, 2] = error
+            sq[t] += 0.5 * diff * diff * inv + log_norm
+    partial[r * S + s, 1] = -_total(sq, T - 1)
     if not want_grad:
         return
-    resp, sq = total, np.empty(T)
+    resp, term = total, sq
     for k in range(K):
         lane = (r * K + k) * S + s
+        var_k = var[r, k]
         for t in range(T):  # exp(z_k - ln p): the posterior responsibility of expert k
             resp[t] = exp(z[k, t] - top[t])
-        for t in range(T):  # with G_n / ς² of Eq. 19
-            g_beta[r, s, t, k] = resp[t] - ghat[k, t] + inv * (
-                b[k, min(t + 1, T - 1)] - 2.0 * b[k, t] + b[k, max(t - 1, 0)])
-        for t in range(T):
-            sq[t] = 0.0
+            term[t] = 0.0
         for d in range(D):
             for t in range(T):
                 diff = y[k, d, t] - target[d, t]
-                sq[t] = fma(diff, diff, sq[t])
-        sigma_term = 0.0
+                term[t] = fma(diff, diff, term[t])
         for t in range(T):
-            sigma_term += resp[t] * (sq[t] / var[r, k] - D)
-        partial[r * S + s, 3 + k] = sigma_term
+            term[t] = resp[t] * (term[t] / var_k - D)
+        partial[r * S + s, 3 + k] = _total(term, T)
+        for t in range(T):  # with G_n / ς² of Eq. 19 (b[k, T] repeats β_{T-1})
+            g_beta[r, s, t, k] = resp[t] - ghat[k, t] + inv * (
+                b[k, t + 1] - 2.0 * b[k, t] + b[k, max(t - 1, 0)])
         for d in range(D):
             for t in range(T):
                 out = y[k, d, t]
-                DY[lane // LB, t, d, lane % LB] = resp[t] * (target[d, t] - out) / var[r, k] \
-                    * fma(-out, out, 1.0)
+                term[t] = resp[t] * (target[d, t] - out) / var_k * fma(-out, out, 1.0)
+            for t in range(T):
+                DY[lane // LB, t, d, lane % LB] = term[t]
 
 
 @njit(**JIT)
