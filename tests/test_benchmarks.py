@@ -96,6 +96,18 @@ def test_the_phase1_breakdown_times_every_stage(tmp_path):
         assert re.search(rf"\| 1 \| {stage}[^|]* \| -?\d+\.\d+ \|", done.stdout), stage
 
 
+def test_the_host_share_benchmark_prints_a_share_per_phase(tmp_path):
+    """benchmarks/bench_host.py: per phase an epoch time, the host's part of it and the share."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_host.py"), "--runs",
+                           "1", "--steps", "2", "--base", "1", "--repeats", "1"],
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    number = r"-?\d+\.\d+"
+    for phase in ("phase 1, fixed rate", "phase 1, adaptive rate", "phase 2, adaptive rate"):
+        assert re.search(rf"\| {phase} \| 1 \| {number} \| {number} \| {number} % \|",
+                         done.stdout), phase
+
+
 def test_the_adaptive_rate_benchmark_prints_its_rows(tmp_path):
     """benchmarks/bench_adaptive.py: phase 1 at a fixed rate, then both adaptive phases with the
     trial's forward pass reused and run again, each a time and a ratio."""

@@ -1,0 +1,71 @@
+"""The host's share of a training epoch on the cpu backend: the time outside the compiled
+kernels' calls (the training loop's Python, PyTorch's small operations, the staging of
+parameters) as a fraction of the epoch, per phase, one thread.
+
+    python benchmarks/bench_host.py [--runs 1 30] [--steps 100] [--repeats 3]
+
+Each compiled call of a training step goes through `moex.kernels.cpu.threads.over` (the phase
+kernels, the momentum update, the adaptive-rate trial), which the script wraps to add up the
+time spent inside it; phase 2's sums per run and phase 1's sums of runs left over from whole
+chunks (a few µs) are called directly and count as host time here. Epoch and host times are
+marginal (`base + steps` epochs minus `base`, as `bench_epochs.py`), the pair with the least
+epoch time of `--repeats`. Two-Lissajous sizes.
+"""
+
+import argparse
+import time
+
+import numba
+import torch
+from bench_epochs import _clock, trainers, warm_up
+
+from moex.kernels.cpu import threads
+
+
+def host_share(fn, steps: int, base: int, repeats: int) -> tuple[float, float]:
+    """(epoch, host) seconds per epoch of `fn(n)` (n epochs), host = outside `threads.over`."""
+    inside, over = [0.0], threads.over
+
+    def timed(*args):
+        start = time.perf_counter()
+        try:
+            return over(*args)
+        finally:
+            inside[0] += time.perf_counter() - start
+
+    def outside(n: int) -> tuple[float, float]:
+        inside[0] = 0.0
+        wall = _clock(fn, n, False)[0]
+        return wall, wall - inside[0]
+
+    threads.over = timed
+    try:
+        warm_up(fn, steps, base)
+        pairs = []
+        for _ in range(repeats):
+            (short, short_host), (long, long_host) = outside(base), outside(base + steps)
+            pairs.append(((long - short) / steps, (long_host - short_host) / steps))
+        return min(pairs)
+    finally:
+        threads.over = over
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, nargs="+", default=[1, 30])
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--base", type=int, default=10)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    numba.set_num_threads(1)
+    torch.set_num_threads(1)
+    print("| phase | R | ms per epoch | host ms per epoch | host share |\n|---|---|---|---|---|")
+    for R in args.runs:
+        for name, fn in trainers("lissajous2", R, "cpu")[0].items():
+            epoch, host = host_share(fn, args.steps, args.base, args.repeats)
+            print(f"| {name} | {R} | {1e3 * epoch:.3f} | {1e3 * host:.3f} | "
+                  f"{100 * host / epoch:.1f} % |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
