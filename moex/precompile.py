@@ -31,7 +31,7 @@ def compile_later_phases(dtype: str) -> None:
     state = random_state(experts, gating, 1, num_features=2, delay=1, generator=generators[0])
     tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
     tangents[..., 0, 0] = 1.0
-    closed_loop(experts, gating, state, 2, None, tangents, True)
+    closed_loop(experts, gating, state, 2, tangents=tangents, count=True)
     ghat = torch.full((1, 1, 4, 2), 0.5, dtype=torch_dtype)
     problem = phases.GatingProblem(ghat, torch.zeros((1, 4, 2), dtype=torch_dtype), model,
                                    GatingPhaseConfig(), seeds=[0])

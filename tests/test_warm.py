@@ -52,6 +52,31 @@ def test_the_run_never_waits_for_a_kernel_the_helper_does_not_compile(helper, tm
     assert helper.poll() is None
 
 
+def test_a_failed_helper_is_said_once_in_the_log(monkeypatch, tmp_path, caplog):
+    process = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    process.wait()
+    monkeypatch.setattr(warm, "_helper", process)
+    monkeypatch.setattr(warm, "_failure_told", False)
+    with caplog.at_level("WARNING", logger="moex.kernels.cpu"):
+        warm.wait_for(_kernel("closed_blocks", tmp_path / "missing.nbi"))
+        warm.wait_for(_kernel("gating_items", tmp_path / "missing.nbi"))
+    failures = [r for r in caplog.records if "compile helper" in r.getMessage()]
+    assert len(failures) == 1 and "exit code 3" in failures[0].getMessage()
+
+
+def test_the_helper_calls_every_kernel_it_compiles():
+    """`moex.precompile.compile_later_phases` runs the closed loop, phase 2 and the symbols as
+    the helper does (its stderr goes nowhere: a call that no longer matches a kernel's signature
+    had left every first run compiling them itself)."""
+    from moex.kernels.cpu import LATER
+    from moex.kernels.cpu.symbols import _nearest
+    from moex.precompile import compile_later_phases
+
+    compile_later_phases("float64")
+    for kernel in (*LATER, _nearest):
+        assert kernel.signatures, kernel
+
+
 def test_without_a_helper_nothing_waits(monkeypatch, tmp_path):
     monkeypatch.setattr(warm, "_helper", None)
     assert not warm.wait_for(_kernel("closed_blocks", tmp_path / "missing.nbi"))

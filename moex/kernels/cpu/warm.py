@@ -7,6 +7,7 @@ started otherwise starts its own. Exact reruns make this safe: a kernel loaded f
 gives the bits of one compiled in the process (tested). Imports no kernel module: they import
 this one (`lanes.first_use`)."""
 
+import logging
 import pickle
 import subprocess
 import time
@@ -17,6 +18,8 @@ from moex import compile_helper
 _helper: subprocess.Popen | None = None
 _dtype: str | None = None  # the precision of the run (and its helper)
 _COMPILES = ("gating_items", "closed_blocks", "_nearest")  # what the helper compiles
+_failure_told = False
+logger = logging.getLogger("moex.kernels.cpu")
 
 
 def _indexed(kernel, dtype: str | None = None) -> bool:
@@ -55,11 +58,17 @@ def start(dtype: str, later: tuple) -> subprocess.Popen | None:
 
 def wait_for(kernel) -> bool:
     """While the helper runs and has not cached `kernel` yet, wait for it rather than compile the
-    same kernel beside it (on 2 cores that doubles the wait). Whether it waited."""
+    same kernel beside it (on 2 cores that doubles the wait). Whether it waited. A helper that
+    failed is said once in the log (the run then compiles the kernel itself)."""
+    global _failure_told
     waited = False
     if kernel.__name__ not in _COMPILES:
         return waited
     while _helper is not None and _helper.poll() is None and not _indexed(kernel, _dtype):
         time.sleep(0.05)
         waited = True
+    if _helper is not None and _helper.poll() and not _failure_told:
+        _failure_told = True
+        logger.warning("the compile helper (python -m moex.precompile %s) failed with exit code "
+                       "%d; the run compiles its kernels itself", _dtype, _helper.returncode)
     return waited
