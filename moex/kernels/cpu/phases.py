@@ -34,7 +34,8 @@ from moex.kernels.noise import input_noise
 @njit(inline="always", **JIT)
 def _total(x, n):  # pragma: no cover
     """x[0] + ... + x[n-1] as width(x) partial sums (x[t] into sum t mod width, a vector's
-    lanes) added in a fixed order: a sum over time that vectorises and rounds alike every run."""
+    lanes) added in a fixed order: a sum over time that vectorises and rounds alike every run
+    (x is float64 here: 8 sums on every CPU)."""
     acc, W = lanes(x), width(x)
     for v in range(W):
         acc[v] = 0.0
