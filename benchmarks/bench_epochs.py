@@ -53,6 +53,38 @@ def marginal(fn, steps: int, base: int, sync: bool = False) -> tuple[float, floa
     return (long[0] - short[0]) / steps, (long[1] - short[1]) / steps
 
 
+def outside_pairs(fn, owner, name: str, steps: int, base: int, repeats: int
+                  ) -> list[tuple[float, float]]:
+    """`repeats` pairs (epoch, outside) of seconds per epoch of `fn(n)` (n epochs) after
+    `warm_up`: marginal, `base + steps` epochs minus `base`, and of that the time outside the
+    calls of `owner.<name>` (wrapped while this runs). Each epoch's own calls are subtracted, not
+    the least of many calls: an epoch's time includes all of the machine's jitter."""
+    inside, call = [0.0], getattr(owner, name)
+
+    def timed(*args):
+        start = time.perf_counter()
+        try:
+            return call(*args)
+        finally:
+            inside[0] += time.perf_counter() - start
+
+    def clocked(n: int) -> tuple[float, float]:
+        inside[0] = 0.0
+        wall = _clock(fn, n, False)[0]
+        return wall, wall - inside[0]
+
+    setattr(owner, name, timed)
+    try:
+        warm_up(fn, steps, base)
+        pairs = []
+        for _ in range(repeats):
+            (short, short_out), (long, long_out) = clocked(base), clocked(base + steps)
+            pairs.append(((long - short) / steps, (long_out - short_out) / steps))
+        return pairs
+    finally:
+        setattr(owner, name, call)
+
+
 def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tuple[float, float]:
     """(wall, cpu) seconds per epoch (`marginal`), the best of `repeats` pairs after `warm_up`."""
     warm_up(fn, steps, base)

@@ -13,41 +13,18 @@ epoch time of `--repeats`. Two-Lissajous sizes.
 """
 
 import argparse
-import time
 
 import numba
 import torch
-from bench_epochs import _clock, trainers, warm_up
+from bench_epochs import outside_pairs, trainers
 
 from moex.kernels.cpu import threads
 
 
 def host_share(fn, steps: int, base: int, repeats: int) -> tuple[float, float]:
-    """(epoch, host) seconds per epoch of `fn(n)` (n epochs), host = outside `threads.over`."""
-    inside, over = [0.0], threads.over
-
-    def timed(*args):
-        start = time.perf_counter()
-        try:
-            return over(*args)
-        finally:
-            inside[0] += time.perf_counter() - start
-
-    def outside(n: int) -> tuple[float, float]:
-        inside[0] = 0.0
-        wall = _clock(fn, n, False)[0]
-        return wall, wall - inside[0]
-
-    threads.over = timed
-    try:
-        warm_up(fn, steps, base)
-        pairs = []
-        for _ in range(repeats):
-            (short, short_host), (long, long_host) = outside(base), outside(base + steps)
-            pairs.append(((long - short) / steps, (long_host - short_host) / steps))
-        return min(pairs)
-    finally:
-        threads.over = over
+    """(epoch, host) seconds per epoch of `fn(n)` (n epochs), host = outside `threads.over`: the
+    pair with the least epoch time."""
+    return min(outside_pairs(fn, threads, "over", steps, base, repeats))
 
 
 def main(argv=None) -> None:

@@ -20,7 +20,7 @@ import time
 import numba
 import numpy as np
 import torch
-from bench_epochs import trainers, warm_up
+from bench_epochs import outside_pairs, trainers
 
 from moex.config import Config
 from moex.config.train import ExpertPhaseConfig
@@ -83,32 +83,13 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: i
 def loop_seconds(R: int, dtype: torch.dtype, steps: int, base: int = 10) -> float:
     """Seconds per fixed-rate epoch of `train_experts` outside its `value_and_grad` calls (the
     momentum update, checks and bookkeeping): the marginal time of `steps` epochs over `base`
-    epochs (so that setting up the problem and the last evaluation cancel out), the least of 3.
-    Each epoch's own call is subtracted, not the least of many calls: an epoch's time includes
-    all of the machine's jitter."""
+    epochs (so that setting up the problem and the last evaluation cancel out), the least of 3
+    (`bench_epochs.outside_pairs`)."""
     epoch = trainers("lissajous2", R, "cpu", dtype=str(dtype).removeprefix("torch."))[0]
-    epoch = epoch["phase 1, fixed rate"]
-    warm_up(epoch, steps, 1)
-    inside = [0.0]
-    call = phases.ExpertProblem.value_and_grad
-
-    def timed(self, *args):
-        start = time.perf_counter()
-        out = call(self, *args)
-        inside[0] += time.perf_counter() - start
-        return out
-
-    def outside(n: int) -> float:
-        inside[0], start = 0.0, time.perf_counter()
-        epoch(n)
-        return time.perf_counter() - start - inside[0]
-
     base = max(1, min(base, steps // 2))
-    phases.ExpertProblem.value_and_grad = timed
-    try:
-        return min((outside(steps) - outside(base)) / (steps - base) for _ in range(3))
-    finally:
-        phases.ExpertProblem.value_and_grad = call
+    pairs = outside_pairs(epoch["phase 1, fixed rate"], phases.ExpertProblem, "value_and_grad",
+                          steps - base, base, 3)
+    return min(outside for _, outside in pairs)
 
 
 def main(argv=None) -> None:

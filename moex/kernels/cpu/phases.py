@@ -65,6 +65,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     target = np.empty((D, T))
     b = np.empty((K, T + 1))  # (a last column, so that β_{t+1} - β_t reads within the array)
     log_ghat, z, ghat = np.empty((K, T)), np.empty((K, T)), np.empty((K, T))
+    err = np.empty((K, T))  # ‖y^k_t - y_t‖², for z and again for ∂/∂s_k
     top, total, sq = np.empty(T), np.empty(T), np.empty(T)
     for k in range(K):
         lane = (r * K + k) * S + s
@@ -101,13 +102,13 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         norm = -0.5 * D * log(2.0 * math.pi * var[r, k])
         scale = 2.0 * var[r, k]
         for t in range(T):
-            z[k, t] = 0.0
+            err[k, t] = 0.0
         for d in range(D):
             for t in range(T):
                 diff = y[k, d, t] - target[d, t]
-                z[k, t] = fma(diff, diff, z[k, t])
+                err[k, t] = fma(diff, diff, err[k, t])
         for t in range(T):
-            z[k, t] = log_ghat[k, t] + norm - z[k, t] / scale
+            z[k, t] = log_ghat[k, t] + norm - err[k, t] / scale
     for t in range(T):
         top[t] = z[0, t]
         total[t] = 0.0
@@ -148,13 +149,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         var_k = var[r, k]
         for t in range(T):  # exp(z_k - ln p): the posterior responsibility of expert k
             resp[t] = exp(z[k, t] - top[t])
-            term[t] = 0.0
-        for d in range(D):
-            for t in range(T):
-                diff = y[k, d, t] - target[d, t]
-                term[t] = fma(diff, diff, term[t])
-        for t in range(T):
-            term[t] = resp[t] * (term[t] / var_k - D)
+            term[t] = resp[t] * (err[k, t] / var_k - D)
         partial[r * S + s, 3 + k] = _total(term, T)
         for t in range(T):  # with G_n / ς² of Eq. 19 (b[k, T] repeats β_{T-1})
             g_beta[r, s, t, k] = resp[t] - ghat[k, t] + inv * (
