@@ -53,27 +53,31 @@ def marginal(fn, steps: int, base: int, sync: bool = False) -> tuple[float, floa
     return (long[0] - short[0]) / steps, (long[1] - short[1]) / steps
 
 
-def outside_pairs(fn, owner, name: str, steps: int, base: int, repeats: int
+def outside_pairs(fn, targets: list[tuple[object, str]], steps: int, base: int, repeats: int
                   ) -> list[tuple[float, float]]:
     """`repeats` pairs (epoch, outside) of seconds per epoch of `fn(n)` (n epochs) after
     `warm_up`: marginal, `base + steps` epochs minus `base`, and of that the time outside the
-    calls of `owner.<name>` (wrapped while this runs). Each epoch's own calls are subtracted, not
-    the least of many calls: an epoch's time includes all of the machine's jitter."""
-    inside, call = [0.0], getattr(owner, name)
+    calls of each `owner.<name>` of `targets` (wrapped while this runs; none may call another).
+    Each epoch's own calls are subtracted, not the least of many calls: an epoch's time includes
+    all of the machine's jitter."""
+    inside, calls = [0.0], [getattr(owner, name) for owner, name in targets]
 
-    def timed(*args):
-        start = time.perf_counter()
-        try:
-            return call(*args)
-        finally:
-            inside[0] += time.perf_counter() - start
+    def timer(call):
+        def timed(*args):
+            start = time.perf_counter()
+            try:
+                return call(*args)
+            finally:
+                inside[0] += time.perf_counter() - start
+        return timed
 
     def clocked(n: int) -> tuple[float, float]:
         inside[0] = 0.0
         wall = _clock(fn, n, False)[0]
         return wall, wall - inside[0]
 
-    setattr(owner, name, timed)
+    for (owner, name), call in zip(targets, calls, strict=True):
+        setattr(owner, name, timer(call))
     try:
         warm_up(fn, steps, base)
         pairs = []
@@ -82,7 +86,8 @@ def outside_pairs(fn, owner, name: str, steps: int, base: int, repeats: int
             pairs.append(((long - short) / steps, (long_out - short_out) / steps))
         return pairs
     finally:
-        setattr(owner, name, call)
+        for (owner, name), call in zip(targets, calls, strict=True):
+            setattr(owner, name, call)
 
 
 def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tuple[float, float]:

@@ -2,14 +2,16 @@
 kernels' calls (the training loop's Python, PyTorch's small operations, the staging of
 parameters) as a fraction of the epoch, per phase, one thread.
 
-    python benchmarks/bench_host.py [--runs 1 30] [--steps 100] [--repeats 3]
+    python benchmarks/bench_host.py [--runs 1 30] [--steps 100] [--repeats 3] [--separate]
 
-Each compiled call of a training step goes through `moex.kernels.cpu.threads.over` (the phase
-kernels, the momentum update, the adaptive-rate trial), which the script wraps to add up the
-time spent inside it; phase 2's sums per run and phase 1's sums of runs left over from whole
-chunks (a few µs) are called directly and count as host time here. Epoch and host times are
-marginal (`base + steps` epochs minus `base`, as `bench_epochs.py`), the pair with the least
-epoch time of `--repeats`. Two-Lissajous sizes.
+The compiled calls of a training step are the ones through `moex.kernels.cpu.threads.over` (the
+separate calls: phase kernels, momentum update, adaptive-rate trial) or, on one thread, the
+stepper's (`moex.kernels.cpu.step`: each phase's `evaluate` and the update functions between);
+the script wraps them all to add up the time spent inside. Phase 2's sums per run and phase 1's
+sums of runs left over from whole chunks (a few µs) are called directly and count as host time
+in the separate calls. `--separate`: the training loop's separate calls (no stepper), for the
+comparison. Epoch and host times are marginal (`base + steps` epochs minus `base`, as
+`bench_epochs.py`), the pair with the least epoch time of `--repeats`. Two-Lissajous sizes.
 """
 
 import argparse
@@ -18,13 +20,17 @@ import numba
 import torch
 from bench_epochs import outside_pairs, trainers
 
-from moex.kernels.cpu import threads
+from moex.kernels.cpu import phases, step, threads
+
+COMPILED = [(threads, "over"), (phases.ExpertProblem, "evaluate"),
+            (phases.GatingProblem, "evaluate"), (step, "after_gradient"), (step, "after_trial"),
+            (step, "apply_runs"), (step, "stale_runs")]
 
 
 def host_share(fn, steps: int, base: int, repeats: int) -> tuple[float, float]:
-    """(epoch, host) seconds per epoch of `fn(n)` (n epochs), host = outside `threads.over`: the
-    pair with the least epoch time."""
-    return min(outside_pairs(fn, threads, "over", steps, base, repeats))
+    """(epoch, host) seconds per epoch of `fn(n)` (n epochs), host = outside the compiled calls
+    (`COMPILED`): the pair with the least epoch time."""
+    return min(outside_pairs(fn, COMPILED, steps, base, repeats))
 
 
 def main(argv=None) -> None:
@@ -33,7 +39,11 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--base", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--separate", action="store_true",
+                        help="the training loop's separate calls, no stepper")
     args = parser.parse_args(argv)
+    if args.separate:
+        phases._Problem.stepper = lambda self, *a, **k: None
     numba.set_num_threads(1)
     torch.set_num_threads(1)
     print("| phase | R | ms per epoch | host ms per epoch | host share |\n|---|---|---|---|---|")

@@ -81,13 +81,14 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: i
 
 
 def loop_seconds(R: int, dtype: torch.dtype, steps: int, base: int = 10) -> float:
-    """Seconds per fixed-rate epoch of `train_experts` outside its `value_and_grad` calls (the
-    momentum update, checks and bookkeeping): the marginal time of `steps` epochs over `base`
-    epochs (so that setting up the problem and the last evaluation cancel out), the least of 3
-    (`bench_epochs.outside_pairs`)."""
+    """Seconds per fixed-rate epoch of `train_experts` outside its evaluations (`value_and_grad`,
+    or the stepper's `evaluate`: the momentum update, checks and bookkeeping): the marginal time
+    of `steps` epochs over `base` epochs (so that setting up the problem and the last evaluation
+    cancel out), the least of 3 (`bench_epochs.outside_pairs`)."""
     epoch = trainers("lissajous2", R, "cpu", dtype=str(dtype).removeprefix("torch."))[0]
     base = max(1, min(base, steps // 2))
-    pairs = outside_pairs(epoch["phase 1, fixed rate"], phases.ExpertProblem, "value_and_grad",
+    pairs = outside_pairs(epoch["phase 1, fixed rate"], [(phases.ExpertProblem, "value_and_grad"),
+                                                         (phases.ExpertProblem, "evaluate")],
                           steps - base, base, 3)
     return min(outside for _, outside in pairs)
 

@@ -156,12 +156,17 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     def statistics(values: dict) -> dict[str, torch.Tensor]:
         return {k: torch.as_tensor(v, device=device) for k, v in values.items()}
 
-    for step in progress.steps(start, steps, desc=phase):
-        if hooks.stop() and hooks.save is not None:
-            save(step)
-            raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
-        # ---- gradient of ln L at the current parameters (a noisy objective draws its noise)
-        problem.resample(step)
+    # the whole step as one compiled call, where the backend has one for this problem (cpu)
+    whole = problem.stepper(
+        dict(theta=theta, grad=grad, velocity=velocity, delta=delta, scratch=scratch),
+        layout.bounds, fixed, rate=rate, lr_scale=lr_scale, failed=failed, retries=tries,
+        criterion=criterion, momentum=momentum, paper_form=paper_form, adaptive=adaptive,
+        max_retries=rule.adaptive.max_retries, decrease=rule.adaptive.decrease,
+        increase=rule.adaptive.increase, max_ratio=rule.adaptive.max_ratio,
+        tau=tau) if batch == 1 else None
+
+    def calls() -> tuple[dict, torch.Tensor]:
+        """One step as separate calls: the statistics at θ and the retries per run."""
         stats = statistics(problem.value_and_grad(net, grads, ~failed))
         # ---- the step Δθ (Eq. 17 keeps Δθ in the buffer, the C code the sum of raw gradients),
         # failed runs frozen; at a fixed rate also taken (non-finite results rolled back)
@@ -214,6 +219,20 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         if adaptive:  # ---- the update; runs still rejected give up their step
             backend.apply_step(theta, delta, velocity, pending | failed, paper_form=paper_form,
                                tau=tau)
+        return stats, retries
+
+    for step in progress.steps(start, steps, desc=phase):
+        if hooks.stop() and hooks.save is not None:
+            save(step)
+            raise TrainingInterrupted(f"{phase} phase stopped at step {step}")
+        # ---- gradient of ln L at the current parameters (a noisy objective draws its noise),
+        # the step, the adaptive rate's trials, the update
+        problem.resample(step)
+        if whole is None:
+            stats, retries = calls()
+        else:
+            stats = statistics(whole())
+            retries = tries if adaptive and rule.adaptive.max_retries > 0 else no_retries
         tracked = hooks.monitor_every > 0 and step >= hooks.monitor_from and (
             step % hooks.monitor_every == 0 or step == steps - 1)
         if tracked:

@@ -62,6 +62,11 @@ class Problem(Protocol):
         its forward pass: the next `value_and_grad` at the same parameters (the accepted trial's
         point) may take it instead of running it again (the cpu backend does, bit for bit)."""
 
+    def stepper(self, buffers: dict, columns: dict, fixed: dict, **settings):
+        """A callable that runs a whole training step on the training loop's buffers in one call
+        and returns the statistics at θ (cpu: `moex.kernels.cpu.step`), or None where the loop
+        makes its calls (`moex.train._ascend`: the arguments)."""
+
     def value_of_candidates(self, params: dict) -> dict[str, torch.Tensor]:
         """Where `trials` > 1 (gpu): statistics (k·R,) of k = `trials` parameter sets per run in
         one call; params are (k·R, ...) groups, candidate j of run r in row j·R + r."""

@@ -87,6 +87,9 @@ class _Problem:
     def resample(self, step: int) -> None:
         """Nothing to draw (see `GatingProblem`)."""
 
+    def stepper(self, buffers, columns, fixed, **settings) -> None:
+        """No whole step in one call: the training loop makes its calls."""
+
     def _tensors(self, params, grads):
         return {k: torch.as_tensor(v, device=self.device).detach().requires_grad_(k in grads)
                 for k, v in params.items()}

@@ -147,7 +147,7 @@ class Forwarded:
         if not (self.enabled and self.current.any()):
             return active
         out = np.empty_like(active)
-        _stale(self._bits(params), self.params, self.current, active, out)
+        stale_runs(self._bits(params), self.params, self.current, active, out)
         return out
 
     def record(self, params: dict, stale: np.ndarray) -> None:
@@ -155,7 +155,7 @@ class Forwarded:
         now = self._bits(params)
         if not self.params:
             self.params = tuple(np.array(x) for x in now)
-        _record(now, self.params, stale, self.block_runs, self.first_block, self.last_block,
+        record_runs(now, self.params, stale, self.block_runs, self.first_block, self.last_block,
                 self.current)
 
     def forget(self) -> None:
@@ -180,14 +180,14 @@ def _equal(now, then, r):  # pragma: no cover
 
 
 @njit(**JIT)
-def _stale(now, then, current, active, out):  # pragma: no cover
+def stale_runs(now, then, current, active, out):  # pragma: no cover
     """out (R,): the active runs not current with exactly the parameter bits `now`."""
     for r in range(current.shape[0]):
         out[r] = active[r] and not (current[r] and _equal(now, then, r))
 
 
 @njit(**JIT)
-def _record(now, then, stale, block_runs, first_block, last_block, current):  # pragma: no cover
+def record_runs(now, then, stale, block_runs, first_block, last_block, current):  # pragma: no cover
     """After a call that recomputed every block holding a `stale` run, with parameters of the bits
     `now`: a run all of whose blocks were recomputed is current (its row of `then` := `now`), one
     none of whose blocks was keeps its state, and one in between stays current only if its

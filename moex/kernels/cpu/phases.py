@@ -26,6 +26,7 @@ from moex.kernels.cpu.lanes import (
 )
 from moex.kernels.cpu.rnn import backward_pass, forward_pass
 from moex.kernels.cpu.simd import JIT, exp, fma, lanes, log, width
+from moex.kernels.cpu.step import Stepper
 from moex.kernels.noise import input_noise
 
 # phase 1: the experts and β (Eqs. 9-13)
@@ -349,6 +350,21 @@ class _Problem:
         """Objective statistics per run (R,); every gradient is written into `grads`."""
         return self._call(params, grads, active, True)
 
+    def stepper(self, buffers: dict, columns: dict, fixed: dict, **settings) -> Stepper | None:
+        """The whole training step with its arguments bound once (`moex.kernels.cpu.step`),
+        where the items of its stages would run on one thread anyway (one thread, or fewer
+        blocks of lanes than threads); None where the training loop's calls share them out."""
+        if threads.count() > 1 and self.lanes.net[0].shape[0] >= threads.count():
+            return None
+        self._stepper = Stepper(self, buffers, columns, fixed, **settings)
+        return self._stepper
+
+    def forget(self) -> None:
+        """The inputs changed (fresh input noise): no lane holds a current forward pass."""
+        self.forwarded.forget()
+        if self._stepper is not None:
+            self._stepper.forget()
+
     def value(self, params: dict, active: np.ndarray) -> dict:
         """The same statistics without gradients (the adaptive-rate retry)."""
         return self._call(params, None, active, False)
@@ -389,19 +405,15 @@ class ExpertProblem(_Problem):
             "b_o": (R, K, D), "tau": (R, K, M), "log_sigma": (R, K), "u0": (R, S, K, M),
             "beta": (R, S, T, K)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",), LB)
+        self._stepper = None
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         """One phase-1 step of every active run: whole chunks of runs, as many per thread
         (`_expert_items`), and the chunks left over (fewer than threads) stage by stage over
         their blocks, series and runs, shared out among the threads as well."""
         R, S, T, K = self.shape
-        floor = float(self.model.sigma_min) ** 2
-        prior_std = float(self.phase.gate_prior_std)
-        args = (per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
-                tuple(lanes.work), lanes.lane_grads, per_network(g, True), g["u0"],
-                g["log_sigma"], g["beta"], self.inputs, self.targets, floor, prior_std,
-                bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
-                self.chunk, lanes.out)
+        floor, prior_std = float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std)
+        args = self._args(p, g, want_grad, active, stale)
         chunks = -(-R // self.chunk)
         whole = chunks - chunks % threads.count()
         threads.over(_expert_items, whole, _CHUNKS, *args)
@@ -414,6 +426,20 @@ class ExpertProblem(_Problem):
                              (_BACKWARD, blocks if want_grad else range(0))):
             threads.over(_expert_items, items, stage, *args)
         _expert_items(first, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
+
+    def evaluate(self, args: tuple) -> None:
+        """One evaluation of every run on this thread (`_args`; the stepper's)."""
+        _expert_items(0, -(-self.shape[0] // self.chunk), _CHUNKS, *args)
+
+    def _args(self, p, g, want_grad, active, stale) -> tuple:
+        """`_expert_items`' arguments after its stage."""
+        lanes = self.lanes
+        return (per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
+                tuple(lanes.work), lanes.lane_grads, per_network(g, True), g["u0"],
+                g["log_sigma"], g["beta"], self.inputs, self.targets,
+                float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std),
+                bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
+                self.chunk, lanes.out)
 
     def resample(self, step: int) -> None:
         pass
@@ -460,21 +486,32 @@ class GatingProblem(_Problem):
             "w_in": (R, H, K + D), "w_rec": (R, H, H), "w_out": (R, K, H), "b_c": (R, H),
             "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",), LB)
+        self._stepper = None
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
-        args = (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
+        args = self._args(p, g, want_grad, active, stale)
+        threads.over(gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
+        gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
+
+    def evaluate(self, args: tuple) -> None:
+        """One evaluation of every run on this thread (`_args`; the stepper's)."""
+        gating_items(0, self.lanes.net[0].shape[0], True, *args)
+        gating_items(0, self.shape[0], False, *args)
+
+    def _args(self, p, g, want_grad, active, stale) -> tuple:
+        """`gating_items`' arguments after its stage."""
+        lanes = self.lanes
+        return (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
                 lanes.lane_grads, per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),
                 bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
                 lanes.out)
-        threads.over(gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
-        gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""
         if self.phase.input_noise_var <= 0:
             return
-        self.forwarded.forget()
+        self.forget()
         R, S, T_g, K = self.shape
         D = self.inputs.shape[2] - K
         noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),  # all of x_n

@@ -67,19 +67,16 @@ def fma(typingctx, a, b, c):
 
 @intrinsic
 def clamp(typingctx, x, lo, hi):
-    """min(max(x, lo), hi) in x's float type, as llvm.maxnum and llvm.minnum: one vector
-    instruction each, where a conditional expression's branch can keep a loop from being
-    vectorised."""
+    """x held within [lo, hi] in x's float type, NaN kept NaN: two compare-and-selects (each one
+    vector instruction on x86, maxpd/minpd with x second), where a conditional expression's
+    branch can keep a loop from being vectorised and llvm.maxnum would turn NaN into lo."""
     kind = types.float32 if x == types.float32 else types.float64
 
     def codegen(context, builder, signature, args):
-        real = context.get_value_type(kind)
-        call = ir.FunctionType(real, [real, real])
-        low = builder.module.declare_intrinsic("llvm.maxnum", [real], call)
-        high = builder.module.declare_intrinsic("llvm.minnum", [real], call)
         x, lo, hi = (context.cast(builder, v, t, kind) for v, t in zip(
             args, signature.args, strict=True))
-        return builder.call(high, [builder.call(low, [x, lo]), hi])
+        x = builder.select(builder.fcmp_ordered(">", lo, x), lo, x)
+        return builder.select(builder.fcmp_ordered("<", hi, x), hi, x)
 
     return kind(x, lo, hi), codegen
 

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 from moex.kernels.cpu import threads
-from moex.kernels.cpu.lanes import to_host
+from moex.kernels.cpu.lanes import record_runs, to_host
 
 JIT = dict(nogil=True, error_model="numpy", cache=True)
 
@@ -71,7 +71,7 @@ def _steps(lo, hi, theta, grad, velocity, delta, rate, lr_scale, objective, fail
 
 
 @njit(**JIT)
-def _applies(lo, hi, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
+def apply_runs(lo, hi, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
     for r in range(lo, hi):
         _apply(r, theta, delta, velocity, frozen[r], paper_form, tau_start, tau_end)
 
@@ -93,6 +93,38 @@ def _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, d
         retries[r] += 1
         for p in range(delta.shape[1]):
             delta[r, p] = delta[r, p] * decrease_cast
+
+
+@njit(**JIT)
+def after_gradient(stats, out, current, theta, grad, velocity, delta, rate, lr_scale, failed,
+                    pending, retries, momentum, paper_form, adaptive, max_retries, tau_start,
+                    tau_end):
+    """The statistics at θ kept, the step Δθ (taken at a fixed rate); with the adaptive rate
+    every run not failed pending. Whether a trial follows."""
+    stats[:, :] = out
+    current[:] = False  # the step changes θ: no lane holds its forward pass
+    R = failed.shape[0]
+    _steps(0, R, theta, grad, velocity, delta, rate, lr_scale, stats[0], failed, momentum,
+           paper_form, not adaptive, tau_start, tau_end)
+    if not adaptive or max_retries == 0:
+        return False
+    for r in range(R):
+        pending[r] = not failed[r]
+        retries[r] = 0
+    return True
+
+
+@njit(**JIT)
+def after_trial(now, then, current, block_runs, first_block, last_block, reuse, delta, values,
+                 base, pending, lr_scale, retries, decrease, decrease_cast, increase,
+                 max_ratio):
+    """The lanes of the runs evaluated (pending) hold θ + Δθ's forward pass; the trial judged
+    (`_trials`). Whether a run is still pending."""
+    if reuse:
+        record_runs(now, then, pending, block_runs, first_block, last_block, current)
+    _trials(0, pending.shape[0], delta, values, base, pending, lr_scale, retries, decrease,
+            decrease_cast, increase, max_ratio)
+    return pending.any()
 
 
 def adaptive_trial(delta, values, base, pending, lr_scale, *, retries, decrease: float,
@@ -118,4 +150,4 @@ def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, fa
 def apply_step(theta, delta, velocity, frozen, *, paper_form: bool, tau=None) -> None:
     """`moex.kernels.reference.apply_step`, bit for bit."""
     arrays = [to_host(x) for x in (theta, delta, velocity, frozen)]
-    threads.over(_applies, len(arrays[0]), *arrays, bool(paper_form), *(tau or (0, 0)))
+    threads.over(apply_runs, len(arrays[0]), *arrays, bool(paper_form), *(tau or (0, 0)))

@@ -198,6 +198,9 @@ class _Problem:
     def resample(self, step: int) -> None:
         """Nothing to draw (see `GatingProblem`)."""
 
+    def stepper(self, buffers, columns, fixed, **settings) -> None:
+        """No whole step in one launch: the training loop makes its calls."""
+
     def value_and_grad(self, params: dict, grads: dict, active) -> dict:
         """Objective statistics per run (R,); every gradient of an active run is written into
         `grads` (the others keep theirs)."""
