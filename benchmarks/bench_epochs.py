@@ -15,6 +15,7 @@ threads), so with 2 threads it shows the cost and the wall time shows the speed-
 """
 
 import argparse
+import gc
 import os
 import statistics
 import time
@@ -32,11 +33,19 @@ from moex.train import train_experts, train_gating
 
 
 def _clock(fn, steps: int, sync: bool) -> tuple[float, float]:
-    start, start_cpu = time.perf_counter(), time.process_time()
-    fn(steps)
-    if sync:
-        torch.cuda.synchronize()
-    return time.perf_counter() - start, time.process_time() - start_cpu
+    """(wall, cpu) seconds of fn(steps), Python's cyclic garbage collector paused (as `timeit`
+    does): a full collection takes ~0.14 s here, more than 5 epochs, and made a pair's marginal
+    time negative now and then."""
+    gc.collect()
+    gc.disable()
+    try:
+        start, start_cpu = time.perf_counter(), time.process_time()
+        fn(steps)
+        if sync:
+            torch.cuda.synchronize()
+        return time.perf_counter() - start, time.process_time() - start_cpu
+    finally:
+        gc.enable()
 
 
 def warm_up(fn, steps: int, base: int) -> None:

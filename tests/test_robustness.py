@@ -29,7 +29,7 @@ from tests.helpers import generators
 MOEX = [sys.executable, "-c", "from moex.cli import main; main()"]
 ARGS = ["train", "task=lissajous2", "task.num_series=2", "task.length=40",
         "model.experts.context_size=4", "model.gating.context_size=5", "num_runs=2",
-        "train.experts.steps=600", "train.gating.steps=300", "train.experts.adaptive_lr=true",
+        "train.experts.steps=3000", "train.gating.steps=1500", "train.experts.adaptive_lr=true",
         "train.checkpoint_every=25", "eval.enabled=false"]
 
 

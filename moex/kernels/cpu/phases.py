@@ -356,14 +356,14 @@ class _Problem:
         blocks of lanes than threads); None where the training loop's calls share them out."""
         if threads.count() > 1 and self.lanes.net[0].shape[0] >= threads.count():
             return None
-        self._stepper = Stepper(self, buffers, columns, fixed, **settings)
-        return self._stepper
+        stepper = Stepper(self, buffers, columns, fixed, **settings)
+        self._stepper_record = stepper.current  # (the array, not the stepper: no reference cycle)
+        return stepper
 
     def forget(self) -> None:
         """The inputs changed (fresh input noise): no lane holds a current forward pass."""
         self.forwarded.forget()
-        if self._stepper is not None:
-            self._stepper.forget()
+        self._stepper_record[:] = False  # the stepper's record of its lanes' forward pass
 
     def value(self, params: dict, active: np.ndarray) -> dict:
         """The same statistics without gradients (the adaptive-rate retry)."""
@@ -405,7 +405,7 @@ class ExpertProblem(_Problem):
             "b_o": (R, K, D), "tau": (R, K, M), "log_sigma": (R, K), "u0": (R, S, K, M),
             "beta": (R, S, T, K)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",), LB)
-        self._stepper = None
+        self._stepper_record = np.zeros(0, bool)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         """One phase-1 step of every active run: whole chunks of runs, as many per thread
@@ -486,7 +486,7 @@ class GatingProblem(_Problem):
             "w_in": (R, H, K + D), "w_rec": (R, H, H), "w_out": (R, K, H), "b_c": (R, H),
             "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",), LB)
-        self._stepper = None
+        self._stepper_record = np.zeros(0, bool)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         args = self._args(p, g, want_grad, active, stale)

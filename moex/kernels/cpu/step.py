@@ -84,10 +84,6 @@ class Stepper:
                        forwarded.enabled)
         self.criterion = problem.STATS.index(criterion)
 
-    def forget(self) -> None:
-        """The inputs changed (fresh input noise): no lane holds a current forward pass."""
-        self.current[:] = False
-
     def _evaluate(self, point: str, want_grad: bool) -> None:
         for source, staged in self.point[point][1]:
             np.copyto(staged, source)
