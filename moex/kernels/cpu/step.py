@@ -105,18 +105,19 @@ class Stepper:
         for written, grads in self.copy_out:
             np.copyto(grads, written)
         trials = after_gradient(self.stats, out, self.current, theta, grad, velocity, delta,
-                                 rate, lr_scale, failed, pending, retries, *self.rule)
+                                rate, lr_scale, failed, pending, retries, *self.rule)
         c = self.criterion
         for _ in range(self.rule[3] if trials else 0):
             np.add(theta, delta, out=scratch)  # (the separate calls' torch.add: the same bits)
             self._evaluate("scratch", False)
             if not after_trial(self.bits[1], self.then, self.current, block_runs, first_block,
-                                last_block, reuse, delta, out[c], self.stats[c], pending,
-                                lr_scale, retries, *self.trial):
+                               last_block, reuse, delta, out[c], self.stats[c], pending,
+                               lr_scale, retries, *self.trial):
                 break
-        if self.rule[2]:  # the adaptive rate: the step taken, runs still rejected frozen
+        _, paper_form, adaptive, _, tau_start, tau_end = self.rule
+        if adaptive:  # the step taken, runs still rejected frozen
             np.logical_or(pending, failed, out=frozen)
-            apply_runs(0, len(failed), theta, delta, velocity, frozen, *self.rule[1:2],
-                     *self.rule[4:])
+            apply_runs(0, len(failed), theta, delta, velocity, frozen, paper_form, tau_start,
+                       tau_end)
         values = torch.from_numpy(self.stats.copy())
         return {name: values[i] for i, name in enumerate(self.problem.STATS)}

@@ -97,8 +97,8 @@ def _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, d
 
 @njit(**JIT)
 def after_gradient(stats, out, current, theta, grad, velocity, delta, rate, lr_scale, failed,
-                    pending, retries, momentum, paper_form, adaptive, max_retries, tau_start,
-                    tau_end):
+                   pending, retries, momentum, paper_form, adaptive, max_retries, tau_start,
+                   tau_end):
     """The statistics at θ kept, the step Δθ (taken at a fixed rate); with the adaptive rate
     every run not failed pending. Whether a trial follows."""
     stats[:, :] = out
@@ -106,18 +106,18 @@ def after_gradient(stats, out, current, theta, grad, velocity, delta, rate, lr_s
     R = failed.shape[0]
     _steps(0, R, theta, grad, velocity, delta, rate, lr_scale, stats[0], failed, momentum,
            paper_form, not adaptive, tau_start, tau_end)
-    if not adaptive or max_retries == 0:
+    if not adaptive:
         return False
-    for r in range(R):
+    for r in range(R):  # (max_retries = 0: every run pending, frozen after no trial)
         pending[r] = not failed[r]
-        retries[r] = 0
-    return True
+        if max_retries > 0:
+            retries[r] = 0
+    return max_retries > 0
 
 
 @njit(**JIT)
 def after_trial(now, then, current, block_runs, first_block, last_block, reuse, delta, values,
-                 base, pending, lr_scale, retries, decrease, decrease_cast, increase,
-                 max_ratio):
+                base, pending, lr_scale, retries, decrease, decrease_cast, increase, max_ratio):
     """The lanes of the runs evaluated (pending) hold θ + Δθ's forward pass; the trial judged
     (`_trials`). Whether a run is still pending."""
     if reuse:
