@@ -156,7 +156,7 @@ class Forwarded:
         if not self.params:
             self.params = tuple(np.array(x) for x in now)
         record_runs(now, self.params, stale, self.block_runs, self.first_block, self.last_block,
-                self.current)
+                    self.current)
 
     def forget(self) -> None:
         """The inputs changed (fresh input noise): no lane holds a current forward pass."""

@@ -413,7 +413,7 @@ class ExpertProblem(_Problem):
         their blocks, series and runs, shared out among the threads as well."""
         R, S, T, K = self.shape
         floor, prior_std = float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std)
-        args = self._args(p, g, want_grad, active, stale)
+        args = self.kernel_args(p, g, want_grad, active, stale)
         chunks = -(-R // self.chunk)
         whole = chunks - chunks % threads.count()
         threads.over(_expert_items, whole, _CHUNKS, *args)
@@ -428,10 +428,10 @@ class ExpertProblem(_Problem):
         _expert_items(first, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
 
     def evaluate(self, args: tuple) -> None:
-        """One evaluation of every run on this thread (`_args`; the stepper's)."""
+        """One evaluation of every run on this thread (`kernel_args`; the stepper's)."""
         _expert_items(0, -(-self.shape[0] // self.chunk), _CHUNKS, *args)
 
-    def _args(self, p, g, want_grad, active, stale) -> tuple:
+    def kernel_args(self, p, g, want_grad, active, stale) -> tuple:
         """`_expert_items`' arguments after its stage."""
         lanes = self.lanes
         return (per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
@@ -489,16 +489,16 @@ class GatingProblem(_Problem):
         self._stepper_record = np.zeros(0, bool)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
-        args = self._args(p, g, want_grad, active, stale)
+        args = self.kernel_args(p, g, want_grad, active, stale)
         threads.over(gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
         gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
 
     def evaluate(self, args: tuple) -> None:
-        """One evaluation of every run on this thread (`_args`; the stepper's)."""
+        """One evaluation of every run on this thread (`kernel_args`; the stepper's)."""
         gating_items(0, self.lanes.net[0].shape[0], True, *args)
         gating_items(0, self.shape[0], False, *args)
 
-    def _args(self, p, g, want_grad, active, stale) -> tuple:
+    def kernel_args(self, p, g, want_grad, active, stale) -> tuple:
         """`gating_items`' arguments after its stage."""
         lanes = self.lanes
         return (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),

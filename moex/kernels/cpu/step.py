@@ -29,8 +29,8 @@ class Stepper:
     (`moex.kernels.Problem.stepper`); calling it returns the statistics at θ (before the step).
 
     Args:
-        problem: the cpu problem (its staging, lanes, record of the forward pass, STATS and
-            `evaluate`).
+        problem: the cpu problem (its staging, lanes, record of the forward pass, STATS,
+            `kernel_args` and `evaluate`).
         buffers: the loop's (R, P) tensors theta, grad, velocity, delta, scratch (θ + Δθ).
         columns: {group: (first, last) column} of the flat buffer; fixed: the groups not
             learned; rate (P,), lr_scale (R,) float64, failed (R,) bool, retries (R,) int64:
@@ -66,9 +66,10 @@ class Stepper:
         self.copy_out = [(written[k], grads[k]) for k in columns if written[k] is not grads[k]]
         self.masks = np.zeros((4, R), bool)  # active, stale, pending, frozen
         active, stale, pending, _ = self.masks
-        self.args = {True: problem._args(self.point["theta"][0], written, True, active, stale),
-                     False: problem._args(self.point["scratch"][0], written, False, pending,
-                                          pending)}
+        kernel_args = problem.kernel_args
+        self.args = {True: kernel_args(self.point["theta"][0], written, True, active, stale),
+                     False: kernel_args(self.point["scratch"][0], written, False, pending,
+                                        pending)}
         bits = np.dtype(f"u{dtype.itemsize}")
         self.bits = (theta.view(bits),), (scratch.view(bits),)
         self.then, self.current = (np.zeros(theta.shape, bits),), np.zeros(R, bool)
