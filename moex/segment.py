@@ -133,14 +133,33 @@ def _map_beta(log_p: torch.Tensor, prior_std: float, steps: int,
     """β (R, S, N, K) maximising Σ ln Σ_k softmax(β_n)_k p^k_n + ln φ(β) (Eqs. 10-13), Adam
     from β = 0, for log-likelihoods (R, S, N, K)."""
     beta = torch.zeros_like(log_p, requires_grad=True)
-    optimiser = torch.optim.Adam([beta], lr=rate)
+    adam = _Adam(beta, rate)
     for _ in range(steps):
-        optimiser.zero_grad()
         objective = (torch.logsumexp(torch.log_softmax(beta, -1) + log_p, -1).sum()
                      + gate_prior_log_density(beta, prior_std).sum())
-        (-objective).backward()
-        optimiser.step()
+        adam.step(torch.autograd.grad(-objective, beta)[0])
     return beta.detach()
+
+
+class _Adam:
+    """`torch.optim.Adam(params=[x], lr=rate)`'s step, bit for bit (its single-tensor form,
+    the one it takes on the CPU; tests/test_segment.py compares them), without the optimiser:
+    constructing any `torch.optim` optimiser imports TorchDynamo, 2 s of every evaluation."""
+
+    BETAS, EPS = (0.9, 0.999), 1e-8
+
+    def __init__(self, x: torch.Tensor, rate: float):
+        self.x, self.rate, self.steps = x, rate, 0
+        self.mean, self.square = torch.zeros_like(x), torch.zeros_like(x)
+
+    @torch.no_grad()
+    def step(self, grad: torch.Tensor) -> None:
+        (b1, b2), self.steps = self.BETAS, self.steps + 1
+        self.mean.lerp_(grad, 1 - b1)
+        self.square.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+        size = self.rate / (1 - b1 ** float(self.steps))
+        denom = (self.square.sqrt() / (1 - b2 ** float(self.steps)) ** 0.5).add_(self.EPS)
+        self.x.addcdiv_(self.mean, denom, value=-size)
 
 
 def table(gates: np.ndarray, labels: np.ndarray | None, delay: int) -> pd.DataFrame:

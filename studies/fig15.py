@@ -62,9 +62,15 @@ def noise_floor(run_dir: Path) -> np.ndarray:
 
 def flips(history: pd.DataFrame, floor: np.ndarray) -> pd.DataFrame:
     tracked = history[(history["phase"] == "gating") & history["max_lyapunov"].notna()]
+    if tracked.empty:
+        return pd.DataFrame()
+    runs, at = tracked["run"].to_numpy(), tracked["step"].to_numpy()
+    order = np.lexsort((at, runs))  # by run, then step
+    runs, at, values = runs[order], at[order], tracked["max_lyapunov"].to_numpy()[order]
+    starts = np.flatnonzero(np.diff(runs, prepend=runs[:1] - 1))  # each run's first row
     rows = []
-    for run, x in tracked.groupby("run"):
-        lam, steps = x.sort_values("step")["max_lyapunov"].to_numpy(), np.sort(x["step"])
+    for run, lam, steps in zip(runs[starts], np.split(values, starts[1:]),
+                               np.split(at, starts[1:]), strict=True):
         band = FLOOR_FACTOR * floor[run]
         up = np.flatnonzero((lam[:-1] < -band) & (lam[1:] > band))
         rows.append({"run": run, "floor": floor[run], "final": lam[-1],

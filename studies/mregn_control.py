@@ -169,8 +169,9 @@ def _difference(a, b, permutations: int = 20000) -> tuple[float, float, float]:
     diff = a.mean() - b.mean()
     se = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
     pooled, rng = np.concatenate([a, b]), np.random.default_rng(0)
-    hits = sum(abs(x[:len(a)].mean() - x[len(a):].mean()) >= abs(diff) - 1e-12
-               for x in (rng.permutation(pooled) for _ in range(permutations)))
+    split = pooled[np.array([rng.permutation(len(pooled)) for _ in range(permutations)])]
+    null = split[:, :len(a)].mean(1) - split[:, len(a):].mean(1)
+    hits = (np.abs(null) >= abs(diff) - 1e-12).sum()
     return diff, se, (hits + 1) / (permutations + 1)
 
 
