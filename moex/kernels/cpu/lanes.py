@@ -192,13 +192,18 @@ def record_runs(now, then, stale, block_runs, first_block, last_block, current):
     `now`: a run all of whose blocks were recomputed is current (its row of `then` := `now`), one
     none of whose blocks was keeps its state, and one in between stays current only if its
     parameters did not change."""
-    for r in range(current.shape[0]):
-        count = 0
+    for r in range(current.shape[0]):  # (loops written out: array expressions here took
+        count = 0  # seconds of a first run to compile)
         for b in range(first_block[r], last_block[r] + 1):
-            count += stale[block_runs[b, 0]:block_runs[b, 1] + 1].any()
+            for q in range(block_runs[b, 0], block_runs[b, 1] + 1):
+                if stale[q]:
+                    count += 1
+                    break
         if count == last_block[r] - first_block[r] + 1:
             for k in range(len(now)):
-                then[k][r] = now[k][r]
+                a, b = now[k], then[k]
+                for q in range(a.shape[1]):
+                    b[r, q] = a[r, q]
             current[r] = True
         elif count > 0:
             current[r] = current[r] and _equal(now, then, r)

@@ -101,9 +101,11 @@ def after_gradient(stats, out, current, theta, grad, velocity, delta, rate, lr_s
                    tau_end):
     """The statistics at θ kept, the step Δθ (taken at a fixed rate); with the adaptive rate
     every run not failed pending. Whether a trial follows."""
-    stats[:, :] = out
-    current[:] = False  # the step changes θ: no lane holds its forward pass
     R = failed.shape[0]
+    for r in range(R):  # (loops written out: array expressions took a first run seconds)
+        for i in range(stats.shape[0]):
+            stats[i, r] = out[i, r]
+        current[r] = False  # the step changes θ: no lane holds its forward pass
     _steps(0, R, theta, grad, velocity, delta, rate, lr_scale, stats[0], failed, momentum,
            paper_form, not adaptive, tau_start, tau_end)
     if not adaptive:
