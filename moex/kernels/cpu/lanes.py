@@ -201,9 +201,9 @@ def record_runs(now, then, stale, block_runs, first_block, last_block, current):
                     break
         if count == last_block[r] - first_block[r] + 1:
             for k in range(len(now)):
-                a, b = now[k], then[k]
-                for q in range(a.shape[1]):
-                    b[r, q] = a[r, q]
+                new, old = now[k], then[k]
+                for q in range(new.shape[1]):
+                    old[r, q] = new[r, q]
             current[r] = True
         elif count > 0:
             current[r] = current[r] and _equal(now, then, r)
