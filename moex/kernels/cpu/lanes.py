@@ -109,7 +109,11 @@ def runs_of_blocks(num_blocks, lanes_per_run, num_runs, LB):
 
 @njit(inline="always", **JIT)
 def block_active(b, block_runs, active):  # pragma: no cover
-    return active[block_runs[b, 0]:block_runs[b, 1] + 1].any()
+    """Whether a run of block b is `active` (a loop: `.any()` of a slice compiled slower)."""
+    for r in range(block_runs[b, 0], block_runs[b, 1] + 1):
+        if active[r]:
+            return True
+    return False
 
 
 class Forwarded:
@@ -195,10 +199,7 @@ def record_runs(now, then, stale, block_runs, first_block, last_block, current):
     for r in range(current.shape[0]):  # (loops written out: array expressions here took
         count = 0  # seconds of a first run to compile)
         for b in range(first_block[r], last_block[r] + 1):
-            for q in range(block_runs[b, 0], block_runs[b, 1] + 1):
-                if stale[q]:
-                    count += 1
-                    break
+            count += block_active(b, block_runs, stale)
         if count == last_block[r] - first_block[r] + 1:
             for k in range(len(now)):
                 new, old = now[k], then[k]
