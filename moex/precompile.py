@@ -24,10 +24,10 @@ def compile_later_phases(dtype: str) -> None:
     generators = [torch.Generator().manual_seed(0)]
     gating = init_gating(model, 1, 2, generators, torch_dtype)
     experts = init_experts(model, 1, 2, generators, torch_dtype)
-    # the closed loop first (about 12 s of an idle 2-core VM's core, the largest), then phase 2,
+    # the closed loop first (about 11 s of an idle 2-core VM's core, the largest), then phase 2,
     # whose RNN passes (`rnn.forward_pass`, `backward_pass`) the run's phase-1 kernel has cached
-    # by then, so only its own functions are left (about 5 s): the run's phase 1 (compiling,
-    # then training) ends about when they are ready
+    # by then, so only its own functions are left (about 5 s): ready a few seconds before the
+    # run's phase 1 (compiling, then training) ends
     state = random_state(experts, gating, 1, num_features=2, delay=1, generator=generators[0])
     tangents = torch.zeros(state.flat().shape + (1,), dtype=torch_dtype)
     tangents[..., 0, 0] = 1.0

@@ -233,9 +233,12 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
         if stage == _FORWARD:
             for lane in range(i * LB, (i + 1) * LB):
                 spread(lane, S, params, u0, net)
-            if block_active(i, block_runs, stale):
+            if block_active(i, block_runs, stale):  # bool(True): a runtime flag, so that the
+                # experts and the gating share one compiled forward_pass (a literal True or False
+                # compiles one each: 3-4 s more of a first run)
                 forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
-                             u0_lane[i], True, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                             u0_lane[i], bool(True),  # noqa: UP018
+                             C0[i], C[i], Y[i], U[i], S1[i], S2[i])
         elif stage == _MIXTURE:
             if active[i // S]:
                 _mixture(i // S, i % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
@@ -306,7 +309,8 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
             if block_active(i, block_runs, active):
                 if block_active(i, block_runs, stale):
                     forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
-                                 u0_lane[i], False, C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                                 u0_lane[i], bool(False),  # noqa: UP018
+                                 C0[i], C[i], Y[i], U[i], S1[i], S2[i])
                 _softmax_objective(Y[i], targets[i], want_grad, DY[i], log_lik[i])
                 if want_grad:
                     backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
