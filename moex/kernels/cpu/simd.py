@@ -10,15 +10,13 @@ vectoriser off by default; it is what turns those unrolled lane loops into vecto
 """
 
 import math
-import warnings
 
 import numba
 import numpy as np
 from llvmlite import ir
 from llvmlite.binding import get_host_cpu_features
-from numba import njit, types
+from numba import types
 from numba.core import cgutils
-from numba.core.errors import NumbaIRAssumptionWarning
 from numba.extending import intrinsic, overload
 from numba.np.numpy_support import as_dtype
 
@@ -65,54 +63,6 @@ def fma(typingctx, a, b, c):
     return kind(a, b, c), codegen
 
 
-@intrinsic
-def clamp(typingctx, x, lo, hi):
-    """x held within [lo, hi] in x's float type, NaN kept NaN: two compare-and-selects (each one
-    vector instruction on x86, maxpd/minpd with x second), where a conditional expression's
-    branch can keep a loop from being vectorised and llvm.maxnum would turn NaN into lo."""
-    kind = types.float32 if x == types.float32 else types.float64
-
-    def codegen(context, builder, signature, args):
-        x, lo, hi = (context.cast(builder, v, t, kind) for v, t in zip(
-            args, signature.args, strict=True))
-        x = builder.select(builder.fcmp_ordered(">", lo, x), lo, x)
-        return builder.select(builder.fcmp_ordered("<", hi, x), hi, x)
-
-    return kind(x, lo, hi), codegen
-
-
-@intrinsic
-def _as_bits(typingctx, x):
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.IntType(64))
-
-    return types.int64(types.float64), codegen
-
-
-@intrinsic
-def _as_bits32(typingctx, x):
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.IntType(32))
-
-    return types.int32(types.float32), codegen
-
-
-@intrinsic
-def _as_float32(typingctx, x):  # the low 32 bits of an int64 (numba widens int32 arithmetic)
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(builder.trunc(args[0], ir.IntType(32)), ir.FloatType())
-
-    return types.float32(types.int64), codegen
-
-
-@intrinsic
-def _as_float(typingctx, x):
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.DoubleType())
-
-    return types.float64(types.int64), codegen
-
-
 def width(x) -> int:
     """Lanes per block for x's dtype (x: an array or a dtype, numpy's or numba's); in a compiled
     kernel, a constant (`width(X)` of an argument X), so that loops over a block's lanes have a
@@ -122,7 +72,10 @@ def width(x) -> int:
     return WIDTHS[np.dtype(as_dtype(x) if isinstance(x, types.Type) else x)]
 
 
-@overload(width, inline="always")
+# `width` and `typed` are compiled once per type and inlined by LLVM, not by numba: numba's
+# inline="always" copied and typed them at each of their ~35 call sites, 4 s of the phase-1
+# kernel's 19 s compile (2026-12-05, the same machine code and bits)
+@overload(width)
 def _width(x):
     lb = width(x)
     return lambda x: lb
@@ -134,7 +87,7 @@ def typed(x, value):
     return x.dtype.type(value)
 
 
-@overload(typed, inline="always")
+@overload(typed)
 def _typed(x, value):
     kind = np.float32 if x.dtype == types.float32 else np.float64
     return lambda x, value: kind(value)
@@ -202,113 +155,150 @@ def _stack_of(like, dtype):
     return types.Array(dtype, 2, "C")(like, types.intp), codegen
 
 
+# exp, log and tanh are emitted as LLVM instructions where they are called (`intrinsic`s): the
+# same operations, one by one, as the njit functions they were until 2026-12-05 (the same bits),
+# without numba inlining and typing a copy of their code at every call site, which took 4 s of a
+# first run's phase-1 compile (21.7 -> 17.7 s with libm's functions in their place).
 _LOG2E = 1.4426950408889634
 _LN2 = 0.6931471805599453
 _LN2_HI = 0.693145751953125  # ln 2 split so that k · _LN2_HI is exact (Cody-Waite)
 _LN2_LO = 1.42860682030941723212e-6
 _ROUND = 6755399441055744.0  # 1.5 · 2^52: x + _ROUND holds round(x) in its low bits
 _E = tuple(1.0 / math.factorial(n) for n in range(12))  # e^r's Taylor coefficients
-
-
-@njit(inline="always", **JIT)
-def exp(x):
-    """e^x for |x| <= 700 (clamped), relative error below 1e-14 (the degree-11 Taylor series
-    at |r| = ln 2 / 2: 6e-15)."""
-    x = clamp(x, -700.0, 700.0)
-    shifted = fma(x, _LOG2E, _ROUND)
-    k = shifted - _ROUND  # round(x / ln 2)
-    r = fma(k, -_LN2_LO, fma(k, -_LN2_HI, x))  # |r| <= ln 2 / 2
-    r2 = r * r  # e^r's Taylor series to degree 11 by Estrin's scheme (pairs, then r², r⁴,
-    r4 = r2 * r2  # r⁸): 5 roundings deep, not 12 as Horner's, for the same error
-    p = fma(r4 * r4, fma(r2, fma(r, _E[11], _E[10]), fma(r, _E[9], _E[8])), fma(
-        r4, fma(r2, fma(r, _E[7], _E[6]), fma(r, _E[5], _E[4])),
-        fma(r2, fma(r, _E[3], _E[2]), fma(r, _E[1], _E[0]))))
-    return p * _as_float((_as_bits(shifted) + 1023) << 52)  # times 2^k
-
-
-@njit(inline="always", **JIT)
-def log(x):
-    """ln x for normal x > 0, error below 1e-15: x = m 2^e, ln m = 2 atanh((m-1)/(m+1))."""
-    bits = _as_bits(float(x))
-    e = ((bits >> 52) & 0x7FF) - 1023
-    m = _as_float((bits & 0xFFFFFFFFFFFFF) | 0x3FF0000000000000)  # in [1, 2)
-    big = m > 1.4142135623730951  # bring m into [√½, √2): |z| <= 0.172
-    m = m * 0.5 if big else m
-    e = e + 1 if big else e
-    z = (m - 1.0) / (m + 1.0)
-    z2 = z * z
-    p = 1.0 / 21.0
-    p = fma(p, z2, 1.0 / 19.0)
-    p = fma(p, z2, 1.0 / 17.0)
-    p = fma(p, z2, 1.0 / 15.0)
-    p = fma(p, z2, 1.0 / 13.0)
-    p = fma(p, z2, 1.0 / 11.0)
-    p = fma(p, z2, 1.0 / 9.0)
-    p = fma(p, z2, 1.0 / 7.0)
-    p = fma(p, z2, 1.0 / 5.0)
-    p = fma(p, z2, 1.0 / 3.0)
-    p = fma(p, z2, 1.0)
-    return fma(2.0 * z, p, e * _LN2)
-
-
-@njit(inline="always", **JIT)
-def _tanh64(x):
-    """tanh x with absolute error below 1e-14."""
-    return 1.0 - 2.0 / (exp(2.0 * x) + 1.0)
-
-
 _F = np.float32
 _ROUND32 = _F(12582912.0)  # 1.5 · 2^23: x + _ROUND32 holds round(x) in its low bits
 _LN2_HI32, _LN2_LO32 = _F(0.693359375), _F(-2.12194440e-4)  # ln 2 = hi + lo, k · hi exact
-_C2, _C3, _C4, _C5, _C6, _C7, _C8 = (_F(1.0 / math.factorial(n)) for n in range(2, 9))
+_C = tuple(_F(1.0 / math.factorial(n)) for n in range(2, 9))  # 1/2!, ..., 1/8!
 # (tanh x - x) / x³ as a polynomial in x² on |x| <= 0.625: weighted least squares (relative error
 # of tanh) at Chebyshev nodes, rounded to float32; within 0.8 ulp there in float32 arithmetic
-_T0, _T1, _T2, _T3, _T4, _T5 = (_F(c) for c in (
+_T = tuple(_F(c) for c in (
     -0.3333333134651184, 0.1333320140838623, -0.053946252912282944, 0.021698208525776863,
     -0.008171784691512585, 0.0021382225677371025))
+_F64, _F32, _I64, _I32 = ir.DoubleType(), ir.FloatType(), ir.IntType(64), ir.IntType(32)
 
 
-@njit(inline="always", **JIT)
-def _tanh32(x):
-    """tanh x in float32 arithmetic (16 lanes a vector), within 2 ulp of the exact value
+class _Emit:
+    """Arithmetic on LLVM values in one float type, written as in Python: the instructions of
+    `exp`, `log` and `tanh` (each operation rounds as numba's would; numba's fastmath flags are
+    added to them afterwards, as to every instruction of a kernel)."""
+
+    def __init__(self, builder, kind):
+        self.b, self.kind = builder, kind
+
+    def c(self, value):
+        return ir.Constant(self.kind, float(value))
+
+    def fma(self, a, b, c):
+        return self.b.fma(*(self.c(v) if isinstance(v, float | np.floating) else v
+                            for v in (a, b, c)))
+
+    def poly(self, x, coefficients):
+        """Horner's rule by fma, the highest coefficient first."""
+        p = self.c(coefficients[0])
+        for a in coefficients[1:]:
+            p = self.fma(p, x, a)
+        return p
+
+    def clamp(self, x, lo, hi):
+        """x held within [lo, hi], NaN kept NaN: two compare-and-selects (maxpd/minpd with x
+        second), where llvm.maxnum would turn NaN into lo."""
+        x = self.b.select(self.b.fcmp_ordered(">", self.c(lo), x), self.c(lo), x)
+        return self.b.select(self.b.fcmp_ordered("<", self.c(hi), x), self.c(hi), x)
+
+
+def _exp_ir(builder, x):
+    """e^x of a double (see `exp`)."""
+    f, b = _Emit(builder, _F64), builder
+    x = f.clamp(x, -700.0, 700.0)
+    shifted = f.fma(x, _LOG2E, _ROUND)
+    k = b.fsub(shifted, f.c(_ROUND))  # round(x / ln 2)
+    r = f.fma(k, -_LN2_LO, f.fma(k, -_LN2_HI, x))  # |r| <= ln 2 / 2
+    r2 = b.fmul(r, r)  # e^r's Taylor series to degree 11 by Estrin's scheme (pairs, then r²,
+    r4 = b.fmul(r2, r2)  # r⁴, r⁸): 5 roundings deep, not 12 as Horner's, for the same error
+    E = _E
+    p = f.fma(b.fmul(r4, r4), f.fma(r2, f.fma(r, E[11], E[10]), f.fma(r, E[9], E[8])), f.fma(
+        r4, f.fma(r2, f.fma(r, E[7], E[6]), f.fma(r, E[5], E[4])),
+        f.fma(r2, f.fma(r, E[3], E[2]), f.fma(r, E[1], E[0]))))
+    scale = b.shl(b.add(b.bitcast(shifted, _I64), ir.Constant(_I64, 1023)), ir.Constant(_I64, 52))
+    return b.fmul(p, b.bitcast(scale, _F64))  # times 2^k
+
+
+def _log_ir(builder, x):
+    """ln x of a double (see `log`)."""
+    f, b = _Emit(builder, _F64), builder
+    bits = b.bitcast(x, _I64)
+    e = b.sub(b.and_(b.ashr(bits, ir.Constant(_I64, 52)), ir.Constant(_I64, 0x7FF)),
+              ir.Constant(_I64, 1023))
+    m = b.bitcast(b.or_(b.and_(bits, ir.Constant(_I64, 0xFFFFFFFFFFFFF)),
+                        ir.Constant(_I64, 0x3FF0000000000000)), _F64)  # in [1, 2)
+    big = b.fcmp_ordered(">", m, f.c(1.4142135623730951))  # bring m into [√½, √2): |z| <= 0.172
+    m = b.select(big, b.fmul(m, f.c(0.5)), m)
+    e = b.select(big, b.add(e, ir.Constant(_I64, 1)), e)
+    z = b.fdiv(b.fsub(m, f.c(1.0)), b.fadd(m, f.c(1.0)))
+    p = f.poly(b.fmul(z, z), [1.0 / n for n in range(21, 0, -2)])  # 2 atanh z / (2z)
+    return f.fma(b.fmul(f.c(2.0), z), p, b.fmul(b.sitofp(e, _F64), f.c(_LN2)))
+
+
+def _tanh64_ir(builder, x):
+    """tanh of a double (see `tanh`)."""
+    f, b = _Emit(builder, _F64), builder
+    e = _exp_ir(b, b.fmul(f.c(2.0), x))
+    return b.fsub(f.c(1.0), b.fdiv(f.c(2.0), b.fadd(e, f.c(1.0))))
+
+
+def _tanh32_ir(builder, x):
+    """tanh of a float in float32 arithmetic (see `tanh`)."""
+    f, b = _Emit(builder, _F32), builder
+    z = b.fmul(x, x)
+    near = f.fma(b.fmul(x, z), f.poly(z, _T[::-1]), x)
+    y = b.call(b.module.declare_intrinsic("llvm.fabs", [_F32]), [b.fadd(x, x)])
+    y = f.clamp(y, 0.0, 80.0)  # tanh(40) rounds to 1 in float32
+    shifted = f.fma(y, _F(1.4426950408889634), _ROUND32)
+    k = b.fsub(shifted, f.c(_ROUND32))  # round(y / ln 2)
+    r = f.fma(k, -_LN2_LO32, f.fma(k, -_LN2_HI32, y))
+    q = f.fma(b.fmul(r, r), f.poly(r, _C[::-1]), r)  # e^r - 1
+    bits = b.shl(b.add(b.sext(b.bitcast(shifted, _I32), _I64), ir.Constant(_I64, 127)),
+                 ir.Constant(_I64, 23))
+    scale = b.bitcast(b.trunc(bits, _I32), _F32)  # 2^k
+    e = f.fma(scale, q, b.fsub(scale, f.c(1.0)))
+    far = b.fdiv(e, b.fadd(e, f.c(2.0)))
+    far = b.select(b.fcmp_ordered(">=", x, f.c(0.0)), far, b.fneg(far))
+    return b.select(b.fcmp_ordered("<=", y, f.c(1.25)), near, far)
+
+
+def _elementwise(emit, kind=types.float64):
+    """An intrinsic of one float argument that returns `emit(builder, x)` (x cast to `kind`)."""
+    def typer(typingctx, x):
+        def codegen(context, builder, signature, args):
+            return emit(builder, context.cast(builder, args[0], signature.args[0], kind))
+        return kind(x), codegen
+    return typer
+
+
+@intrinsic
+def exp(typingctx, x):
+    """e^x for |x| <= 700 (clamped), relative error below 1e-14 (the degree-11 Taylor series
+    at |r| = ln 2 / 2: 6e-15); in float64 whatever x's type."""
+    return _elementwise(_exp_ir)(typingctx, x)
+
+
+@intrinsic
+def log(typingctx, x):
+    """ln x for normal x > 0, error below 1e-15: x = m 2^e, ln m = 2 atanh((m-1)/(m+1)); in
+    float64 whatever x's type."""
+    return _elementwise(_log_ir)(typingctx, x)
+
+
+@intrinsic
+def tanh(typingctx, x):
+    """tanh x in x's precision. float64: 1 - 2 / (e^{2x} + 1), absolute error below 1e-14.
+    float32, in float32 arithmetic (16 lanes a vector), within 2 ulp of the exact value
     (tests/test_kernels.py): for |x| <= 0.625 x + x³ P(x²); above, tanh |x| = e / (e + 2) with
     e = e^{2|x|} - 1 = 2^k (e^r - 1) + 2^k - 1, e^r - 1 = r + r²(1/2! + ... + r^6/8!)
     (|r| <= ln 2 / 2). Both are computed and one selected (vectorised)."""
-    z = x * x
-    near = fma(fma(fma(fma(fma(_T5, z, _T4), z, _T3), z, _T2), z, _T1), z, _T0)
-    near = fma(x * z, near, x)
-    y = abs(x + x)
-    y = clamp(y, _F(0.0), _F(80.0))  # tanh(40) rounds to 1 in float32
-    shifted = fma(y, _F(1.4426950408889634), _ROUND32)
-    k = shifted - _ROUND32  # round(y / ln 2)
-    r = fma(k, -_LN2_LO32, fma(k, -_LN2_HI32, y))
-    p = fma(fma(fma(fma(fma(fma(_C8, r, _C7), r, _C6), r, _C5), r, _C4), r, _C3), r, _C2)
-    q = fma(r * r, p, r)  # e^r - 1
-    scale = _as_float32((_as_bits32(shifted) + 127) << 23)  # 2^k
-    e = fma(scale, q, scale - _F(1.0))
-    far = e / (e + _F(2.0))
-    far = far if x >= _F(0.0) else -far
-    return near if y <= _F(1.25) else far
-
-
-def tanh(x):
-    """tanh x in x's precision, vectorisable (see `_tanh64`, `_tanh32`)."""
-    return math.tanh(x)
-
-
-# Inlined into the lane loops (a call per lane does not vectorise: 1.7x slower forward pass).
-# numba's SSA self-check then warns that a variable of the inlined exp's conditional expressions
-# "is not in scope" (NumbaIRAssumptionWarning, a pedantic internal check): the compiled code is
-# right (the law tests; float64 bits equal to those before the overload), so that one is hushed.
-warnings.filterwarnings("ignore", message=".*variable '_tanh__locals",
-                        category=NumbaIRAssumptionWarning)
-
-
-@overload(tanh, inline="always", jit_options=dict(fastmath=FASTMATH, error_model="numpy"))
-def _tanh(x):
     if x == types.float32:
-        return lambda x: _tanh32(x)
-    return lambda x: _tanh64(x)
+        return _elementwise(_tanh32_ir, types.float32)(typingctx, x)
+    return _elementwise(_tanh64_ir)(typingctx, x)
 
 
 def zeros(shape: tuple, dtype=np.float64) -> np.ndarray:
