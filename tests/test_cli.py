@@ -513,3 +513,20 @@ def test_resume_picks_the_newest_unfinished_run_and_a_rerun_names_it(tmp_path, m
     assert "resume=true" in said
     cli._tell_interrupted("lissajous2", ["seed=4", "task=lissajous2"])  # another command
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("code, status, stderr", [(None, 0, ""), (3, 3, ""),
+                                                  ("moex: error: x", 1, "moex: error: x\n")])
+def test_the_command_ends_as_sys_exit_would_without_the_teardown(code, status, stderr, tmp_path):
+    """`moex.launch.leave`: the exit status and message of sys.exit(code), the exit handlers run
+    (logging's flush among them) and the buffered output written; then os._exit."""
+    log = tmp_path / "x.log"
+    script = ("import atexit, logging, sys; from moex.launch import leave; "
+              f"logging.basicConfig(filename={str(log)!r}); logging.warning('kept'); "
+              "atexit.register(print, 'handler ran'); print('buffered', end=' '); "
+              f"leave({code!r}); print('not reached')")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert (done.returncode, done.stdout, done.stderr) == (status, "buffered handler ran\n",
+                                                           stderr)
+    assert log.read_text() == "WARNING:root:kept\n"
