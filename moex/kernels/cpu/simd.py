@@ -265,27 +265,27 @@ def _tanh32_ir(builder, x):
     return b.select(b.fcmp_ordered("<=", y, f.c(1.25)), near, far)
 
 
-def _elementwise(emit, kind=types.float64):
-    """An intrinsic of one float argument that returns `emit(builder, x)` (x cast to `kind`)."""
-    def typer(typingctx, x):
-        def codegen(context, builder, signature, args):
-            return emit(builder, context.cast(builder, args[0], signature.args[0], kind))
-        return kind(x), codegen
-    return typer
+def _elementwise(emit, x, kind=types.float64):
+    """The signature and code of an intrinsic of one float argument x that returns
+    `emit(builder, x)` (x cast to `kind`)."""
+    def codegen(context, builder, signature, args):
+        return emit(builder, context.cast(builder, args[0], signature.args[0], kind))
+
+    return kind(x), codegen
 
 
 @intrinsic
 def exp(typingctx, x):
     """e^x for |x| <= 700 (clamped), relative error below 1e-14 (the degree-11 Taylor series
     at |r| = ln 2 / 2: 6e-15); in float64 whatever x's type."""
-    return _elementwise(_exp_ir)(typingctx, x)
+    return _elementwise(_exp_ir, x)
 
 
 @intrinsic
 def log(typingctx, x):
     """ln x for normal x > 0, error below 1e-15: x = m 2^e, ln m = 2 atanh((m-1)/(m+1)); in
     float64 whatever x's type."""
-    return _elementwise(_log_ir)(typingctx, x)
+    return _elementwise(_log_ir, x)
 
 
 @intrinsic
@@ -296,8 +296,8 @@ def tanh(typingctx, x):
     e = e^{2|x|} - 1 = 2^k (e^r - 1) + 2^k - 1, e^r - 1 = r + r²(1/2! + ... + r^6/8!)
     (|r| <= ln 2 / 2). Both are computed and one selected (vectorised)."""
     if x == types.float32:
-        return _elementwise(_tanh32_ir, types.float32)(typingctx, x)
-    return _elementwise(_tanh64_ir)(typingctx, x)
+        return _elementwise(_tanh32_ir, x, types.float32)
+    return _elementwise(_tanh64_ir, x)
 
 
 def zeros(shape: tuple, dtype=np.float64) -> np.ndarray:
