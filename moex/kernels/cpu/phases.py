@@ -25,7 +25,7 @@ from moex.kernels.cpu.lanes import (
     to_host,
 )
 from moex.kernels.cpu.rnn import backward_pass, forward_pass
-from moex.kernels.cpu.simd import JIT, exp, fma, lanes, log, width
+from moex.kernels.cpu.simd import JIT, exp, fma, lanes, log, sums, typed, width
 from moex.kernels.cpu.step import Stepper
 from moex.kernels.noise import input_noise
 
@@ -34,19 +34,19 @@ from moex.kernels.noise import input_noise
 
 @njit(inline="always", **JIT)
 def _total(x, n):  # pragma: no cover
-    """x[0] + ... + x[n-1] as width(x) partial sums (x[t] into sum t mod width, a vector's
+    """x[0] + ... + x[n-1] in float64 as 8 partial sums (x[t] into sum t mod 8, a vector's
     lanes) added in a fixed order: a sum over time that vectorises and rounds alike every run
-    (x is float64 here: 8 sums on every CPU)."""
-    acc, W = lanes(x), width(x)
-    for v in range(W):
+    and on every CPU (float32 terms too: 8 of a block's 8 or 16 lanes)."""
+    acc = sums(x, 1)[0]
+    for v in range(8):
         acc[v] = 0.0
-    for t0 in range(0, n - n % W, W):
-        for v in range(W):
+    for t0 in range(0, n - n % 8, 8):
+        for v in range(8):
             acc[v] += x[t0 + v]
-    for t in range(n - n % W, n):
-        acc[t % W] += x[t]
+    for t in range(n - n % 8, n):
+        acc[t % 8] += x[t]
     total = 0.0
-    for v in range(W):
+    for v in range(8):
         total += acc[v]
     return total
 
@@ -57,17 +57,20 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     (Eq. 13) and the E error; with want_grad ∂/∂o of every expert output and ∂/∂β (Eq. 19).
     partial[r·S + s] gets (ln p, ln φ(β), Σ‖ŷ - y‖², then per expert ∂ ln p/∂s of
     σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). The strided inputs are copied to
-    contiguous float64 arrays first; every loop runs over time, innermost, element by element
-    (LLVM vectorises them, exp and log included), and sums over time are `_total`'s."""
+    contiguous arrays of the run's precision first (float32 runs compute here in float32, 8
+    lanes an AVX2 vector); every loop runs over time, innermost, element by element (LLVM
+    vectorises them, exp and log included), and sums over time are `_total`'s, in float64."""
     S, T, D = targets.shape[1:]
     K, LB = beta.shape[3], width(Y)
+    real = Y.dtype
+    half, one, two, dims = typed(Y, 0.5), typed(Y, 1.0), typed(Y, 2.0), typed(Y, D)
     prior_std = var[r, K]
-    y = np.empty((K, D, T))
-    target = np.empty((D, T))
-    b = np.empty((K, T + 1))  # (a last column, so that β_{t+1} - β_t reads within the array)
-    log_ghat, z, ghat = np.empty((K, T)), np.empty((K, T)), np.empty((K, T))
-    err = np.empty((K, T))  # ‖y^k_t - y_t‖², for z and again for ∂/∂s_k
-    top, total, sq = np.empty(T), np.empty(T), np.empty(T)
+    y = np.empty((K, D, T), real)
+    target = np.empty((D, T), real)
+    b = np.empty((K, T + 1), real)  # (a last column, so that β_{t+1} - β_t reads within the array)
+    log_ghat, z, ghat = np.empty((K, T), real), np.empty((K, T), real), np.empty((K, T), real)
+    err = np.empty((K, T), real)  # ‖y^k_t - y_t‖², for z and again for ∂/∂s_k
+    top, total, sq = np.empty(T, real), np.empty(T, real), np.empty(T, real)
     for k in range(K):
         lane = (r * K + k) * S + s
         for d in range(D):
@@ -100,8 +103,8 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             ghat[k, t] = exp(log_ghat[k, t])
     # z_k = ln ĝ_k + ln N(y; y^k, σ_k² NI); ln p = ln Σ_k exp z_k
     for k in range(K):
-        norm = -0.5 * D * log(2.0 * math.pi * var[r, k])
-        scale = 2.0 * var[r, k]
+        norm = typed(Y, -0.5 * D * log(2.0 * math.pi * var[r, k]))
+        scale = typed(Y, 2.0 * var[r, k])
         for t in range(T):
             err[k, t] = 0.0
         for d in range(D):
@@ -133,14 +136,14 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         for t in range(T):
             sq[t] = fma(total[t], total[t], sq[t])
     partial[r * S + s, 2] = _total(sq, T)
-    inv = 1.0 / (prior_std * prior_std)
-    log_norm = 0.5 * log(2.0 * math.pi * prior_std * prior_std)
+    inv = typed(Y, 1.0 / (prior_std * prior_std))
+    log_norm = typed(Y, 0.5 * log(2.0 * math.pi * prior_std * prior_std))
     for t in range(T):
         sq[t] = 0.0
     for k in range(K):  # the prior (Eq. 13): its terms per step t < T - 1
         for t in range(T):
             diff = b[k, t + 1] - b[k, t]
-            sq[t] += 0.5 * diff * diff * inv + log_norm
+            sq[t] += half * diff * diff * inv + log_norm
     partial[r * S + s, 1] = -_total(sq, T - 1)
     if not want_grad:
         return
@@ -150,15 +153,15 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         var_k = var[r, k]
         for t in range(T):  # exp(z_k - ln p): the posterior responsibility of expert k
             resp[t] = exp(z[k, t] - top[t])
-            term[t] = resp[t] * (err[k, t] / var_k - D)
+            term[t] = resp[t] * (err[k, t] / var_k - dims)
         partial[r * S + s, 3 + k] = _total(term, T)
         for t in range(T):  # with G_n / ς² of Eq. 19 (b[k, T] repeats β_{T-1})
             g_beta[r, s, t, k] = resp[t] - ghat[k, t] + inv * (
-                b[k, t + 1] - 2.0 * b[k, t] + b[k, max(t - 1, 0)])
+                b[k, t + 1] - two * b[k, t] + b[k, max(t - 1, 0)])
         for d in range(D):
             for t in range(T):
                 out = y[k, d, t]
-                term[t] = resp[t] * (target[d, t] - out) / var_k * fma(-out, out, 1.0)
+                term[t] = resp[t] * (target[d, t] - out) / var_k * fma(-out, out, one)
             for t in range(T):
                 DY[lane // LB, t, d, lane % LB] = term[t]
 
