@@ -2,8 +2,11 @@
 reference: objectives, every gradient group, whole training trajectories, closed-loop samples and
 exponents. Each law test runs on every backend through the `backend` fixture."""
 
+import ast
 import dataclasses
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numba
@@ -590,6 +593,21 @@ def test_vectorised_exp_and_log_match_numpy_over_the_range_the_kernels_use():
     out_exp, out_log = np.empty_like(far), np.empty_like(far)
     apply(far, out_exp, out_log)
     np.testing.assert_allclose(out_exp, np.exp([-700.0, -700.0, 700.0, 700.0]), rtol=1e-14)
+
+
+def test_the_float32_tanh_rational_is_what_its_fitting_script_gives():
+    """`python tools/fit_tanh_rational.py` (the fit of `simd._TANH_P` / `_TANH_Q`; one BLAS
+    thread, ~1 s) prints the kernels' coefficients (to 1e-9 relative: another BLAS may round its
+    least squares otherwise) and a largest relative error below 2e-9 at its points."""
+    from moex.kernels.cpu.simd import _TANH_P, _TANH_Q
+
+    script = Path(__file__).parent.parent / "tools" / "fit_tanh_rational.py"
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert float(out[0].split()[-1]) < 2e-9
+    np.testing.assert_allclose(ast.literal_eval(out[1].split(" = ")[1]), _TANH_P, rtol=1e-9)
+    np.testing.assert_allclose(ast.literal_eval(out[2].split(" = ")[1]), _TANH_Q, rtol=1e-9)
 
 
 def test_vectorised_exp_and_log_are_within_2_ulp_in_float32():

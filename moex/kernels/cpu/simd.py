@@ -174,7 +174,8 @@ _LN2_HI32_LOG, _LN2_LO32_LOG = _F(6.9313812256e-01), _F(9.0580006145e-06)
 _LG = tuple(_F(c) for c in (0.66666662693, 0.40000972152, 0.28498786688, 0.24279078841))
 # tanh x = x P(x²) / Q(x²) on |x| <= 9: the minimax rational of degrees (5, 4) in x² for the
 # relative error (1.3e-9 at 8000 points), fitted by weighted least squares reweighted toward
-# the largest errors (Lawson's iteration); a float32's tanh beyond 9 rounds to within an ulp of 1
+# the largest errors (Lawson's iteration: tools/fit_tanh_rational.py); a float32's tanh beyond 9
+# rounds to within an ulp of 1
 _TANH_P = (0.9999999987237018, 0.1368084881892179, 0.003869498474237462,
            2.8031120894066093e-05, 3.064207921975263e-08, -1.2245921763889427e-11)
 _TANH_Q = (1.0, 0.4701418090863928, 0.0272501216916848, 0.0003940696670779394,
