@@ -628,12 +628,12 @@ def test_vectorised_exp_and_log_are_within_2_ulp_in_float32():
             np.float64)
 
     every = np.arange(0, 0x7F800000, 997, dtype=np.int64).astype(np.uint32).view(np.float32)
-    for x, f, name in ((np.concatenate([every[every <= 88], -every[every <= 87]]), np.exp, 0),
+    for x, f, which in ((np.concatenate([every[every <= 88], -every[every <= 87]]), np.exp, 0),
                        (every[every >= np.finfo(np.float32).tiny], np.log, 1)):
         out = (np.empty_like(x), np.empty_like(x))
         apply(x, *out)
-        assert out[name].dtype == np.float32
-        assert ulps(out[name], f(x.astype(np.float64))).max() <= 2.0
+        assert out[which].dtype == np.float32
+        assert ulps(out[which], f(x.astype(np.float64))).max() <= 2.0
     far = np.array([-1e4, -88.0, 89.0, 1e4], np.float32)
     out = (np.empty_like(far), np.empty_like(far))
     apply(far, *out)

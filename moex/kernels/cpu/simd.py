@@ -224,8 +224,16 @@ def _exp_ir(builder, x):
     p = f.fma(b.fmul(r4, r4), f.fma(r2, f.fma(r, _E[11], _E[10]), f.fma(r, _E[9], _E[8])), f.fma(
         r4, f.fma(r2, f.fma(r, _E[7], _E[6]), f.fma(r, _E[5], _E[4])),
         f.fma(r2, f.fma(r, _E[3], _E[2]), f.fma(r, _E[1], _E[0]))))
-    scale = b.shl(b.add(b.bitcast(shifted, _I64), ir.Constant(_I64, 1023)), ir.Constant(_I64, 52))
-    return b.fmul(p, b.bitcast(scale, _F64))  # times 2^k
+    return b.fmul(p, _pow2(f, shifted, _I64, 52, 1023))
+
+
+def _pow2(f, shifted, bits_type, mantissa, bias):
+    """2^k as f's float type, from `shifted` = x / ln 2 + 1.5 · 2^mantissa, whose low bits hold k
+    (|k| <= bias): (k + bias) << mantissa in integers of the float's width (`bits_type`), the
+    shift moving the high bits out; `_split`'s inverse."""
+    b = f.b
+    return b.bitcast(b.shl(b.add(b.bitcast(shifted, bits_type), ir.Constant(bits_type, bias)),
+                           ir.Constant(bits_type, mantissa)), f.kind)
 
 
 def _split(f, x, bits_type, mantissa, bias):
@@ -269,15 +277,11 @@ def _exp32_ir(builder, x):
     """e^x of a float in float32 arithmetic (see `exp`)."""
     f, b = _Emit(builder, _F32), builder
     x = f.clamp(x, -87.0, 88.0)  # -126 <= k <= 127: 2^k a normal float
-    shifted = f.fma(x, _F(1.4426950408889634), _ROUND32)
+    shifted = f.fma(x, _F(_LOG2E), _ROUND32)
     k = b.fsub(shifted, f.c(_ROUND32))  # round(x / ln 2)
     r = f.fma(k, -_LN2_LO32, f.fma(k, -_LN2_HI32, x))  # |r| <= ln 2 / 2
     p = f.fma(b.fmul(r, r), f.poly(r, _C[::-1]), r)  # e^r - 1, to r^7 / 7!
-    # 2^k: (k + 127) << 23 from shifted's bits (0x4B400000 + k), in 32-bit lanes (the shift
-    # moves the high bits out)
-    scale = b.bitcast(b.shl(b.add(b.bitcast(shifted, _I32), ir.Constant(_I32, 127)),
-                            ir.Constant(_I32, 23)), _F32)
-    return b.fmul(b.fadd(p, f.c(1.0)), scale)
+    return b.fmul(b.fadd(p, f.c(1.0)), _pow2(f, shifted, _I32, 23, 127))
 
 
 def _log32_ir(builder, x):
