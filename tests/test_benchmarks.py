@@ -80,7 +80,8 @@ def test_the_comparison_with_the_c_tools_refuses_a_folder_that_is_no_checkout(tm
 
 
 def test_the_phase1_breakdown_times_every_stage(tmp_path):
-    """benchmarks/bench_phase1_parts.py: a row per stage, each a finite time."""
+    """benchmarks/bench_phase1_parts.py: a row per stage of phase 1 (and with --phase 2 of phase
+    2), each a finite time."""
     import re
     import subprocess
     import sys
@@ -94,6 +95,13 @@ def test_the_phase1_breakdown_times_every_stage(tmp_path):
     for stage in ("forward", "mixture", "backward", "sums per run", "whole value_and_grad",
                   "training loop"):
         assert re.search(rf"\| 1 \| {stage}[^|]* \| -?\d+\.\d+ \|", done.stdout), stage
+    done = subprocess.run([sys.executable, str(root / "benchmarks" / "bench_phase1_parts.py"),
+                           "--phase", "2", "--runs", "1", "--repeats", "1"], capture_output=True,
+                          text=True, timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    for stage in ("forward", "softmax objective", "backward", "sums per run",
+                  "whole value_and_grad"):  # phase 2's stages, each a positive time
+        assert re.search(rf"\| 1 \| {stage}[^|]* \| \d+\.\d+ \|", done.stdout), stage
 
 
 def test_the_host_share_benchmark_prints_a_share_per_phase(tmp_path):

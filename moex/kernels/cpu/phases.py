@@ -264,7 +264,7 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
     """One block: log_lik (LB,) = Σ_t Σ_k ĝ_k ln softmax(o_t)_k (Eq. 15 without ln Z) and, with
     want_grad, DY (T, K, LB) = ∂/∂o_t = ĝ - g Σ_k ĝ_k."""
     T, K, LB = Y.shape[0], Y.shape[1], width(Y)
-    total, top, norm, mass = lanes(Y), lanes(Y), lanes(Y), lanes(Y)
+    total, top, norm, mass, grad = lanes(Y), lanes(Y), lanes(Y), lanes(Y), lanes(Y)
     for v in range(LB):
         total[v] = 0.0
     for t in range(T):
@@ -284,10 +284,13 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
         for k in range(K):
             for v in range(LB):
                 total[v] += targets[t, k, v] * (Y[t, k, v] - norm[v])
-        if want_grad:
+        if want_grad:  # into a stack array, then DY: stored straight into DY (which might
+            # alias the next lane's loads) the exp ran lane by lane, 1.7-2.2x the time
             for k in range(K):
                 for v in range(LB):
-                    DY[t, k, v] = targets[t, k, v] - exp(Y[t, k, v] - norm[v]) * mass[v]
+                    grad[v] = targets[t, k, v] - exp(Y[t, k, v] - norm[v]) * mass[v]
+                for v in range(LB):
+                    DY[t, k, v] = grad[v]
     for v in range(LB):
         log_lik[v] = total[v]
 
