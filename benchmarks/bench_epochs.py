@@ -112,6 +112,13 @@ def ratios(a: list[float], b: list[float], digits: int = 2, unit: str = "") -> s
     return f"{statistics.median(r):.{digits}f}{unit} ({min(r):.{digits}f}-{max(r):.{digits}f})"
 
 
+def gate_targets(runs: int, S: int, T: int, K: int) -> torch.Tensor:
+    """(runs, S, T, K) random ĝ (softmax of normal draws, seed 0): phase 2's targets where the
+    task has no gate targets of its own."""
+    return torch.softmax(torch.randn(runs, S, T, K, generator=torch.Generator().manual_seed(0)),
+                         -1)
+
+
 def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_size: int = 15,
              dtype: str = "float64", device: str = "cpu", series: int = 0,
              length: int = 0) -> tuple[dict, bool]:
@@ -143,8 +150,7 @@ def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_si
                               backend=chosen)
 
             out[f"phase 1, {'adaptive' if adaptive else 'fixed'} rate"] = phase1
-        targets = torch.softmax(torch.randn(runs, S, series.shape[1] - 1, 2,
-                                            generator=torch.Generator().manual_seed(0)), -1)
+        targets = gate_targets(runs, S, series.shape[1] - 1, 2)
         inputs = series[:, :-1]
     else:
         targets = torch.as_tensor(data.gate_targets, dtype=dtype).expand(runs, -1, -1, -1)

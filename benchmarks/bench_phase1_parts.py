@@ -25,7 +25,7 @@ import time
 import numba
 import numpy as np
 import torch
-from bench_epochs import outside_pairs, trainers
+from bench_epochs import gate_targets, outside_pairs, trainers
 
 from moex.config import Config
 from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig
@@ -101,8 +101,7 @@ def gating_best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor
     S, L, D = series.shape
     gens = [torch.Generator().manual_seed(s) for s in run_seeds(0, R)]
     params = init_gating(cfg.model, S, D, gens, series.dtype)
-    targets = torch.softmax(torch.randn(R, S, L - 1, cfg.model.num_experts,
-                                        generator=torch.Generator().manual_seed(0)), -1)
+    targets = gate_targets(R, S, L - 1, cfg.model.num_experts)
     problem = phases.GatingProblem(targets.to(series.dtype), series[:, :-1], cfg.model,
                                    GatingPhaseConfig(), seeds=run_seeds(0, R))
     grads = {k: torch.zeros_like(v) for k, v in params.items()}

@@ -543,6 +543,11 @@ def test_lane_arrays_start_on_a_cache_line(shape, dtype):
         assert not x.any()
 
 
+def _float32_ulps(out: np.ndarray, exact: np.ndarray) -> np.ndarray:
+    """|out - exact| in units of the last place of exact rounded to float32."""
+    return np.abs(out - exact) / np.spacing(np.abs(exact).astype(np.float32)).astype(np.float64)
+
+
 def test_vectorised_tanh_is_within_2_ulp_in_float32_and_1e_14_in_float64():
     """`simd.tanh` (the cpu kernels' own, so that lane loops vectorise): for float32 within 0.53
     ulp of the exact tanh (float64's, rounded) at every 37th float32 of |x| < 50 (both signs: 2.2
@@ -561,9 +566,7 @@ def test_vectorised_tanh_is_within_2_ulp_in_float32_and_1e_14_in_float64():
     x = np.concatenate([x, -x])
     out = np.empty_like(x)
     apply(x, out)
-    exact = np.tanh(x.astype(np.float64))
-    ulp = np.spacing(np.abs(exact).astype(np.float32)).astype(np.float64)
-    assert (np.abs(out - exact) / ulp).max() <= 0.53
+    assert _float32_ulps(out, np.tanh(x.astype(np.float64))).max() <= 0.53
     np.testing.assert_array_equal(out[: len(x) // 2], -out[len(x) // 2:])
     assert out.dtype == np.float32 and out[x == 0].size and not out[x == 0].any()
     x64 = np.random.default_rng(0).uniform(-30, 30, 100_000)
@@ -623,17 +626,13 @@ def test_vectorised_exp_and_log_are_within_2_ulp_in_float32():
             out_exp[i] = exp(x[i])
             out_log[i] = log(x[i])
 
-    def ulps(out, exact):
-        return np.abs(out - exact) / np.spacing(np.abs(exact).astype(np.float32)).astype(
-            np.float64)
-
     every = np.arange(0, 0x7F800000, 997, dtype=np.int64).astype(np.uint32).view(np.float32)
     for x, f, which in ((np.concatenate([every[every <= 88], -every[every <= 87]]), np.exp, 0),
                        (every[every >= np.finfo(np.float32).tiny], np.log, 1)):
         out = (np.empty_like(x), np.empty_like(x))
         apply(x, *out)
         assert out[which].dtype == np.float32
-        assert ulps(out[which], f(x.astype(np.float64))).max() <= 2.0
+        assert _float32_ulps(out[which], f(x.astype(np.float64))).max() <= 2.0
     far = np.array([-1e4, -88.0, 89.0, 1e4], np.float32)
     out = (np.empty_like(far), np.empty_like(far))
     apply(far, *out)
