@@ -552,9 +552,9 @@ def _float32_ulps(out: np.ndarray, exact: np.ndarray) -> np.ndarray:
 def test_vectorised_tanh_is_within_2_ulp_in_float32_and_1e_14_in_float64():
     """`simd.tanh` (the cpu kernels' own, so that lane loops vectorise): for float32 within 2 ulp
     of the exact tanh (float64's, rounded) at every 999th float32 of |x| < 50 (both signs: 2.2
-    million values; float32 arithmetic, tanh x / 2 doubled: at most 1.88 ulp over every float32,
-    in a scratch run), and exactly odd; in float64 within 1e-14 of numpy's. Blocks of 16 float32
-    lanes rely on the float32 one."""
+    million values; float32 arithmetic, tanh x / 2 doubled: at most 1.877 ulp over every float32,
+    the slow test below), and exactly odd; in float64 within 1e-14 of numpy's. Blocks of 16
+    float32 lanes rely on the float32 one."""
     from moex.kernels.cpu.simd import tanh
 
     @numba.njit(error_model="numpy")
@@ -625,8 +625,8 @@ def test_vectorised_exp_and_log_match_numpy_over_the_range_the_kernels_use():
 def test_the_float32_tanh_rational_is_what_its_fitting_script_gives():
     """`python tools/fit_tanh_rational.py` (the fit of `simd._TANH_P` / `_TANH_Q`; one BLAS
     thread, ~1 s) prints the kernels' coefficients (rounded to float32, to one float32 ulp:
-    another BLAS may round its least squares otherwise) and a largest weighted error below 2e-8
-    at its points."""
+    another BLAS may round its least squares otherwise) and a largest relative error left in
+    tanh x below 2e-8 at its points."""
     from moex.kernels.cpu.simd import _TANH_P, _TANH_Q
 
     script = Path(__file__).parent.parent / "tools" / "fit_tanh_rational.py"
