@@ -174,8 +174,7 @@ def main(argv=None) -> None:
         times = best_times(R, args.repeats, cfg, series, args.steps) if args.phase == 1 else \
             gating_best_times(R, args.repeats, cfg, series)
         for name, seconds in times.items():
-            key = {"forward": "forward", "backward": "backward"}.get(name.split(" (")[0])
-            flops = work[key] if key else None
+            flops = work.get(name.split(" (")[0])  # the forward's and backward's rows
             ns = 1e9 * seconds / lane_steps
             rate = f"{flops / ns:.2f}" if flops else ""
             print(f"| {R} | {name} | {1e3 * seconds / R:.3f} | {ns:.2f} | {flops or ''} | "
