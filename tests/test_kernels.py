@@ -290,6 +290,17 @@ def test_noisy_phase2_matches_reference_and_batches_equal_runs_alone(backend):
     assert (clean["w_out"] - out[1]["w_out"]).abs().max() > 1e-6  # noise did act
 
 
+def test_input_noise_comes_in_the_dtype_asked_drawn_and_scaled_in_float64():
+    """float32 noise is the float64 noise rounded once (it was float64 before: NumPy 2 promotes
+    float32 · a float64 scalar, which laid float32 lanes out as float64's on AVX-512)."""
+    from moex.kernels.noise import input_noise
+
+    wide = input_noise([3, 4], 5, (2, 7, 1), 0.01, np.float64)
+    narrow = input_noise([3, 4], 5, (2, 7, 1), 0.01, torch.float32)
+    assert wide.dtype == np.float64 and narrow.dtype == np.float32
+    assert np.array_equal(narrow, wide.astype(np.float32)) and wide.std() > 0.05
+
+
 def _closed_loop_model(K, D, delay, dtype):
     model = ModelConfig(num_experts=K, delay=delay)
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -484,8 +495,11 @@ def test_cpu_step_after_an_accepted_trial_reuses_its_forward_pass_bit_for_bit(mo
     pass from the lanes (`lanes.Forwarded`): both phases trained so (with retries, steps given up
     after 2 retries, learned τ and 3 runs whose lanes share blocks) equal the same training with
     every forward pass run afresh, bit for bit; with phase-2 input noise (fresh inputs every
-    step) nothing is reused."""
-    from moex.kernels.cpu import lanes
+    step) nothing is reused. (The training loop's separate calls; the stepper's record of its
+    lanes: tests/test_step.py.)"""
+    from moex.kernels.cpu import lanes, phases
+
+    monkeypatch.setattr(phases._Problem, "stepper", lambda self, *a, **k: None)
 
     task = make_task(task_config("lissajous2", num_series=3, length=40), seed=1)
     series = torch.as_tensor(task.series)

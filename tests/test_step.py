@@ -12,7 +12,7 @@ import torch
 from moex.config.model import ModelConfig
 from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
 from moex.kernels import get_backend
-from moex.kernels.cpu import phases, threads
+from moex.kernels.cpu import phases, step
 from moex.kernels.cpu.lanes import Forwarded
 from moex.model import init_experts, init_gating
 from moex.train import train_experts, train_gating
@@ -98,16 +98,16 @@ def test_a_whole_step_without_the_record_of_forward_passes_gives_the_same_bits(o
 
 
 def test_a_whole_step_is_one_call_however_many_trials(one_thread, monkeypatch):
-    """No stage of a training step goes through `threads.over` (the separate calls' way): only
-    the last evaluation after the loop does, the same count for 2 steps as for 8."""
+    """No training step goes through the problem's separate calls (`value_and_grad`, `value`):
+    only the last evaluation after the loop does, the same count for 2 steps as for 8."""
     calls = []
-    over = threads.over
+    call = phases._Problem._call
 
-    def counted(kernel, items, *args):
-        calls.append(kernel)
-        over(kernel, items, *args)
+    def counted(self, *args):
+        calls.append(args[-1])
+        return call(self, *args)
 
-    monkeypatch.setattr(threads, "over", counted)
+    monkeypatch.setattr(phases._Problem, "_call", counted)
     counts = []
     for steps in (2, 8):
         calls.clear()
@@ -116,18 +116,29 @@ def test_a_whole_step_is_one_call_however_many_trials(one_thread, monkeypatch):
     assert counts[0] == counts[1] > 0
 
 
-def test_separate_calls_are_kept_where_threads_share_out_the_blocks():
-    """Two threads and at least two blocks of lanes: the stages go to the threads (no stepper)."""
-    before = numba.get_num_threads()
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
+    """On two threads the stepper shares out each stage (phase 1's chunks of runs, the update's
+    runs: here however small the buffers) and gives one thread's bits; the separate calls on two
+    threads give them too."""
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba has one thread here")
-    numba.set_num_threads(2)
+    monkeypatch.setattr(step, "SPLIT", 0)
+    before = numba.get_num_threads()
+    made, stepper = [], phases._Problem.stepper
+
+    def counted(self, *args, **kwargs):
+        made.append(stepper(self, *args, **kwargs))
+        return made[-1]
+
     try:
-        model = ModelConfig(num_experts=2)
-        model.experts.context_size = 3
-        series = torch.zeros(S, T + 1, D, dtype=torch.float64)
-        problem = get_backend("cpu").expert_problem(series[:, :-1], series[:, 1:], model,
-                                                    ExpertPhaseConfig(), 8)  # 32 lanes
-        assert problem.stepper({}, {}, {}) is None
+        numba.set_num_threads(1)
+        one = _train(dtype, True, "paper", True)
+        numba.set_num_threads(2)
+        monkeypatch.setattr(phases._Problem, "stepper", counted)
+        _same(one, _train(dtype, True, "paper", True))
+        assert len(made) == 2 and all(s is not None for s in made)
+        monkeypatch.setattr(phases._Problem, "stepper", lambda self, *a, **k: None)
+        _same(one, _train(dtype, True, "paper", True))
     finally:
         numba.set_num_threads(before)

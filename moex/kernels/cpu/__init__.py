@@ -16,9 +16,9 @@ Modules: `cache` (numba's cache keyed on every source here), `simd` (lanes, exp/
 of lanes, with the derivation), `lanes` (parameters to lanes and back, work arrays), `phases`
 (phase 1 and phase 2: the objectives, the problem classes), `closed_loop` (the autonomous mixture
 with Lyapunov tangents), `symbols` (nearest-point readout), `update` (the training loop's
-momentum step), `step` (a whole training step with its arguments bound once, on one thread),
-`warm` and `helper` (a first run's helper process that compiles the later kernels
-while the run trains: the run's side and the process). The GPU backend (`moex.kernels.gpu`)
+momentum step), `step` (a whole training step with its arguments bound once, on the kernels'
+threads), `warm` and `helper` (a first run's helper process that compiles the later kernels while
+the run trains: the run's side and the process). The GPU backend (`moex.kernels.gpu`)
 mirrors it module for module.
 """
 

@@ -151,7 +151,7 @@ class Forwarded:
         if not (self.enabled and self.current.any()):
             return active
         out = np.empty_like(active)
-        stale_runs(self._bits(params), self.params, self.current, active, out)
+        stale_runs(0, len(out), self._bits(params), self.params, self.current, active, out)
         return out
 
     def record(self, params: dict, stale: np.ndarray) -> None:
@@ -159,8 +159,8 @@ class Forwarded:
         now = self._bits(params)
         if not self.params:
             self.params = tuple(np.array(x) for x in now)
-        record_runs(now, self.params, stale, self.block_runs, self.first_block, self.last_block,
-                    self.current)
+        record_runs(0, len(stale), now, self.params, stale, self.block_runs, self.first_block,
+                    self.last_block, self.current)
 
     def forget(self) -> None:
         """The inputs changed (fresh input noise): no lane holds a current forward pass."""
@@ -183,20 +183,22 @@ def _equal(now, then, r):  # pragma: no cover
     return True
 
 
-@njit(**JIT)
-def stale_runs(now, then, current, active, out):  # pragma: no cover
-    """out (R,): the active runs not current with exactly the parameter bits `now`."""
-    for r in range(current.shape[0]):
+@njit(nogil=True, **JIT)
+def stale_runs(lo, hi, now, then, current, active, out):  # pragma: no cover
+    """out[r] for runs r = lo..hi-1: whether r is active and not current with exactly the
+    parameter bits `now`."""
+    for r in range(lo, hi):
         out[r] = active[r] and not (current[r] and _equal(now, then, r))
 
 
-@njit(**JIT)
-def record_runs(now, then, stale, block_runs, first_block, last_block, current):  # pragma: no cover
-    """After a call that recomputed every block holding a `stale` run, with parameters of the bits
-    `now`: a run all of whose blocks were recomputed is current (its row of `then` := `now`), one
-    none of whose blocks was keeps its state, and one in between stays current only if its
-    parameters did not change."""
-    for r in range(current.shape[0]):  # (loops written out: array expressions here took
+@njit(nogil=True, **JIT)
+def record_runs(lo, hi, now, then, stale, block_runs, first_block, last_block,
+                current):  # pragma: no cover
+    """Runs lo..hi-1 after a call that recomputed every block holding a `stale` run, with
+    parameters of the bits `now`: a run all of whose blocks were recomputed is current (its row
+    of `then` := `now`), one none of whose blocks was keeps its state, and one in between stays
+    current only if its parameters did not change."""
+    for r in range(lo, hi):  # (loops written out: array expressions here took
         count = 0  # seconds of a first run to compile)
         for b in range(first_block[r], last_block[r] + 1):
             count += block_active(b, block_runs, stale)

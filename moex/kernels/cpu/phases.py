@@ -360,12 +360,8 @@ class _Problem:
         """Objective statistics per run (R,); every gradient is written into `grads`."""
         return self._call(params, grads, active, True)
 
-    def stepper(self, buffers: dict, columns: dict, fixed: dict, **settings) -> Stepper | None:
-        """The whole training step with its arguments bound once (`moex.kernels.cpu.step`),
-        where the items of its stages would run on one thread anyway (one thread, or fewer
-        blocks of lanes than threads); None where the training loop's calls share them out."""
-        if threads.count() > 1 and self.lanes.net[0].shape[0] >= threads.count():
-            return None
+    def stepper(self, buffers: dict, columns: dict, fixed: dict, **settings) -> Stepper:
+        """The whole training step with its arguments bound once (`moex.kernels.cpu.step`)."""
         stepper = Stepper(self, buffers, columns, fixed, **settings)
         self._stepper_record = stepper.current  # (the array, not the stepper: no reference cycle)
         return stepper
@@ -418,28 +414,26 @@ class ExpertProblem(_Problem):
         self._stepper_record = np.zeros(0, bool)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
-        """One phase-1 step of every active run: whole chunks of runs, as many per thread
-        (`_expert_items`), and the chunks left over (fewer than threads) stage by stage over
-        their blocks, series and runs, shared out among the threads as well."""
+        self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
+
+    def evaluate(self, args: tuple) -> None:
+        """One phase-1 step of every active run (`kernel_args`): whole chunks of runs, as many
+        per thread (`_expert_items`), and the chunks left over (fewer than threads) stage by
+        stage over their blocks, series and runs, shared out among the threads as well."""
         R, S, T, K = self.shape
-        floor, prior_std = float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std)
-        args = self.kernel_args(p, g, want_grad, active, stale)
         chunks = -(-R // self.chunk)
         whole = chunks - chunks % threads.count()
         threads.over(_expert_items, whole, _CHUNKS, *args)
         first = min(whole * self.chunk, R)  # the runs left over
         if first == R:
             return
-        _variances(first, R, p["log_sigma"], floor, prior_std, lanes.work[8])
+        lanes, log_sigma, floor, prior_std, want_grad = self.lanes, args[2], *args[13:15], args[16]
+        _variances(first, R, log_sigma, floor, prior_std, lanes.work[8])
         blocks = range(first * K * S // lanes.width, lanes.net[0].shape[0])
         for stage, items in ((_FORWARD, blocks), (_MIXTURE, range(first * S, R * S)),
                              (_BACKWARD, blocks if want_grad else range(0))):
             threads.over(_expert_items, items, stage, *args)
         _expert_items(first, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
-
-    def evaluate(self, args: tuple) -> None:
-        """One evaluation of every run on this thread (`kernel_args`; the stepper's)."""
-        _expert_items(0, -(-self.shape[0] // self.chunk), _CHUNKS, *args)
 
     def kernel_args(self, p, g, want_grad, active, stale) -> tuple:
         """`_expert_items`' arguments after its stage."""
@@ -499,13 +493,12 @@ class GatingProblem(_Problem):
         self._stepper_record = np.zeros(0, bool)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
-        args = self.kernel_args(p, g, want_grad, active, stale)
-        threads.over(gating_items, lanes.net[0].shape[0], True, *args)  # every block, then
-        gating_items(0, self.shape[0], False, *args)  # every run (sums: one thread is enough)
+        self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
 
     def evaluate(self, args: tuple) -> None:
-        """One evaluation of every run on this thread (`kernel_args`; the stepper's)."""
-        gating_items(0, self.lanes.net[0].shape[0], True, *args)
+        """One phase-2 step of every active run (`kernel_args`): its blocks shared out among
+        the threads, then every run's sums (one thread is enough)."""
+        threads.over(gating_items, self.lanes.net[0].shape[0], True, *args)
         gating_items(0, self.shape[0], False, *args)
 
     def kernel_args(self, p, g, want_grad, active, stale) -> tuple:

@@ -1,25 +1,29 @@
-"""A whole training step of all R runs on one thread with its arguments bound once: the gradient
-at θ, the momentum step Δθ (Eqs. 17-18), the adaptive rate's trials at θ + Δθ and their
-judgement (Sec. 2.1.4), and the step taken.
+"""A whole training step of all R runs with its arguments bound once: the gradient at θ, the
+momentum step Δθ (Eqs. 17-18), the adaptive rate's trials at θ + Δθ and their judgement
+(Sec. 2.1.4), and the step taken.
 
 The training loop (`moex.train._ascend`) otherwise makes each of those a backend call that
 converts its tensors, stages the parameters, checks the lanes' record of their forward pass and
 wraps the statistics: 160-390 µs of Python per step at R = 1, 6-11 % of an epoch. A `Stepper`
 binds every array once (the parameters' views of the flat (R, P) buffers where the kernels can
-read them as they are, at R = 1 all of them) and makes a step of 2 + 3 compiled calls per trial:
-the phase kernel per evaluation, the update functions between (`update.after_gradient`,
+read them as they are, at R = 1 all of them) and makes a step of a few compiled calls: the phase
+kernel per evaluation (`evaluate`), the update functions between (`update.after_gradient`,
 `after_trial`, `apply_runs`, and the lanes' record of their forward pass, `lanes.stale_runs`, on
 whole rows of the flat buffer). Those run without fast-math flags: inside the fast-math phase
-kernel (one call per step) LLVM may drop their NaN and infinity checks, which decide whether a run
-failed.
+kernel LLVM may drop their NaN and infinity checks, which decide whether a run failed.
 
-A step gives the bits of the separate calls: the same compiled functions on the same numbers in
-the same order (tests/test_step.py trains both ways).
+Every stage goes through `threads.over`: on one thread a direct call; on more, the evaluation's
+chunks of runs or blocks and the update's runs (with the staging copies of their rows) are shared
+out, so that nothing of the size of the (R, P) buffers is left to one thread.
+
+A step gives the bits of the separate calls, on any number of threads: the same compiled
+functions on the same numbers in the same order (tests/test_step.py trains both ways).
 """
 
 import numpy as np
 import torch
 
+from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import first_use, stale_runs, to_host
 from moex.kernels.cpu.update import after_gradient, after_trial, apply_runs
 
@@ -70,11 +74,17 @@ class Stepper:
         self.args = {True: kernel_args(self.point["theta"][0], written, True, active, stale),
                      False: kernel_args(self.point["scratch"][0], written, False, pending,
                                         pending)}
+        # the record of the lanes' forward pass compares the columns the forward pass reads
+        # (phase 1's β, most of a row, is not among them)
+        read = [columns[k] for k in problem.forwarded.names if k in columns]
+        a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
-        self.bits = (theta.view(bits),), (scratch.view(bits),)
-        self.then, self.current = (np.zeros(theta.shape, bits),), np.zeros(R, bool)
+        self.bits = (theta[:, a:b].view(bits),), (scratch[:, a:b].view(bits),)
+        self.then, self.current = (np.zeros((R, b - a), bits),), np.zeros(R, bool)
         self.stats = np.zeros((len(problem.STATS), R), dtype)
         self.flat = theta, grad, velocity, delta, scratch
+        # the update's stages shared out only where a pass over the buffers outlasts a handoff
+        self.over = threads.over if theta.size >= SPLIT else _one_thread
         self.loop = (to_host(rate), to_host(lr_scale), to_host(failed), to_host(retries))
         self.rule = (dtype.type(momentum), bool(paper_form), bool(adaptive), int(max_retries),
                      *(tau or (0, 0)))
@@ -86,8 +96,12 @@ class Stepper:
         self.criterion = problem.STATS.index(criterion)
 
     def _evaluate(self, point: str, want_grad: bool) -> None:
-        for source, staged in self.point[point][1]:
-            np.copyto(staged, source)
+        copies = self.point[point][1]
+        if point == "scratch":  # θ + Δθ (the separate calls' torch.add: the same bits)
+            theta, _, _, delta, scratch = self.flat
+            self.over(_rows, len(theta), [(theta, delta, scratch)], copies)
+        elif copies:
+            self.over(_rows, len(self.flat[0]), [], copies)
         self.problem.evaluate(self.args[want_grad])
 
     def __call__(self) -> dict[str, torch.Tensor]:
@@ -95,30 +109,52 @@ class Stepper:
         rate, lr_scale, failed, retries = self.loop
         active, stale, pending, frozen = self.masks
         block_runs, first_block, last_block, reuse = self.record
-        out = self.problem.lanes.out
+        out, R = self.problem.lanes.out, len(theta)
         np.logical_not(failed, out=active)
         if reuse:
-            stale_runs(self.bits[0], self.then, self.current, active, stale)
+            self.over(stale_runs, R, self.bits[0], self.then, self.current, active, stale)
         else:
             stale[:] = active
         with first_use(*self.problem.KERNEL):
             self._evaluate("theta", True)
-        for written, grads in self.copy_out:
-            np.copyto(grads, written)
-        trials = after_gradient(self.stats, out, self.current, theta, grad, velocity, delta,
-                                rate, lr_scale, failed, pending, retries, *self.rule)
+        self.over(_after_gradient, R, self.copy_out, self.stats, out, self.current, theta, grad,
+                  velocity, delta, rate, lr_scale, failed, pending, retries, *self.rule)
+        _, paper_form, adaptive, max_retries, tau_start, tau_end = self.rule
         c = self.criterion
-        for _ in range(self.rule[3] if trials else 0):
-            np.add(theta, delta, out=scratch)  # (the separate calls' torch.add: the same bits)
+        for _ in range(max_retries if adaptive else 0):
             self._evaluate("scratch", False)
-            if not after_trial(self.bits[1], self.then, self.current, block_runs, first_block,
-                               last_block, reuse, delta, out[c], self.stats[c], pending,
-                               lr_scale, retries, *self.trial):
+            self.over(after_trial, R, self.bits[1], self.then, self.current, block_runs,
+                      first_block, last_block, reuse, delta, out[c], self.stats[c], pending,
+                      lr_scale, retries, *self.trial)
+            if not pending.any():
                 break
-        _, paper_form, adaptive, _, tau_start, tau_end = self.rule
         if adaptive:  # the step taken, runs still rejected frozen
             np.logical_or(pending, failed, out=frozen)
-            apply_runs(0, len(failed), theta, delta, velocity, frozen, paper_form, tau_start,
-                       tau_end)
+            self.over(apply_runs, R, theta, delta, velocity, frozen, paper_form, tau_start,
+                      tau_end)
         values = torch.from_numpy(self.stats.copy())
         return {name: values[i] for i, name in enumerate(self.problem.STATS)}
+
+
+SPLIT = 1 << 16  # entries of the (R, P) buffers from which the update's stages go to the threads:
+# a handoff costs 40-50 µs, a pass over 2^16 entries ~30-60 µs (phase 1 at R = 30: 6 · 10^5)
+
+
+def _one_thread(kernel, items: int, *args) -> None:
+    kernel(0, items, *args)
+
+
+def _rows(lo: int, hi: int, sums: list, copies: list) -> None:
+    """Rows lo..hi-1 (runs) of c = a + b for each (a, b, c) of `sums`, then of each (source,
+    destination) of `copies` (numpy lets go of the GIL while it copies)."""
+    for a, b, c in sums:
+        np.add(a[lo:hi], b[lo:hi], out=c[lo:hi])
+    for source, destination in copies:
+        np.copyto(destination[lo:hi], source[lo:hi])
+
+
+def _after_gradient(lo: int, hi: int, copies: list, *args) -> None:
+    """Runs lo..hi-1: the gradients the kernel wrote copied out to the loop's buffer where they
+    differ (`copies`), then `after_gradient`."""
+    _rows(lo, hi, [], copies)
+    after_gradient(lo, hi, *args)

@@ -96,37 +96,34 @@ def _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, d
 
 
 @njit(**JIT)
-def after_gradient(stats, out, current, theta, grad, velocity, delta, rate, lr_scale, failed,
-                   pending, retries, momentum, paper_form, adaptive, max_retries, tau_start,
-                   tau_end):
-    """The statistics at θ kept, the step Δθ (taken at a fixed rate); with the adaptive rate
-    every run not failed pending. Whether a trial follows."""
-    R = failed.shape[0]
-    for r in range(R):  # (loops written out: array expressions took a first run seconds)
+def after_gradient(lo, hi, stats, out, current, theta, grad, velocity, delta, rate, lr_scale,
+                   failed, pending, retries, momentum, paper_form, adaptive, max_retries,
+                   tau_start, tau_end):
+    """Runs lo..hi-1: the statistics at θ kept, the step Δθ (taken at a fixed rate); with the
+    adaptive rate every run not failed pending (its trials follow where max_retries > 0)."""
+    for r in range(lo, hi):  # (loops written out: array expressions took a first run seconds)
         for i in range(stats.shape[0]):
             stats[i, r] = out[i, r]
         current[r] = False  # the step changes θ: no lane holds its forward pass
-    _steps(0, R, theta, grad, velocity, delta, rate, lr_scale, stats[0], failed, momentum,
+    _steps(lo, hi, theta, grad, velocity, delta, rate, lr_scale, stats[0], failed, momentum,
            paper_form, not adaptive, tau_start, tau_end)
-    if not adaptive:
-        return False
-    for r in range(R):  # (max_retries = 0: every run pending, frozen after no trial)
-        pending[r] = not failed[r]
-        if max_retries > 0:
-            retries[r] = 0
-    return max_retries > 0
+    if adaptive:
+        for r in range(lo, hi):  # (max_retries = 0: every run pending, frozen after no trial)
+            pending[r] = not failed[r]
+            if max_retries > 0:
+                retries[r] = 0
 
 
 @njit(**JIT)
-def after_trial(now, then, current, block_runs, first_block, last_block, reuse, delta, values,
-                base, pending, lr_scale, retries, decrease, decrease_cast, increase, max_ratio):
-    """The lanes of the runs evaluated (pending) hold θ + Δθ's forward pass; the trial judged
-    (`_trials`). Whether a run is still pending."""
+def after_trial(lo, hi, now, then, current, block_runs, first_block, last_block, reuse, delta,
+                values, base, pending, lr_scale, retries, decrease, decrease_cast, increase,
+                max_ratio):
+    """Runs lo..hi-1: the lanes of those evaluated (pending) hold θ + Δθ's forward pass; the
+    trial judged (`_trials`)."""
     if reuse:
-        record_runs(now, then, pending, block_runs, first_block, last_block, current)
-    _trials(0, pending.shape[0], delta, values, base, pending, lr_scale, retries, decrease,
-            decrease_cast, increase, max_ratio)
-    return pending.any()
+        record_runs(lo, hi, now, then, pending, block_runs, first_block, last_block, current)
+    _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, decrease_cast,
+            increase, max_ratio)
 
 
 def adaptive_trial(delta, values, base, pending, lr_scale, *, retries, decrease: float,
