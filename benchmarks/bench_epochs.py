@@ -66,18 +66,21 @@ def outside_pairs(fn, targets: list[tuple[object, str]], steps: int, base: int, 
                   ) -> list[tuple[float, float]]:
     """`repeats` pairs (epoch, outside) of seconds per epoch of `fn(n)` (n epochs) after
     `warm_up`: marginal, `base + steps` epochs minus `base`, and of that the time outside the
-    calls of each `owner.<name>` of `targets` (wrapped while this runs; none may call another).
-    Each epoch's own calls are subtracted, not the least of many calls: an epoch's time includes
-    all of the machine's jitter."""
-    inside, calls = [0.0], [getattr(owner, name) for owner, name in targets]
+    calls of each `owner.<name>` of `targets` (wrapped while this runs; a call inside another
+    counts once, in the outer one). Each epoch's own calls are subtracted, not the least of many
+    calls: an epoch's time includes all of the machine's jitter."""
+    inside, depth, calls = [0.0], [0], [getattr(owner, name) for owner, name in targets]
 
     def timer(call):
         def timed(*args):
-            start = time.perf_counter()
+            if depth[0]:
+                return call(*args)
+            depth[0], start = 1, time.perf_counter()
             try:
                 return call(*args)
             finally:
                 inside[0] += time.perf_counter() - start
+                depth[0] = 0
         return timed
 
     def clocked(n: int) -> tuple[float, float]:

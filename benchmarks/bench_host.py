@@ -5,13 +5,16 @@ parameters) as a fraction of the epoch, per phase, one thread.
     python benchmarks/bench_host.py [--runs 1 30] [--steps 100] [--repeats 3] [--separate]
 
 The compiled calls of a training step are the ones through `moex.kernels.cpu.threads.over` (the
-separate calls: phase kernels, momentum update, adaptive-rate trial) or, on one thread, the
-stepper's (`moex.kernels.cpu.step`: each phase's `evaluate` and the update functions between);
-the script wraps them all to add up the time spent inside. Phase 2's sums per run and phase 1's
-sums of runs left over from whole chunks (a few µs) are called directly and count as host time
-in the separate calls. `--separate`: the training loop's separate calls (no stepper), for the
-comparison. Epoch and host times are marginal (`base + steps` epochs minus `base`, as
-`bench_epochs.py`), the pair with the least epoch time of `--repeats`. Two-Lissajous sizes.
+separate calls: phase kernels, momentum update, adaptive-rate trial) and the stepper's
+(`moex.kernels.cpu.step`: each phase's `evaluate` and the update functions between, through
+`threads.over` where the buffers are large); the script wraps them all to add up the time spent
+inside (a call inside another counted once). Phase 2's sums per run and phase 1's sums of runs
+left over from whole chunks (a few µs) are called directly and count as host time in the
+separate calls; the stepper's copies of gradients out of the staging arrays count as host time
+at small buffers, as compiled time where they go through `threads.over`. `--separate`: the
+training loop's separate calls (no stepper), for the comparison. Epoch and host times are
+marginal (`base + steps` epochs minus `base`, as `bench_epochs.py`), the pair with the least epoch
+time of `--repeats`. Two-Lissajous sizes.
 """
 
 import argparse

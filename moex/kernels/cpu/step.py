@@ -20,6 +20,8 @@ A step gives the bits of the separate calls, on any number of threads: the same 
 functions on the same numbers in the same order (tests/test_step.py trains both ways).
 """
 
+from functools import partial
+
 import numpy as np
 import torch
 
@@ -85,6 +87,8 @@ class Stepper:
         self.flat = theta, grad, velocity, delta, scratch
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
         self.over = threads.over if theta.size >= SPLIT else _one_thread
+        self.after_gradient = partial(_after_gradient, copies=self.copy_out) if self.copy_out \
+            else after_gradient
         self.loop = (to_host(rate), to_host(lr_scale), to_host(failed), to_host(retries))
         self.rule = (dtype.type(momentum), bool(paper_form), bool(adaptive), int(max_retries),
                      *(tau or (0, 0)))
@@ -117,8 +121,8 @@ class Stepper:
             stale[:] = active
         with first_use(*self.problem.KERNEL):
             self._evaluate("theta", True)
-        self.over(_after_gradient, R, self.copy_out, self.stats, out, self.current, theta, grad,
-                  velocity, delta, rate, lr_scale, failed, pending, retries, *self.rule)
+        self.over(self.after_gradient, R, self.stats, out, self.current, theta, grad, velocity,
+                  delta, rate, lr_scale, failed, pending, retries, *self.rule)
         _, paper_form, adaptive, max_retries, tau_start, tau_end = self.rule
         c = self.criterion
         for _ in range(max_retries if adaptive else 0):
@@ -153,7 +157,7 @@ def _rows(lo: int, hi: int, sums: list, copies: list) -> None:
         np.copyto(destination[lo:hi], source[lo:hi])
 
 
-def _after_gradient(lo: int, hi: int, copies: list, *args) -> None:
+def _after_gradient(lo: int, hi: int, *args, copies: list) -> None:
     """Runs lo..hi-1: the gradients the kernel wrote copied out to the loop's buffer where they
     differ (`copies`), then `after_gradient`."""
     _rows(lo, hi, [], copies)
