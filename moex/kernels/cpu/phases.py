@@ -427,7 +427,8 @@ class ExpertProblem(_Problem):
         first = min(whole * self.chunk, R)  # the runs left over
         if first == R:
             return
-        lanes, log_sigma, floor, prior_std, want_grad = self.lanes, args[2], *args[13:15], args[16]
+        lanes = self.lanes  # (`kernel_args`' order: log σ, the floor σ_min², prior std, want_grad)
+        log_sigma, floor, prior_std, want_grad = args[2], *args[13:15], args[16]
         _variances(first, R, log_sigma, floor, prior_std, lanes.work[8])
         blocks = range(first * K * S // lanes.width, lanes.net[0].shape[0])
         for stage, items in ((_FORWARD, blocks), (_MIXTURE, range(first * S, R * S)),

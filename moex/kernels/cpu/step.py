@@ -12,9 +12,10 @@ kernel per evaluation (`evaluate`), the update functions between (`update.after_
 whole rows of the flat buffer). Those run without fast-math flags: inside the fast-math phase
 kernel LLVM may drop their NaN and infinity checks, which decide whether a run failed.
 
-Every stage goes through `threads.over`: on one thread a direct call; on more, the evaluation's
-chunks of runs or blocks and the update's runs (with the staging copies of their rows) are shared
-out, so that nothing of the size of the (R, P) buffers is left to one thread.
+On more than one thread the evaluation's chunks of runs or blocks are shared out as in the
+separate calls (`threads.over`), and so are the update's runs, with the staging copies of their
+rows, where the (R, P) buffers hold at least `SPLIT` entries (phase 1's β at R = 30: nothing of
+their size is left to one thread); smaller updates are one call, cheaper than a handoff.
 
 A step gives the bits of the separate calls, on any number of threads: the same compiled
 functions on the same numbers in the same order (tests/test_step.py trains both ways).
