@@ -1,6 +1,11 @@
-"""This core's clock and float64 peak, measured: 16 independent scalar FMA chains in a numba loop
+"""This core's clock and peak, measured two ways. 16 independent scalar FMA chains in a numba loop
 keep a core's FMA pipes busy, so their rate is pipes × 2 flops × clock; the vector peak is then
-flops per cycle × clock.
+flops per cycle × clock (the book value at the scalar clock). And 12 independent chains of
+vector FMAs in the kernels' own blocks of lanes (`simd.lanes`, `simd.fma`: 8 float64, 16 float32
+with AVX-512) give the vector rate the kernels can reach, in float64 and float32: on CPUs that
+lower their clock under 512-bit work (Intel's AVX-512 licences) it is below the book value. The
+scalar chains are compiled with numba's SLP vectoriser off and their machine code checked for
+packed FMAs (the script stops if it finds one).
 
     python benchmarks/bench_peak.py [--pipes 2] [--flops-per-cycle 16] [--steps 20000000]
 
@@ -10,10 +15,15 @@ Software Optimization Guide for Family 19h); other CPUs need their own (Intel co
 """
 
 import argparse
+import re
+import sys
 import time
 
+import numba
 import numpy as np
 from numba import njit
+
+from moex.kernels.cpu.simd import JIT, fma, lanes, typed, width
 
 
 @njit(fastmath={"contract"})
@@ -26,6 +36,29 @@ def _chains(n, x):  # pragma: no cover (compiled)
     return a.sum()
 
 
+@njit(**JIT)
+def _vector_chains(n, x):  # pragma: no cover (compiled)
+    """12 chains of one block of lanes each (enough to cover 2 pipes x 4-5 cycles of latency)."""
+    LB = width(x)
+    a0, a1, a2, a3, a4, a5 = lanes(x), lanes(x), lanes(x), lanes(x), lanes(x), lanes(x)
+    a6, a7, a8, a9, a10, a11 = lanes(x), lanes(x), lanes(x), lanes(x), lanes(x), lanes(x)
+    for v in range(LB):
+        a0[v] = a1[v] = a2[v] = a3[v] = a4[v] = a5[v] = x[v]
+        a6[v] = a7[v] = a8[v] = a9[v] = a10[v] = a11[v] = x[v]
+    b, c = typed(x, 0.999999), typed(x, 1e-7)
+    for _ in range(n):
+        for v in range(LB):
+            a0[v], a1[v], a2[v] = fma(a0[v], b, c), fma(a1[v], b, c), fma(a2[v], b, c)
+            a3[v], a4[v], a5[v] = fma(a3[v], b, c), fma(a4[v], b, c), fma(a5[v], b, c)
+            a6[v], a7[v], a8[v] = fma(a6[v], b, c), fma(a7[v], b, c), fma(a8[v], b, c)
+            a9[v], a10[v], a11[v] = fma(a9[v], b, c), fma(a10[v], b, c), fma(a11[v], b, c)
+    total = typed(x, 0.0)
+    for v in range(LB):
+        total += a0[v] + a1[v] + a2[v] + a3[v] + a4[v] + a5[v]
+        total += a6[v] + a7[v] + a8[v] + a9[v] + a10[v] + a11[v]
+    return total
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pipes", type=int, default=2)
@@ -33,18 +66,35 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=20_000_000)
     args = parser.parse_args(argv)
     x = np.linspace(0.5, 1.0, 16)
-    _chains(10, x)
+    # compiled with the SLP vectoriser off (numba's default, which `simd` turns on when imported:
+    # the 16 chains then ran as two 8-lane vector chains and "measured" a clock near 6 GHz)
+    slp, numba.config.SLP_VECTORIZE = numba.config.SLP_VECTORIZE, 0
+    try:
+        _chains(10, x)
+    finally:
+        numba.config.SLP_VECTORIZE = slp
+    if re.search(r"\bvfn?m(add|sub)\d+p[sd]\b", _chains.inspect_asm(_chains.signatures[0])):
+        sys.exit("bench_peak.py: the scalar FMA chains compiled to packed (vector) FMAs; the "
+                 "clock they give would be wrong")
     best = min(_timed(args.steps, x) for _ in range(3))
     rate = 16 * 2 * args.steps / best / 1e9
     clock = rate / (args.pipes * 2)
     print(f"scalar FMA chains: {rate:.2f} Gflop/s -> clock {clock:.2f} GHz at {args.pipes} FMA "
           f"pipes; float64 peak {args.flops_per_cycle} x {clock:.2f} = "
           f"{args.flops_per_cycle * clock:.1f} Gflop/s per core")
+    for dtype in (np.float64, np.float32):
+        x = np.linspace(0.5, 1.0, width(np.dtype(dtype))).astype(dtype)
+        _vector_chains(10, x)
+        steps = args.steps // 4  # 12 vector FMAs per step against 16 scalar ones
+        best = min(_timed(steps, x, _vector_chains) for _ in range(3))
+        print(f"vector FMA chains, {np.dtype(dtype).name} ({x.size} lanes): "
+              f"{12 * 2 * x.size * steps / best / 1e9:.1f} Gflop/s per core "
+              f"({12 * steps / best / 1e9:.2f} G vector FMAs per second)")
 
 
-def _timed(steps: int, x: np.ndarray) -> float:
+def _timed(steps: int, x: np.ndarray, chains=_chains) -> float:
     start = time.perf_counter()
-    _chains(steps, x)
+    chains(steps, x)
     return time.perf_counter() - start
 
 

@@ -8,7 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from moex.kernels.cpu.simd import width
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -167,6 +170,13 @@ def test_the_peak_probe_prints_a_clock_and_a_peak():
     rate, clock, peak = map(float, found.groups())
     assert rate == pytest.approx(4 * clock, rel=0.01)  # 2 pipes x 2 flops per cycle
     assert peak == pytest.approx(16 * clock, rel=0.01)
+    for dtype in ("float64", "float32"):  # the kernels' blocks: a vector FMA is 2 flops a lane
+        found = re.search(rf"vector FMA chains, {dtype} \((\d+) lanes\): (\d+\.\d) Gflop/s "
+                          r"per core \((\d+\.\d+) G vector FMAs", done.stdout)
+        lanes, rate, fmas = int(found[1]), float(found[2]), float(found[3])
+        assert lanes == width(np.dtype(dtype)) and rate > 0
+        # (the two figures are printed to 0.1 and 0.01)
+        assert rate == pytest.approx(2 * lanes * fmas, rel=0.02, abs=0.01 * lanes + 0.05)
 
 
 def test_the_forward_variants_agree_in_the_interpreter():
