@@ -15,7 +15,7 @@ import numba
 import numpy as np
 from llvmlite import ir
 from llvmlite.binding import get_host_cpu_features
-from numba import types
+from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic, overload
 from numba.np.numpy_support import as_dtype
@@ -369,6 +369,18 @@ def zeros(shape: tuple, dtype=np.float64) -> np.ndarray:
     raw = np.zeros(size + ALIGN, np.uint8)
     start = -raw.ctypes.data % ALIGN
     return raw[start:start + size].view(dtype).reshape(shape)
+
+
+@njit(inline="always", **JIT)
+def line_rows(rows, length, like):  # pragma: no cover
+    """An uninitialised (rows, m) heap array of `like`'s dtype in a compiled kernel, m ≥ `length`
+    a whole number of cache lines' worth, so that every row starts on a line (`ALIGN` bytes;
+    numba's allocator gives 16): a vector load from a row's start never straddles two lines."""
+    per_line = ALIGN // like.itemsize
+    m = -(-length // per_line) * per_line
+    raw = np.empty(rows * m + per_line, like.dtype)
+    start = (-raw.ctypes.data % ALIGN) // like.itemsize
+    return raw[start:start + rows * m].reshape(rows, m)
 
 
 def padded(count: int, dtype) -> int:
