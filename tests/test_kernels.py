@@ -557,6 +557,27 @@ def test_lane_arrays_start_on_a_cache_line(shape, dtype):
         assert not x.any()
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows, length", [(18, 1000), (3, 1), (5, 17)])
+def test_line_rows_start_every_row_on_a_cache_line(rows, length, dtype):
+    """`simd.line_rows` (the phase-1 mixture's rows of time steps, allocated in a kernel): rows of
+    at least `length` entries, each starting on a 64-byte line, padded by less than a line."""
+    from numba import njit
+
+    from moex.kernels.cpu.simd import ALIGN, line_rows
+
+    @njit
+    def allocate(rows, length, like):
+        return line_rows(rows, length, like)
+
+    like = np.zeros(1, dtype)
+    for _ in range(20):  # the allocator lands on other offsets from call to call
+        x = allocate(rows, length, like)
+        assert x.shape[0] == rows and length <= x.shape[1] < length + ALIGN // x.itemsize
+        assert x.dtype == dtype and x.flags.c_contiguous
+        assert all(x[r].ctypes.data % ALIGN == 0 for r in range(rows))
+
+
 def _float32_ulps(out: np.ndarray, exact: np.ndarray) -> np.ndarray:
     """|out - exact| in units of the last place of exact rounded to float32."""
     return np.abs(out - exact) / np.spacing(np.abs(exact).astype(np.float32)).astype(np.float64)

@@ -64,14 +64,15 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     K, LB = beta.shape[3], width(Y)
     half, one, two, dims = typed(Y, 0.5), typed(Y, 1.0), typed(Y, 2.0), typed(Y, D)
     prior_std = var[r, K]
-    # every row of time steps in one allocation, each starting on a cache line (numba's 16-byte
-    # alignment made the mixture 4-9 % slower: vector loads straddling two lines); ≥ T + 1 long
+    # every row of time steps (≥ T + 1 long) in one allocation, each starting on a cache line:
+    # with numba's 16-byte alignment vector loads straddled two lines (the mixture 5-14 % slower)
     rows = line_rows(K * D + D + 5 * K + 3, T + 1, Y)
     y, target = rows[:K * D].reshape(K, D, rows.shape[1]), rows[K * D:K * D + D]
-    q = K * D + D
-    b, log_ghat = rows[q:q + K], rows[q + K:q + 2 * K]  # (b: column T, β_{t+1} - β_t in a row)
+    q = K * D + D  # then K rows each of β (its column T lets β_{t+1} - β_t read within a row),
+    # ln ĝ, z, ĝ and err = ‖y^k_t - y_t‖² (for z and again for ∂/∂s_k); then top, total, sq
+    b, log_ghat = rows[q:q + K], rows[q + K:q + 2 * K]
     z, ghat, err = rows[q + 2 * K:q + 3 * K], rows[q + 3 * K:q + 4 * K], rows[q + 4 * K:q + 5 * K]
-    top, total, sq = rows[q + 5 * K], rows[q + 5 * K + 1], rows[q + 5 * K + 2]  # err: ‖y^k - y‖²
+    top, total, sq = rows[q + 5 * K], rows[q + 5 * K + 1], rows[q + 5 * K + 2]
     for k in range(K):
         lane = (r * K + k) * S + s
         for d in range(D):
