@@ -85,7 +85,7 @@ def main(argv=None) -> None:
     for dtype in (np.float64, np.float32):
         x = np.linspace(0.5, 1.0, width(np.dtype(dtype))).astype(dtype)
         _vector_chains(10, x)
-        steps = args.steps // 4  # 12 vector FMAs per step against 16 scalar ones
+        steps = args.steps // 4  # (a quarter of the scalar probe's steps: each is 12 vector FMAs)
         best = min(_timed(steps, x, _vector_chains) for _ in range(3))
         print(f"vector FMA chains, {np.dtype(dtype).name} ({x.size} lanes): "
               f"{12 * 2 * x.size * steps / best / 1e9:.1f} Gflop/s per core "
