@@ -10,7 +10,12 @@ import pytest
 import torch
 
 from moex.config.model import ModelConfig
-from moex.config.train import ExpertPhaseConfig, GatingPhaseConfig, TrainConfig
+from moex.config.train import (
+    AdaptiveLRConfig,
+    ExpertPhaseConfig,
+    GatingPhaseConfig,
+    TrainConfig,
+)
 from moex.kernels import get_backend
 from moex.kernels.cpu import phases, step
 from moex.kernels.cpu.lanes import Forwarded
@@ -29,21 +34,23 @@ def one_thread():
     numba.set_num_threads(before)
 
 
-def _train(dtype, adaptive, form, learn_tau, steps=6):
-    """Both phases of R runs (run 1's experts give NaN: it fails and is frozen)."""
+def _train(dtype, adaptive, form, learn_tau, steps=6, rate=0.05, retries=1000, noise=0.01):
+    """Both phases of R runs (run 1's experts give NaN: it fails and is frozen); phase 1 at
+    `rate`, trials given up after `retries`; phase 2 with input noise of variance `noise`."""
     model = ModelConfig(num_experts=2, learn_time_constants=learn_tau)
     model.experts.context_size, model.gating.context_size = 3, 4
     g = torch.Generator().manual_seed(0)
     series = torch.randn(S, T + 1, D, generator=g).tanh().to(dtype)
     experts = init_experts(model, S, D, generators([1, 2, 3]), dtype)
     experts["w_out"][1] = float("nan")
-    rule = TrainConfig(momentum_form=form)
+    rule = TrainConfig(momentum_form=form, adaptive=AdaptiveLRConfig(max_retries=retries))
     backend = get_backend("cpu")
-    phase1 = ExpertPhaseConfig(steps=steps, adaptive_lr=adaptive, learning_rate=0.05)
+    phase1 = ExpertPhaseConfig(steps=steps, adaptive_lr=adaptive, learning_rate=rate,
+                               log_every=1)
     experts, beta, rows1 = train_experts(experts, series, model, phase1, rule, backend=backend)
     gating = init_gating(model, S, D, generators([1, 2, 3]), dtype)
     phase2 = GatingPhaseConfig(steps=steps, adaptive_lr=adaptive, learning_rate=1.0,
-                               input_noise_var=0.01)
+                               input_noise_var=noise)
     ghat = torch.softmax(torch.randn(R, S, T, 2, generator=g), -1).to(dtype)
     gating, rows2 = train_gating(gating, ghat, series[:, :-1], model, phase2, rule=rule,
                                  backend=backend)
@@ -90,11 +97,71 @@ def test_a_whole_step_in_one_call_gives_the_separate_calls_bits(one_thread, monk
     _same(whole, _train(dtype, adaptive, form, learn_tau))
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_a_whole_step_without_the_record_of_forward_passes_gives_the_same_bits(one_thread,
-                                                                               monkeypatch):
-    kept = _train(torch.float64, True, "paper", True)
+                                                                               monkeypatch,
+                                                                               dtype):
+    """With the record, a gradient step reuses an accepted trial's forward pass and objective
+    (with ∂/∂o); without it, it computes them: the same bits, with phase-1 trials rejected (1
+    retry) and given up (2), and phase 2 without input noise (with it nothing is reused)."""
+    kept = _train(dtype, True, "paper", True, steps=12, rate=2.0, retries=2, noise=0.0)
+    assert {1, 2} <= {row["retries"] for row in kept[3] if row["phase"] == "experts"}
     monkeypatch.setattr(Forwarded, "enabled", False)
-    _same(kept, _train(torch.float64, True, "paper", True))
+    _same(kept, _train(dtype, True, "paper", True, steps=12, rate=2.0, retries=2, noise=0.0))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("phase", ["experts", "gating"])
+def test_a_gradient_call_reuses_the_objective_of_the_trial_before_it(one_thread, dtype, phase):
+    """The stepper's `reuse`: a call without gradients (an adaptive trial) computes the
+    objective's ∂/∂o too (phase 1's mixture also ∂/∂β), and a gradient call at the same
+    parameters skips the objective where it skips the forward pass. Shown by changing the targets
+    between the two calls (the objective reads them, the forward pass does not): the gradient
+    call still gives the statistics and every gradient of a fresh call at the old targets;
+    without `reuse`, the new targets' statistics."""
+    import numpy as np
+
+    model = ModelConfig(num_experts=2)
+    model.experts.context_size, model.gating.context_size = 3, 4
+    g = torch.Generator().manual_seed(0)
+    series = torch.randn(S, T + 1, D, generator=g).tanh().to(dtype)
+    backend = get_backend("cpu")
+    if phase == "experts":
+        params = init_experts(model, S, D, generators([1, 2, 3]), dtype)
+        params["beta"] = torch.randn(R, S, T, 2, generator=g).to(dtype)
+        params["log_sigma"] = (0.3 * torch.randn(R, 2, generator=g)).to(dtype)
+        problem = backend.expert_problem(series[:, :-1], series[:, 1:], model,
+                                         ExpertPhaseConfig(), R)
+    else:
+        params = init_gating(model, S, D, generators([1, 2, 3]), dtype)
+        ghat = torch.softmax(torch.randn(R, S, T, 2, generator=g), -1).to(dtype)
+        problem = backend.gating_problem(ghat, series[:, :-1], model, GatingPhaseConfig(),
+                                         [1, 2, 3])
+    grads = {k: torch.zeros_like(v) for k, v in params.items() if k != "tau"}  # τ not learned
+    p, written = problem.staging.load(params), problem.staging.outputs(grads)
+    active, none = np.ones(R, bool), np.zeros(R, bool)
+
+    def call(want_grad, stale, reuse, kept=()):
+        for k, v in grads.items():  # every gradient must be written (∂/∂β: by the trial)
+            if k not in kept:
+                v.fill_(float("nan"))
+        problem.evaluate(problem.kernel_args(p, written, want_grad, active, stale, reuse=reuse))
+        problem.staging.store(grads, written)
+        return problem.lanes.out.copy(), {k: v.clone() for k, v in grads.items()}
+
+    out, fresh = call(True, active, False)
+    assert all(torch.isfinite(v).all() for v in fresh.values())
+    problem.lanes.work[6].fill(float("nan"))  # ∂L/∂o in the lanes: the trial must write it
+    call(False, active, True)  # the trial: its forward pass, its objective with ∂/∂o
+    targets = problem.targets.copy()
+    problem.targets[:] = 0.5 * problem.targets + 0.25
+    reused_out, reused = call(True, none, True, kept=("beta",))
+    np.testing.assert_array_equal(reused_out, out)
+    for k in fresh:
+        assert torch.equal(_bits(reused[k]), _bits(fresh[k])), k
+    changed_out, _ = call(True, none, False)  # the forward pass reused, the objective not
+    assert (changed_out[1] != out[1]).all()  # ln p (Σ ĝ ln g) at the new targets
+    problem.targets[:] = targets
 
 
 def test_a_whole_step_is_one_call_however_many_trials(one_thread, monkeypatch):

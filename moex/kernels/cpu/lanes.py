@@ -126,6 +126,9 @@ class Forwarded:
     A block of lanes is recomputed when any run it holds is stale, with every lane's current
     parameters; a run is then current if all of its blocks were recomputed, unchanged if none
     was, and unknown (stale from then on) if some were and its parameters had changed.
+    The stepper (`moex.kernels.cpu.step`) keeps a record of its own on the same rules, over the
+    objective's parameters too (phase 1's β and log σ), and reuses the trial's objective and
+    ∂/∂o as well (the kernels' `reuse`); this class serves the separate calls.
 
     Args:
         block_runs: (NB, 2) the first and last run of each block (`runs_of_blocks`).

@@ -208,9 +208,13 @@ _CHUNKS, _FORWARD, _MIXTURE, _BACKWARD, _RUNS = range(5)
 @njit(nogil=True, **JIT)
 def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_grads, grads,
                   g_u0, g_log_sigma, g_beta, X, targets, floor, prior_std, attraction, want_grad,
-                  active, stale, block_runs, chunk, out):  # pragma: no cover
+                  active, stale, reuse, block_runs, chunk, out):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent);
-    the forward pass only in blocks that hold a `stale` run (`Forwarded`).
+    the forward pass only in blocks that hold a `stale` run (`Forwarded`). With `reuse` (the
+    stepper's record of the lanes covers every parameter the mixture reads, β and log σ too) a
+    call without gradients (an adaptive trial) computes the mixture's gradients as well (∂L/∂o
+    in the lanes, ∂L/∂β, the partial sums for ∂/∂ log σ), and a gradient call skips the mixture
+    of the runs that are not stale: their lanes hold that trial's, at these very parameters.
 
     _CHUNKS: chunks of `chunk` runs (whole blocks of lanes), each taken through every stage (a
     call of this function per stage) in one thread while its histories are in that thread's
@@ -231,8 +235,8 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                                            (_BACKWARD, b0, b1), (_RUNS, first, last)):
                 _expert_items(i0, i1, stage_of_chunk, params, u0, log_sigma, beta, net, work,
                               lane_grads, grads, g_u0, g_log_sigma, g_beta, X, targets, floor,
-                              prior_std, attraction, want_grad, active, stale, block_runs, chunk,
-                              out)
+                              prior_std, attraction, want_grad, active, stale, reuse, block_runs,
+                              chunk, out)
         return
     for i in range(lo, hi):
         if stage == _FORWARD:
@@ -245,8 +249,10 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                              u0_lane[i], bool(True),  # noqa: UP018
                              C0[i], C[i], Y[i], U[i], S1[i], S2[i])
         elif stage == _MIXTURE:
-            if active[i // S]:
-                _mixture(i // S, i % S, Y, targets, beta, var, want_grad, DY, g_beta, partial)
+            r = i // S
+            if active[r] and not (reuse and want_grad and not stale[r]):
+                _mixture(r, i % S, Y, targets, beta, var, want_grad or reuse, DY, g_beta,
+                         partial)
         elif stage == _BACKWARD:
             if want_grad and block_active(i, block_runs, active):
                 backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
@@ -299,12 +305,14 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
 
 @njit(nogil=True, **JIT)
 def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
-                 entropy, sigma_min, attraction, want_grad, active, stale, block_runs,
+                 entropy, sigma_min, attraction, want_grad, active, stale, reuse, block_runs,
                  out):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-2 step: with `blocks`, blocks of lanes (weights
     spread to the lanes, forward where a `stale` run is (`Forwarded`), objective, backward);
     otherwise runs, after every block
-    (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes)."""
+    (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes). With `reuse`
+    (the stepper's) a call without gradients (an adaptive trial) computes ∂/∂o as well, and a
+    gradient call skips the objective where it skips the forward pass (as `_expert_items`)."""
     C0, C, Y, U, S1, S2, DY, log_lik = work
     w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
@@ -315,11 +323,13 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
             for lane in range(i * LB, (i + 1) * LB):
                 spread(lane, S, params, u0, net)
             if block_active(i, block_runs, active):
-                if block_active(i, block_runs, stale):
+                fresh = block_active(i, block_runs, stale)
+                if fresh:
                     forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
                                  u0_lane[i], bool(False),  # noqa: UP018
                                  C0[i], C[i], Y[i], U[i], S1[i], S2[i])
-                _softmax_objective(Y[i], targets[i], want_grad, DY[i], log_lik[i])
+                if fresh or not (reuse and want_grad):
+                    _softmax_objective(Y[i], targets[i], want_grad or reuse, DY[i], log_lik[i])
                 if want_grad:
                     backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
                                   eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
@@ -342,6 +352,10 @@ class _Problem:
     device = torch.device("cpu")
     STATS: tuple[str, ...] = ()
     KERNEL: tuple = ()  # (the compiled kernel, what the log calls it)
+    # the parameters that the objective after the forward pass reads besides the forward's
+    # (phase 1's mixture: β, log σ); with them in the stepper's record a gradient step reuses an
+    # accepted trial's objective and its ∂/∂o too (the kernels' `reuse`)
+    AFTER_FORWARD: tuple[str, ...] = ()
     trials = 1  # adaptive-rate candidates per call: one (an accepted trial's pass is reused)
 
     def _call(self, params, grads, active, want_grad):
@@ -390,6 +404,7 @@ class ExpertProblem(_Problem):
 
     STATS = ("objective", "log_likelihood", "log_prior", "E")
     KERNEL = (_expert_items, "phase-1 kernel")
+    AFTER_FORWARD = ("beta", "log_sigma")
 
     def __init__(self, inputs, targets, model, phase, *, num_runs, device="cpu"):
         inputs, targets = to_host(inputs), to_host(targets)
@@ -438,15 +453,15 @@ class ExpertProblem(_Problem):
             threads.over(_expert_items, items, stage, *args)
         _expert_items(first, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
 
-    def kernel_args(self, p, g, want_grad, active, stale) -> tuple:
-        """`_expert_items`' arguments after its stage."""
+    def kernel_args(self, p, g, want_grad, active, stale, reuse=False) -> tuple:
+        """`_expert_items`' arguments after its stage (`reuse`: the stepper's, see there)."""
         lanes = self.lanes
         return (per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
                 tuple(lanes.work), lanes.lane_grads, per_network(g, True), g["u0"],
                 g["log_sigma"], g["beta"], self.inputs, self.targets,
                 float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std),
-                bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
-                self.chunk, lanes.out)
+                bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
+                lanes.block_runs, self.chunk, lanes.out)
 
     def resample(self, step: int) -> None:
         pass
@@ -504,14 +519,14 @@ class GatingProblem(_Problem):
         threads.over(gating_items, self.lanes.net[0].shape[0], True, *args)
         gating_items(0, self.shape[0], False, *args)
 
-    def kernel_args(self, p, g, want_grad, active, stale) -> tuple:
-        """`gating_items`' arguments after its stage."""
+    def kernel_args(self, p, g, want_grad, active, stale, reuse=False) -> tuple:
+        """`gating_items`' arguments after its stage (`reuse`: the stepper's, see there)."""
         lanes = self.lanes
         return (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
                 lanes.lane_grads, per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),
-                bool(self.phase.attraction), want_grad, active, stale, lanes.block_runs,
-                lanes.out)
+                bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
+                lanes.block_runs, lanes.out)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""

@@ -12,6 +12,10 @@ kernel per evaluation (`evaluate`), the update functions between (`update.after_
 whole rows of the flat buffer). Those run without fast-math flags: inside the fast-math phase
 kernel LLVM may drop their NaN and infinity checks, which decide whether a run failed.
 
+A gradient step right after an accepted adaptive trial is at the trial's point: it takes the
+trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
+1's mixture is a quarter of a step) and runs only BPTT and the sums.
+
 On more than one thread the evaluation's chunks of runs or blocks are shared out as in the
 separate calls (`threads.over`), and so are the update's runs, with the staging copies of their
 rows, where the (R, P) buffers hold at least `SPLIT` entries (phase 1's β at R = 30: nothing of
@@ -73,13 +77,16 @@ class Stepper:
         self.copy_out = [(written[k], grads[k]) for k in columns if written[k] is not grads[k]]
         self.masks = np.zeros((4, R), bool)  # active, stale, pending, frozen
         active, stale, pending, _ = self.masks
-        kernel_args = problem.kernel_args
+        forwarded = problem.forwarded
+        # with the record, a gradient step after an accepted trial reuses the trial's forward
+        # pass, objective and ∂/∂o (the trial computes them); the record compares the columns
+        # that all of those read (phase 1's β among them: most of a row)
+        reuse = forwarded.enabled
+        kernel_args = partial(problem.kernel_args, reuse=reuse)
         self.args = {True: kernel_args(self.point["theta"][0], written, True, active, stale),
                      False: kernel_args(self.point["scratch"][0], written, False, pending,
                                         pending)}
-        # the record of the lanes' forward pass compares the columns the forward pass reads
-        # (phase 1's β, most of a row, is not among them)
-        read = [columns[k] for k in problem.forwarded.names if k in columns]
+        read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
         self.bits = (theta[:, a:b].view(bits),), (scratch[:, a:b].view(bits),)
@@ -95,7 +102,6 @@ class Stepper:
                      *(tau or (0, 0)))
         self.trial = (float(decrease), dtype.type(decrease), float(increase),
                       dtype.type(max_ratio))
-        forwarded = problem.forwarded
         self.record = (lanes.block_runs, forwarded.first_block, forwarded.last_block,
                        forwarded.enabled)
         self.criterion = problem.STATS.index(criterion)
