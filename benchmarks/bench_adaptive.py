@@ -1,6 +1,7 @@
 """What the adaptive learning rate (Sec. 2.1.4) costs over a fixed rate on the cpu backend, with
-the forward pass of an accepted trial reused by the next gradient step (`lanes.Forwarded`) and
-without (every call runs its own forward pass, as before the reuse).
+the forward pass and the objective (with ∂L/∂o) of an accepted trial reused by the next gradient
+step (the stepper's record of its lanes, `lanes.Forwarded.enabled`) and without (every call runs
+its own forward pass and objective).
 
     python benchmarks/bench_adaptive.py [--runs 1 30] [--rounds 5]
 
@@ -46,7 +47,7 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--base", type=int, default=10)
     args = parser.parse_args(argv)
-    print("| R | work | CPU ms per network-epoch, trial's forward pass reused | run again | "
+    print("| R | work | CPU ms per network-epoch, trial's pass reused | run again | "
           "reused / run again | / phase 1 at a fixed rate |\n|---|---|---|---|---|---|")
     for runs in args.runs:
         times = rounds(runs, args.rounds, args.steps, args.base)

@@ -7,15 +7,22 @@ Two-Lissajous sizes: 10 series x 1000 steps, N = 2 experts, M = 10, M_g = 15, τ
     python benchmarks/bench_epochs.py --runs 1 30 --threads 1 2
     python benchmarks/bench_epochs.py --task reber --context-sizes 20 50 --runs 50 --threads 1
     python benchmarks/bench_epochs.py --backends gpu --device cuda --runs 90 900 --threads 1
+    python benchmarks/bench_epochs.py --runs 1 30 --threads 1 --dtype float64 float32 --repeats 6
 
 Each number is the marginal cost of an epoch (a run of 5 + --steps epochs minus a run of 5, so
 the set-up of a training call is left out), the best of --repeats such pairs after a warm-up
 (compilation), per network (divided by R). CPU time is process time (user + system, all
 threads), so with 2 threads it shows the cost and the wall time shows the speed-up.
+
+With two --dtype (cpu): both precisions' trainers in one process, each phase timed in both in
+turn, --repeats rounds, each round a pair (`marginal`, CPU time) and a ratio: the medians and the
+ratio's median (min-max). Separate processes' best times swung by a fifth within minutes on a
+shared VM; a pair's two sides see the same minute.
 """
 
 import argparse
 import gc
+import itertools
 import os
 import statistics
 import time
@@ -186,6 +193,26 @@ def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repea
     return results
 
 
+def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
+                context_size: int, dtypes: list[str], base: int = 5) -> None:
+    """Prints a row per phase: CPU ms per network-epoch in each of two precisions, medians of
+    `repeats` rounds that time both in turn (the order alternating), and their ratio round by
+    round."""
+    fns = {d: trainers(task, runs, "cpu", threads=threads, context_size=context_size,
+                       dtype=d)[0] for d in dtypes}
+    for name in fns[dtypes[0]]:
+        times = {d: [] for d in dtypes}
+        for d in dtypes:
+            warm_up(fns[d][name], steps, base)
+        for round_ in range(repeats):
+            for d in dtypes[::-1] if round_ % 2 else dtypes:
+                times[d].append(1e3 * marginal(fns[d][name], steps, base)[1] / runs)
+        a, b = (times[d] for d in dtypes)
+        print(f"| {task} | {name} | {runs} | {threads} | {context_size} | "
+              f"{statistics.median(a):.2f} | {statistics.median(b):.2f} | {ratios(a, b)} |",
+              flush=True)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -195,7 +222,8 @@ def main():
     parser.add_argument("--backends", nargs="+", default=["cpu"])
     parser.add_argument("--device", default="cpu", help="for reference and gpu: cpu or cuda")
     parser.add_argument("--context-sizes", type=int, nargs="+", default=[15])
-    parser.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    parser.add_argument("--dtype", nargs="+", default=["float64"], choices=["float64", "float32"],
+                        help="two: both in one process, paired round by round (cpu)")
     parser.add_argument("--series", type=int, default=0, help="series per network (0: task's)")
     parser.add_argument("--length", type=int, default=0, help="steps per series (0: task's)")
     parser.add_argument("--steps", type=int, default=100)
@@ -205,7 +233,15 @@ def main():
                         help="then print each compiled Triton kernel's registers and spills")
     args = parser.parse_args()
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
-    print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {args.dtype}")
+    print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {' and '.join(args.dtype)}")
+    if len(args.dtype) == 2:
+        first, second = args.dtype
+        print(f"| task | phase | runs | threads | NC | CPU ms per network-epoch, {first} | "
+              f"{second} | {first} / {second} |\n|---|---|---|---|---|---|---|---|")
+        for runs, threads, size in itertools.product(args.runs, args.threads, args.context_sizes):
+            dtype_pairs(args.task, runs, threads=threads, steps=args.steps, repeats=args.repeats,
+                        context_size=size, dtypes=args.dtype, base=args.base)
+        return
     print("| task | phase | runs | backend | threads | NC | CPU ms per network-epoch | "
           "wall ms per network-epoch |")
     print("|---|---|---|---|---|---|---|---|")
@@ -214,7 +250,7 @@ def main():
             for threads in args.threads:
                 for size in args.context_sizes:
                     bench(args.task, runs, backend, threads=threads, steps=args.steps,
-                          repeats=args.repeats, context_size=size, dtype=args.dtype,
+                          repeats=args.repeats, context_size=size, dtype=args.dtype[0],
                           device=args.device, series=args.series, length=args.length,
                           base=args.base)
     if args.kernels:

@@ -121,7 +121,7 @@ def test_the_host_share_benchmark_prints_a_share_per_phase(tmp_path):
 
 def test_the_adaptive_rate_benchmark_prints_its_rows(tmp_path):
     """benchmarks/bench_adaptive.py: phase 1 at a fixed rate, then both adaptive phases with the
-    trial's forward pass reused and run again, each a time and a ratio."""
+    trial's pass (forward and objective) reused and run again, each a time and a ratio."""
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_adaptive.py"),
                            "--runs", "1", "--rounds", "1", "--steps", "2", "--base", "1"],
                           capture_output=True, text=True, timeout=600, cwd=tmp_path)
@@ -131,6 +131,22 @@ def test_the_adaptive_rate_benchmark_prints_its_rows(tmp_path):
     for phase in ("phase 1", "phase 2"):
         assert re.search(rf"\| 1 \| {phase}, adaptive rate \| {number} \| {number} \| {number} "
                          rf"\({number}-{number}\) \|", done.stdout), phase
+
+
+def test_the_epoch_benchmark_pairs_two_precisions_round_by_round(tmp_path):
+    """benchmarks/bench_epochs.py with two --dtype: a row per phase with both precisions' times
+    and their ratio as a median (min-max) of the rounds."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_epochs.py"),
+                           "--runs", "1", "--threads", "1", "--dtype", "float64", "float32",
+                           "--series", "2", "--length", "30", "--steps", "2", "--base", "1",
+                           "--repeats", "2"], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    number = r"-?\d+\.\d+"
+    assert "| float64 / float32 |" in done.stdout
+    for phase in ("phase 1, fixed rate", "phase 1, adaptive rate", "phase 2, adaptive rate"):
+        assert re.search(rf"\| lissajous2 \| {phase} \| 1 \| 1 \| 15 \| {number} \| {number} \| "
+                         rf"{number} \({number}-{number}\) \|", done.stdout), phase
 
 
 def test_the_gpu_profile_names_where_each_phase_spends_its_epoch():
