@@ -75,14 +75,9 @@ def best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor, steps: i
     net = {**params, **fixed}
     active = torch.ones(R, dtype=torch.bool)
     problem.value_and_grad(net, grads, active)  # compile or load, allocate
-    p, g, lanes = problem.staging.load(net), problem.staging.outputs(grads), problem.lanes
-    floor = float(cfg.model.sigma_min) ** 2
-    args = (phases.per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
-            tuple(lanes.work), lanes.lane_grads, phases.per_network(g, True), g["u0"],
-            g["log_sigma"], g["beta"], problem.inputs, problem.targets, floor,
-            float(problem.phase.gate_prior_std), bool(problem.phase.attraction), True,
-            np.ones(R, bool), np.ones(R, bool), lanes.block_runs, problem.chunk, lanes.out)
-    NB = lanes.net[0].shape[0]
+    p, g = problem.staging.load(net), problem.staging.outputs(grads)
+    args = problem.kernel_args(p, g, True, np.ones(R, bool), np.ones(R, bool))
+    NB = problem.lanes.net[0].shape[0]
     stages = {
         "forward (Eqs. 1-3)": lambda: threads.over(_expert_items, NB, _FORWARD, *args),
         "mixture (Eqs. 9-13)": lambda: threads.over(_expert_items, R * S, _MIXTURE, *args),

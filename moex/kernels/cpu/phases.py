@@ -453,7 +453,7 @@ class ExpertProblem(_Problem):
             threads.over(_expert_items, items, stage, *args)
         _expert_items(first, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
 
-    def kernel_args(self, p, g, want_grad, active, stale, reuse=False) -> tuple:
+    def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
         """`_expert_items`' arguments after its stage (`reuse`: the stepper's, see there)."""
         lanes = self.lanes
         return (per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
@@ -519,7 +519,7 @@ class GatingProblem(_Problem):
         threads.over(gating_items, self.lanes.net[0].shape[0], True, *args)
         gating_items(0, self.shape[0], False, *args)
 
-    def kernel_args(self, p, g, want_grad, active, stale, reuse=False) -> tuple:
+    def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
         """`gating_items`' arguments after its stage (`reuse`: the stepper's, see there)."""
         lanes = self.lanes
         return (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
