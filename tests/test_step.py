@@ -6,6 +6,7 @@ reused across it), and the lanes' record of their forward pass on and off; and i
 per step."""
 
 import numba
+import numpy as np
 import pytest
 import torch
 
@@ -119,8 +120,6 @@ def test_a_gradient_call_reuses_the_objective_of_the_trial_before_it(one_thread,
     between the two calls (the objective reads them, the forward pass does not): the gradient
     call still gives the statistics and every gradient of a fresh call at the old targets;
     without `reuse`, the new targets' statistics."""
-    import numpy as np
-
     model = ModelConfig(num_experts=2)
     model.experts.context_size, model.gating.context_size = 3, 4
     g = torch.Generator().manual_seed(0)

@@ -102,8 +102,7 @@ class Stepper:
                      *(tau or (0, 0)))
         self.trial = (float(decrease), dtype.type(decrease), float(increase),
                       dtype.type(max_ratio))
-        self.record = (lanes.block_runs, forwarded.first_block, forwarded.last_block,
-                       forwarded.enabled)
+        self.record = (lanes.block_runs, forwarded.first_block, forwarded.last_block, reuse)
         self.criterion = problem.STATS.index(criterion)
 
     def _evaluate(self, point: str, want_grad: bool) -> None:
