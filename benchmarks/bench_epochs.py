@@ -57,7 +57,8 @@ def _clock(fn, steps: int, sync: bool) -> tuple[float, float]:
 
 def warm_up(fn, steps: int, base: int) -> None:
     """Both lengths once, so that every kernel is compiled (or loaded from the cache) at the
-    timed sizes, and the allocator has seen them."""
+    timed sizes, and the allocator has seen them. Not for a backend in Triton's interpreter
+    (`Capabilities.interpreted`): it compiles nothing, and its epochs take seconds."""
     fn(base)
     fn(base + steps)
 
@@ -109,9 +110,12 @@ def outside_pairs(fn, targets: list[tuple[object, str]], steps: int, base: int, 
             setattr(owner, name, call)
 
 
-def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False) -> tuple[float, float]:
-    """(wall, cpu) seconds per epoch (`marginal`), the best of `repeats` pairs after `warm_up`."""
-    warm_up(fn, steps, base)
+def _time(fn, steps: int, repeats: int, base: int = 5, sync: bool = False, warm: bool = True
+          ) -> tuple[float, float]:
+    """(wall, cpu) seconds per epoch (`marginal`), the best of `repeats` pairs after `warm_up`
+    (none where not `warm`)."""
+    if warm:
+        warm_up(fn, steps, base)
     pairs = [marginal(fn, steps, base, sync) for _ in range(repeats)]
     return min(p[0] for p in pairs), min(p[1] for p in pairs)
 
@@ -131,9 +135,9 @@ def gate_targets(runs: int, S: int, T: int, K: int) -> torch.Tensor:
 
 def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_size: int = 15,
              dtype: str = "float64", device: str = "cpu", series: int = 0,
-             length: int = 0) -> tuple[dict, bool]:
-    """{phase name: fn(n) training n epochs of `runs` networks} and whether to synchronise CUDA;
-    `series` and `length` (0: the task's) shrink the data."""
+             length: int = 0) -> tuple[dict, object]:
+    """{phase name: fn(n) training n epochs of `runs` networks} and the backend they train on
+    (`moex.kernels.Backend`); `series` and `length` (0: the task's) shrink the data."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
     torch.set_num_threads(1 if chosen.name == "cpu" else threads)
@@ -173,18 +177,19 @@ def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_si
                      backend=chosen)
 
     out["phase 2, adaptive rate"] = phase2
-    return out, chosen.device.startswith("cuda")
+    return out, chosen
 
 
 def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repeats: int,
           context_size: int, dtype: str, device: str = "cpu", series: int = 0,
           length: int = 0, base: int = 5) -> list[dict]:
     """Rows of ms per network-epoch (`trainers` for the arguments)."""
-    fns, sync = trainers(task, runs, backend, threads=threads, context_size=context_size,
-                         dtype=dtype, device=device, series=series, length=length)
+    fns, chosen = trainers(task, runs, backend, threads=threads, context_size=context_size,
+                           dtype=dtype, device=device, series=series, length=length)
     results = []
     for name, fn in fns.items():
-        wall, cpu = _time(fn, steps, repeats, base, sync)
+        wall, cpu = _time(fn, steps, repeats, base, chosen.device.startswith("cuda"),
+                          warm=not chosen.caps.interpreted)
         results.append({"task": task, "phase": name, "runs": runs, "backend": backend,
                         "threads": threads, "context_size": context_size,
                         "wall_ms": 1e3 * wall / runs, "cpu_ms": 1e3 * cpu / runs})

@@ -24,7 +24,8 @@ from moex.model import init_experts, init_gating, random_state
 
 def closed_loop(runs: int, samples: int, threads: int, backend: str, device: str):
     """fn(steps): `closed_loop_lyapunov` with one tangent for runs × samples trajectories (no
-    transient), on `backend`, at the two-Lissajous sizes; and whether to synchronise CUDA."""
+    transient), on `backend`, at the two-Lissajous sizes; and the backend
+    (`moex.kernels.Backend`)."""
     backend = get_backend(backend, device)
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
     torch.set_num_threads(1 if backend.name == "cpu" else threads)
@@ -42,15 +43,17 @@ def closed_loop(runs: int, samples: int, threads: int, backend: str, device: str
             closed_loop_lyapunov(experts, gating, state, steps, 0, generator=generator,
                                  backend=backend)
 
-    return fn, device.startswith("cuda")
+    return fn, backend
 
 
 def bench(runs: int, samples: int, steps: int, *, threads: int, backend: str, device: str,
           repeats: int = 3) -> float:
     """Seconds per closed-loop step (with one tangent vector) for runs × samples trajectories,
     the best of `repeats` blocks of `steps` steps."""
-    fn, cuda = closed_loop(runs, samples, threads, backend, device)
-    fn(steps)  # warm-up at the timed length: every chunk size compiled before
+    fn, chosen = closed_loop(runs, samples, threads, backend, device)
+    cuda = chosen.device.startswith("cuda")
+    if not chosen.caps.interpreted:  # (Triton's interpreter compiles nothing)
+        fn(steps)  # warm-up at the timed length: every chunk size compiled before
     best = float("inf")
     for _ in range(repeats):  # a shared machine's noise only ever adds time
         start = time.perf_counter()

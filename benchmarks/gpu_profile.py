@@ -60,7 +60,8 @@ def main():
     parser.add_argument("--chunks", type=int, default=2,
                         help="closed-loop chunks of 500 steps profiled (one tangent)")
     args = parser.parse_args()
-    fns, cuda = trainers("lissajous2", args.runs, args.backend, device=args.device)
+    fns, backend = trainers("lissajous2", args.runs, args.backend, device=args.device)
+    cuda = backend.device.startswith("cuda")
     counts = {phase: (args.epochs, "epoch") for phase in fns}
     if args.samples:
         loop, _ = closed_loop(args.runs, args.samples, 1, args.backend, args.device)

@@ -51,12 +51,12 @@ py=${PYTHON:-python3}  # a relative path (PYTHON=.venv/bin/python) as seen from 
 cd "$scratch"  # whatever a tool leaves in its working folder (pytest caches) goes with it
 export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}"
 cores=$(nproc)
-if [ $smoke = 1 ]; then  # the CPU, Triton's interpreter, toy sizes: every section, in ~2 min
+if [ $smoke = 1 ]; then  # the CPU, Triton's interpreter, toy sizes: every section, in ~1.5 min
   export TRITON_INTERPRET=1
   device=cpu; runs="2"; big=""; f32runs=2; size="--series 2 --length 5 --steps 1 --repeats 1 --base 0"
   lyap="--runs 2 --samples 2 --steps 5 --repeats 1"; lyap_cpu="$lyap"
   sweep_warps="4"; sweep_budget="4096"; sweep_trials="2"
-  table2="task.num_series=2 task.length=16 num_runs=2 train.experts.steps=2 train.gating.steps=2 eval=quick eval.num_samples=2 eval.lyapunov_steps=20 eval.transient=5 eval.plot_steps=20 task.switch_prob=0.5"
+  table2="task.num_series=2 task.length=8 num_runs=2 train.experts.steps=2 train.gating.steps=2 eval=quick eval.num_samples=2 eval.lyapunov_steps=10 eval.transient=2 eval.plot_steps=10 task.switch_prob=0.5"
   tests=(-m "not gpu" -k "gpu and closed_loop_kernel_leaves"); workers=0
 else
   device=cuda; runs="90"; big="900"; f32runs=90; size="--steps 20 --repeats 2"

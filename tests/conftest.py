@@ -1,6 +1,8 @@
 import logging
 import os
 import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -18,6 +20,35 @@ from moex.tasks import task_config
 from tests.helpers import backend_params
 
 torch.set_default_dtype(torch.float64)
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist starts its workers
+def pytest_sessionstart(session):
+    """The whole suite on several workers with cpu kernels not cached (a fresh checkout, an edit of
+    a kernel): compile them once, both precisions side by side (`tests/precompile.py`), before the
+    workers start, instead of in every worker and subprocess that needs them before the cache
+    has them. A stamp beside numba's cache (`moex.compile_helper.stamp`) says it was done for
+    these sources."""
+    from moex import compile_helper
+
+    config = session.config
+    if (hasattr(config, "workerinput") or config.args_source != pytest.Config.ArgsSource.TESTPATHS
+            or not config.getoption("numprocesses", None) or config.option.collectonly
+            or compile_helper.stamp("suite").exists()):
+        return
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    reporter.write_line("compiling the cpu kernels once for all workers (float64 and float32; "
+                        "about a minute on 2 cores)")
+    root = Path(__file__).resolve().parents[1]
+    helpers = [subprocess.Popen([sys.executable, "-m", "tests.precompile", precision], cwd=root,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+               for precision in ("float64", "float32")]
+    errors = [helper.communicate()[1] for helper in helpers]
+    failed = [err[-500:] for helper, err in zip(helpers, errors, strict=True) if helper.returncode]
+    if failed:  # the tests then compile for themselves (and show what is wrong)
+        reporter.write_line("tests/precompile.py failed: " + " | ".join(failed))
+    else:
+        compile_helper.mark_cached("suite")
 
 
 @pytest.fixture

@@ -241,8 +241,8 @@ def test_gpu_candidate_steps_in_one_call_train_as_one_by_one(monkeypatch):
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
     rule = TrainConfig(adaptive=AdaptiveLRConfig(max_retries=5))
-    phase1 = ExpertPhaseConfig(steps=5, adaptive_lr=True, learning_rate=2.0, log_every=1)
-    phase2 = GatingPhaseConfig(steps=5, adaptive_lr=True, learning_rate=20.0, log_every=1)
+    phase1 = ExpertPhaseConfig(steps=3, adaptive_lr=True, learning_rate=2.0, log_every=1)
+    phase2 = GatingPhaseConfig(steps=3, adaptive_lr=True, learning_rate=20.0, log_every=1)
     out = []
     for k in (1, 3):
         monkeypatch.setattr(phases._Problem, "trials", k)
@@ -338,11 +338,11 @@ def _closed_loop_cases():
 
 @pytest.mark.parametrize("backend, K, D, delay, k, uniform, dtype, tol", _closed_loop_cases(),
                          indirect=["backend"])
-def test_closed_loop_kernel_matches_reference(backend, K, D, delay, k, uniform, dtype, tol,
-                                              steps=40):
+def test_closed_loop_kernel_matches_reference(backend, K, D, delay, k, uniform, dtype, tol):
     """Outputs, gates, potentials, next state, tangents (up to the sign QR leaves free) and the
     log growth of the compiled closed loop equal the reference, with noise, without experts
     (symbolic tasks), with the C tool's uniform gates in the Jacobian, and without tangents."""
+    steps = 20 if backend.caps.interpreted else 40
     experts, gating, state = _closed_loop_model(K, D, delay, dtype)
     tangents = torch.linalg.qr(torch.randn(state.flat().shape + (k,), dtype=dtype))[0] if k \
         else None
