@@ -53,7 +53,7 @@ export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}"
 cores=$(nproc)
 if [ $smoke = 1 ]; then  # the CPU, Triton's interpreter, toy sizes: every section, in ~1.5 min
   export TRITON_INTERPRET=1
-  device=cpu; runs="2"; big=""; f32runs=2; size="--series 2 --length 5 --steps 1 --repeats 1 --base 0"
+  device=cpu; runs="2"; big=""; f32runs=2; size="--series 2 --length 3 --steps 1 --repeats 1 --base 0"
   lyap="--runs 2 --samples 2 --steps 5 --repeats 1"; lyap_cpu="$lyap"
   sweep_warps="4"; sweep_budget="4096"; sweep_trials="2"
   table2="task.num_series=2 task.length=8 num_runs=2 train.experts.steps=2 train.gating.steps=2 eval=quick eval.num_samples=2 eval.lyapunov_steps=10 eval.transient=2 eval.plot_steps=10 task.switch_prob=0.5"
