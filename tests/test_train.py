@@ -83,7 +83,8 @@ def _train_both(model, rule, series, seeds, S, D, phase1, phase2, backend):
 
 @pytest.mark.parametrize("form", ["paper", "mregn"])
 def test_batch_of_runs_equals_runs_trained_alone(form, backend):
-    task = make_task(task_config("lissajous2", num_series=2, length=15), seed=0)
+    length = 8 if backend.caps.interpreted else 15
+    task = make_task(task_config("lissajous2", num_series=2, length=length), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
@@ -109,7 +110,8 @@ def test_runs_with_data_of_their_own_equal_each_data_set_trained_alone(backend):
     """Packing law: a batch whose runs have series of their own ((R, S, L, D), as the packed
     launcher trains a sweep's jobs) equals each data set trained alone, both phases, to 1e-10;
     phase 2 with input noise, so each run's noise stays its own."""
-    data = [torch.as_tensor(make_task(task_config("lissajous2", num_series=2, length=15,
+    length = 8 if backend.caps.interpreted else 15
+    data = [torch.as_tensor(make_task(task_config("lissajous2", num_series=2, length=length,
                                                   switch_prob=p), seed=s).series)
             for p, s in ((0.5, 0), (0.25, 1))]
     model = ModelConfig()
@@ -278,12 +280,14 @@ def test_candidate_steps_in_one_call_train_as_one_by_one(k):
 def test_stopped_and_resumed_training_is_bit_identical(backend):
     """A phase stopped after a checkpoint and resumed from the saved state ends exactly where
     an uninterrupted run ends (parameters and history), on every backend."""
-    task = make_task(task_config("lissajous2", num_series=2, length=15), seed=0)
+    length = 8 if backend.caps.interpreted else 15
+    task = make_task(task_config("lissajous2", num_series=2, length=length), seed=0)
     series = torch.as_tensor(task.series)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 4, 5
     phase = GatingPhaseConfig(steps=6, adaptive_lr=True, learning_rate=1.0, log_every=1)
-    ghat = torch.softmax(torch.randn(2, 2, 14, 2, generator=torch.Generator().manual_seed(3)), -1)
+    ghat = torch.softmax(torch.randn(2, 2, length - 1, 2,
+                                     generator=torch.Generator().manual_seed(3)), -1)
     init = init_gating(model, 2, 2, generators([0, 1]))
     whole, rows = train_gating(init, ghat, series[:, :-1], model, phase, rule=TrainConfig(),
                                backend=backend)
