@@ -33,7 +33,7 @@ import torch
 from moex.config import Config
 from moex.data import load_task
 from moex.jobs import run_seeds
-from moex.kernels import get_backend
+from moex.kernels import Backend, get_backend
 from moex.model import init_experts, init_gating
 from moex.tasks import task_config
 from moex.train import train_experts, train_gating
@@ -135,7 +135,7 @@ def gate_targets(runs: int, S: int, T: int, K: int) -> torch.Tensor:
 
 def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_size: int = 15,
              dtype: str = "float64", device: str = "cpu", series: int = 0,
-             length: int = 0) -> tuple[dict, object]:
+             length: int = 0) -> tuple[dict, Backend]:
     """{phase name: fn(n) training n epochs of `runs` networks} and the backend they train on
     (`moex.kernels.Backend`); `series` and `length` (0: the task's) shrink the data."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
