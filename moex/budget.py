@@ -35,7 +35,9 @@ def train_bytes(cfg, num_series: int, length: int, num_features: int) -> float:
     R, S, T, D = cfg.num_runs, num_series, length, num_features
     K, M, H = cfg.model.num_experts, cfg.model.experts.context_size, cfg.model.gating.context_size
     data = S * T * (D * 8 + 8) * (2 if cfg.task.num_test_series else 1)
-    phase1 = R * K * S * T * (3 * M + 3 * D) * item + R * S * T * K * item * 10 if D else 0
+    # per lane-step 3 M + 3 D, and 2 D more: the outputs and ∂L/∂o again by lane (the cpu
+    # mixture's rows); then β and its copies
+    phase1 = R * K * S * T * (3 * M + 5 * D) * item + R * S * T * K * item * 10 if D else 0
     phase2 = R * S * T * (2 * H + 5 * K + 2 * D) * item
     records = R * cfg.eval.num_samples * cfg.eval.lyapunov_steps * 8 if cfg.eval.enabled else 0
     return data + phase1 + phase2 + records

@@ -674,6 +674,29 @@ def test_the_float32_tanh_rational_is_what_its_fitting_script_gives():
         np.testing.assert_allclose(fitted, np.float32(kernels), rtol=1.2e-7)
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_a_blocks_history_by_lane_is_its_transpose_and_comes_back_bit_for_bit(dtype):
+    """Phase 1's outputs and ∂L/∂o between a block's (T, D, LB) and rows by lane (D, LB, T'):
+    `transpose_tile`'s shuffles over whole tiles, element by element after them (T = 2 LB + 5:
+    both), every bit moved (NaN payloads, -0.0, infinities, subnormals), nothing written beyond
+    T."""
+    from moex.kernels.cpu.phases import _by_lane, _by_step
+    from moex.kernels.cpu.simd import width
+
+    LB, D = width(np.dtype(dtype)), 2
+    T = 2 * LB + 5
+    bits = np.dtype(f"u{np.dtype(dtype).itemsize}")
+    block = np.random.default_rng(0).integers(0, np.iinfo(bits).max, (T, D, LB), bits,
+                                              endpoint=True).view(dtype)
+    rows = np.zeros((D, LB, 3 * LB), dtype)
+    _by_lane(block, rows)
+    np.testing.assert_array_equal(rows[:, :, :T].view(bits), block.transpose(1, 2, 0).view(bits))
+    assert not rows[:, :, T:].view(bits).any()
+    back = np.zeros_like(block)
+    _by_step(rows, back)
+    np.testing.assert_array_equal(back.view(bits), block.view(bits))
+
+
 def test_vectorised_exp_and_log_are_within_2_ulp_in_float32():
     """`simd.exp` and `simd.log` of float32 arguments, in float32 arithmetic (the phase-1 mixture
     and the phase-2 softmax of float32 runs): within 2 ulp of the exact value (float64's) at every

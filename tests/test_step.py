@@ -150,7 +150,9 @@ def test_a_gradient_call_reuses_the_objective_of_the_trial_before_it(one_thread,
 
     out, fresh = call(True, active, False)
     assert all(torch.isfinite(v).all() for v in fresh.values())
-    problem.lanes.work[6].fill(float("nan"))  # ∂L/∂o in the lanes: the trial must write it
+    # ∂L/∂o in the lanes (phase 1's also by lane, `DY_lane`): the trial must write it
+    for k in (6, 10) if phase == "experts" else (6,):
+        problem.lanes.work[k].fill(float("nan"))
     call(False, active, True)  # the trial: its forward pass, its objective with ∂/∂o
     targets = problem.targets.copy()
     problem.targets[:] = 0.5 * problem.targets + 0.25

@@ -9,7 +9,9 @@ of the closed loop. Lanes are the last axis of every work array, padded to whole
 copy of its network's weights, so a block of lanes is one SIMD vector whichever networks its
 lanes belong to. A block runs its whole time loop with the lane
 loop innermost; blocks are shared out among threads (`threads`). The per-lane weight gradients
-are summed over the lanes of each network at the end.
+are summed over the lanes of each network at the end. Phase 1's mixture, which runs along time
+one (run, series) at a time, reads the experts' outputs and writes ∂L/∂o as rows by lane, into
+which the forward and backward stages move each block's tiles across (`simd.transpose_tile`).
 
 Modules: `cache` (numba's cache keyed on every source here), `simd` (lanes, exp/log/tanh, fma),
 `threads` (the kernels' thread pool), `rnn` (the leaky RNN's forward pass and BPTT over a block

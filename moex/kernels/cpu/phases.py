@@ -25,7 +25,19 @@ from moex.kernels.cpu.lanes import (
     to_host,
 )
 from moex.kernels.cpu.rnn import backward_pass, forward_pass
-from moex.kernels.cpu.simd import JIT, exp, fma, lanes, line_rows, log, sums, typed, width
+from moex.kernels.cpu.simd import (
+    JIT,
+    exp,
+    fma,
+    lanes,
+    line_rows,
+    log,
+    sums,
+    transpose_tile,
+    typed,
+    width,
+    zeros,
+)
 from moex.kernels.cpu.step import Stepper
 from moex.kernels.noise import input_noise
 
@@ -56,12 +68,13 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     """Series s of run r: ln p(y | X, β, γ) in log space (Eqs. 10-12), the Brownian prior on β
     (Eq. 13) and the E error; with want_grad ∂/∂o of every expert output and ∂/∂β (Eq. 19).
     partial[r·S + s] gets (ln p, ln φ(β), Σ‖ŷ - y‖², then per expert ∂ ln p/∂s of
-    σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). The strided inputs are copied to
-    contiguous arrays of the run's precision first (float32 runs compute here in float32, 8
-    lanes an AVX2 vector); every loop runs over time, innermost, element by element (LLVM
-    vectorises them, exp and log included), and sums over time are `_total`'s, in float64.
-    Strided inputs and outputs go through 1-D views of their column (one stride per step): 4-D
-    indexing made each element's address anew, the mixture 4-19 % slower (the same bits)."""
+    σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). The expert outputs y are read from,
+    and ∂/∂o written to, rows by lane (Y, DY: (NB, D, LB, T'), `_by_lane` / `_by_step`); the
+    targets and β (strided) go through 1-D views of their column (one stride per step: 4-D
+    indexing made each element's address anew, the mixture 4-19 % slower). Inputs are copied
+    to contiguous rows of the run's precision first (float32 runs compute here in float32);
+    every loop runs over time, innermost, element by element (LLVM vectorises them, exp and log
+    included), and sums over time are `_total`'s, in float64."""
     S, T, D = targets.shape[1:]
     K, LB = beta.shape[3], width(Y)
     half, one, two, dims = typed(Y, 0.5), typed(Y, 1.0), typed(Y, 2.0), typed(Y, D)
@@ -78,7 +91,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     for k in range(K):
         lane = (r * K + k) * S + s
         for d in range(D):
-            column = Y[lane // LB, :, d, lane % LB]
+            column = Y[lane // LB, d, lane % LB]
             for t in range(T):
                 y[k, d, t] = column[t]
     own = r if targets.shape[0] > 1 else 0  # (1, S, T, D): one data set for every run
@@ -170,9 +183,36 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             for t in range(T):
                 out = y[k, d, t]
                 term[t] = resp[t] * (target[d, t] - out) / var_k * fma(-out, out, one)
-            column = DY[lane // LB, :, d, lane % LB]
+            column = DY[lane // LB, d, lane % LB]
             for t in range(T):
                 column[t] = term[t]
+
+
+@njit(inline="always", **JIT)
+def _by_lane(block, rows):  # pragma: no cover
+    """A block's history (T, D, LB) as rows by lane (D, LB, T' ≥ T): whole LB × LB tiles by
+    `transpose_tile`, the last T mod LB steps element by element."""
+    T, D, LB = block.shape
+    steps, whole = rows.shape[2], T - T % LB
+    for d in range(D):
+        for t0 in range(0, whole, LB):
+            transpose_tile(block, (t0 * D + d) * LB, D * LB, rows, d * LB * steps + t0, steps)
+        for t in range(whole, T):
+            for v in range(LB):
+                rows[d, v, t] = block[t, d, v]
+
+
+@njit(inline="always", **JIT)
+def _by_step(rows, block):  # pragma: no cover
+    """`_by_lane`'s inverse: rows by lane (D, LB, T') into the block's (T, D, LB)."""
+    T, D, LB = block.shape
+    steps, whole = rows.shape[2], T - T % LB
+    for d in range(D):
+        for t0 in range(0, whole, LB):
+            transpose_tile(rows, d * LB * steps + t0, steps, block, (t0 * D + d) * LB, D * LB)
+        for t in range(whole, T):
+            for v in range(LB):
+                block[t, d, v] = rows[d, v, t]
 
 
 @njit(**JIT)
@@ -227,8 +267,11 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     call of this function per stage) in one thread while its histories are in that thread's
     cache. Otherwise, after `_variances` of
     every run, in turn: _FORWARD (blocks), _MIXTURE (series r·S + s), _BACKWARD (blocks), _RUNS
-    (runs)."""
-    C0, C, Y, U, S1, S2, DY, partial, var = work
+    (runs). The forward stage leaves each block's outputs also by lane (`Y_lane`), where the
+    mixture reads them and writes ∂L/∂o (`DY_lane`), which the backward stage takes back into
+    the block's layout by whole tiles of vectors (read along a lane in the block's layout, every
+    element was a load of a line of its own: as slow in float32 as in float64)."""
+    C0, C, Y, U, S1, S2, DY, partial, var, Y_lane, DY_lane = work
     w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
     R, S, T, K = beta.shape
@@ -255,13 +298,15 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                 forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
                              u0_lane[i], bool(True),  # noqa: UP018
                              C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                _by_lane(Y[i], Y_lane[i])
         elif stage == _MIXTURE:
             r = i // S
             if active[r] and not (reuse and want_grad and not stale[r]):
-                _mixture(r, i % S, Y, targets, beta, var, want_grad or reuse, DY, g_beta,
-                         partial)
+                _mixture(r, i % S, Y_lane, targets, beta, var, want_grad or reuse, DY_lane,
+                         g_beta, partial)
         elif stage == _BACKWARD:
             if want_grad and block_active(i, block_runs, active):
+                _by_step(DY_lane[i], DY[i])
                 backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
                               eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
                               l_eps[i], l_u0[i])
@@ -427,8 +472,12 @@ class ExpertProblem(_Problem):
         self.inputs = in_lanes(np.broadcast_to(x[:, :, :, None], (T, D, R, K, S)).reshape(
             T, D, R * K * S))
         self.targets = np.ascontiguousarray(targets.reshape(-1, S, T, D))
-        self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype)]
-        LB = self.lanes.width
+        LB, NB = self.lanes.width, self.lanes.num_lanes // self.lanes.width
+        # then the partial sums, σ², and the outputs y and ∂L/∂o by lane for the mixture: rows
+        # of T' ≥ T steps, whole tiles of LB (`_by_lane`, `_by_step`)
+        by_lane = (NB, D, LB, -(-T // LB) * LB)
+        self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype),
+                            zeros(by_lane, dtype), zeros(by_lane, dtype)]
         self.chunk = LB // math.gcd(K * S, LB)  # the fewest runs whose lanes fill whole blocks
         self.staging = Staging({
             "w_in": (R, K, M, D), "w_rec": (R, K, M, M), "w_out": (R, K, D, M), "b_c": (R, K, M),
