@@ -688,6 +688,9 @@ def test_a_blocks_history_by_lane_is_its_transpose_and_comes_back_bit_for_bit(dt
     bits = np.dtype(f"u{np.dtype(dtype).itemsize}")
     block = np.random.default_rng(0).integers(0, np.iinfo(bits).max, (T, D, LB), bits,
                                               endpoint=True).view(dtype)
+    tiny = np.finfo(dtype).smallest_subnormal
+    block[0, 0, :5] = -0.0, np.inf, -np.inf, tiny, np.nan  # and random NaN payloads besides
+    block[-1, -1, -2:] = np.nan, -tiny  # in the part moved element by element too
     rows = np.zeros((D, LB, 3 * LB), dtype)
     _by_lane(block, rows)
     np.testing.assert_array_equal(rows[:, :, :T].view(bits), block.transpose(1, 2, 0).view(bits))
