@@ -700,6 +700,23 @@ def test_a_blocks_history_by_lane_is_its_transpose_and_comes_back_bit_for_bit(dt
     np.testing.assert_array_equal(back.view(bits), block.view(bits))
 
 
+def test_a_tile_is_moved_only_between_c_contiguous_arrays_of_one_dtype():
+    """`transpose_tile` reads its arrays as flat data of one element type: a strided view or a
+    second dtype would be read or written wrongly, so such a call does not compile."""
+    from moex.kernels.cpu.simd import transpose_tile
+
+    @numba.njit
+    def move(src, dst):
+        transpose_tile(src, 0, 8, dst, 0, 8)
+
+    good = np.zeros((8, 8))
+    move(good, np.zeros((8, 8)))
+    for src, dst in ((good, np.zeros((8, 16), np.float32)), (np.zeros((8, 16))[:, ::2], good),
+                     (good, np.zeros((8, 16))[:, ::2])):
+        with pytest.raises(numba.core.errors.TypingError):
+            move(src, dst)
+
+
 def test_vectorised_exp_and_log_are_within_2_ulp_in_float32():
     """`simd.exp` and `simd.log` of float32 arguments, in float32 arithmetic (the phase-1 mixture
     and the phase-2 softmax of float32 runs): within 2 ulp of the exact value (float64's) at every

@@ -397,7 +397,10 @@ def transpose_tile(typingctx, src, src_start, src_step, dst, dst_start, dst_step
     loads, log2(LB) rounds of LB two-vector shuffles (each interleaves the low or high halves of
     rows i and i + LB/2: after log2(LB) rounds row j holds column j), LB vector stores: 24
     shuffles per 8 × 8 float64 tile, 64 per 16 × 16 float32, where an element at a time is a
-    load and a store each. Moves bits only (the same numbers)."""
+    load and a store each. Moves bits only (the same numbers). Arrays of two dtypes or not
+    C-contiguous are refused where the kernel is compiled (numba's TypingError)."""
+    if src.dtype != dst.dtype or src.layout != "C" or dst.layout != "C":
+        return None  # no signature: numba reports the call as one it cannot type
     LB = width(src)
 
     def codegen(context, builder, signature, args):
