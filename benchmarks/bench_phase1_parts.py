@@ -111,7 +111,7 @@ def gating_best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor
     def forward():
         for i in blocks:
             forward_pass(X[i], *(w[i] for w in net), False, C0[i], C[i], Y[i], U[i], S1[i],
-                         S2[i])
+                         S2[i], lanes.sizes)
 
     def objective():
         for i in blocks:
@@ -120,7 +120,7 @@ def gating_best_times(R: int, repeats: int, cfg: Config, series: torch.Tensor
     def backward():
         for i in blocks:
             backward_pass(DY[i], X[i], C0[i], C[i], U[i], net[6][i], net[1][i], net[2][i],
-                          net[5][i], *(w[i] for w in lg))
+                          net[5][i], *(w[i] for w in lg), lanes.sizes)
 
     # no "staging and the rest": the whole step takes each block through its stages while its
     # histories are in cache, each stage alone passes over every block (their sum exceeds it)

@@ -22,9 +22,21 @@ helper: tuple[str, subprocess.Popen] | None = None  # (precision, process) until
 
 
 def spawn(precision: str) -> subprocess.Popen:
-    """A helper process compiling the kernels of `precision` into the cache."""
+    """A helper process compiling the kernels of `precision` into the cache (phase 2's for the
+    sizes the run `tell`s it)."""
     return subprocess.Popen([sys.executable, "-m", "moex.precompile", precision],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, text=True)
+
+
+def tell(process: subprocess.Popen, gating: tuple[int, int, int]) -> None:
+    """Write the gating RNN's units, inputs and outputs to the helper (`moex.precompile` reads
+    them once it has compiled the closed loop); nothing where it has ended."""
+    try:
+        process.stdin.write(" ".join(map(str, gating)) + "\n")
+        process.stdin.close()
+    except (OSError, ValueError):  # a helper that ended (or was told already)
+        pass
 
 
 KERNELS = Path(__file__).resolve().parent / "kernels" / "cpu"

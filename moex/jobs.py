@@ -160,7 +160,9 @@ def train_jobs(jobs: list[Job], stop=never, backend: Backend | None = None
         [x.expand(n, S, L, D) for x, n in zip(own, sizes, strict=True)])  # (R, S, L, D)
     saved = jobs[0].saved
     if D > 0 and saved is None:
-        backend.warm_up(cfg.precision)  # cpu: compiles phase 2 etc. beside phase 1
+        K = cfg.model.num_experts  # the gating RNN's units, inputs (ĝ, x) and outputs
+        backend.warm_up(cfg.precision, (cfg.model.gating.context_size, K + D, K))  # cpu:
+        # compiles phase 2 etc. beside phase 1
     signal = f"{D} features" if D else f"{len(jobs[0].dataset.symbol_names)} symbols"
     packed = f" ({len(jobs)} jobs packed)" if len(jobs) > 1 else ""
     log.info("task %s: %d series x %d steps of %s; %d runs%s on %s/%s, %s backend",

@@ -11,6 +11,10 @@ import torch
 # are defined, so before anything imports them): CI checks them on the CPU.
 if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
+# The cpu kernels compiled once for every network size (`moex.kernels.cpu.lanes.sizes`): the suite
+# meets dozens of sizes, each a compile of its own otherwise; the tests that compare the two
+# (the same bits) set it themselves. Read when a problem is made: subprocesses inherit it.
+os.environ.setdefault("MOEX_CPU_SIZES", "runtime")
 
 from moex.config import Config
 from moex.config.model import ExpertsConfig, GatingConfig, ModelConfig

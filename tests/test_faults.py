@@ -260,6 +260,14 @@ def test_a_bad_gpu_knob_is_refused_in_one_line_and_writes_nothing(tmp_path, knob
     assert not (tmp_path / "run").exists()
 
 
+def test_a_bad_cpu_size_choice_is_refused_in_one_line_and_writes_nothing(tmp_path):
+    env = {**os.environ, "MOEX_CPU_SIZES": "fixed"}
+    result = subprocess.run(MOEX + ["train", f"hydra.run.dir={tmp_path / 'run'}"],
+                            cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    _one_error_line(result, "MOEX_CPU_SIZES=fixed; choose compiled or runtime")
+    assert not (tmp_path / "run").exists()
+
+
 def test_sigint_during_a_packed_sweep_exits_130_and_every_job_says_interrupted(tmp_path):
     """Ctrl-C while a packed batch trains: exit 130 without a traceback, every job's
     status.json says interrupted, and the message names the -m command's sweep folder."""

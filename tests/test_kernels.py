@@ -754,32 +754,34 @@ np.save(sys.argv[2], rnn_blocks(rnn, simd.width(np.float32)))
 """
 
 
-def rnn_blocks(rnn, LB, lanes=16, T=7, NI=3, H=5, NO=2):
-    """The float32 forward pass and BPTT (learned τ) of `lanes` random lanes, run in blocks of LB
-    lanes; every output of every lane, flattened in lane order."""
+def rnn_blocks(rnn, LB, lanes=16, T=7, NI=3, H=5, NO=2, compiled=False, dtype=np.float32):
+    """The forward pass and BPTT (learned τ) of `lanes` random lanes, run in blocks of LB lanes,
+    with the sizes compiled in (`lanes.sizes`) or not; every output of every lane, flattened in
+    lane order."""
     g = np.random.default_rng(3)
+    sizes = ((0,) * H, (0,) * NI, (0,) * NO) if compiled else ((), (), ())
 
     def draw(*shape, scale=1.0):
-        return (scale * g.standard_normal(shape + (lanes,))).astype(np.float32)
+        return (scale * g.standard_normal(shape + (lanes,))).astype(dtype)
 
     X, w_in, w_rec, w_out = draw(T, NI), draw(H, NI), draw(H, H, scale=0.5), draw(NO, H)
     b_c, b_o, u0, DY = draw(H), draw(NO), draw(H), draw(T, NO)
-    eps = g.uniform(0.1, 1.0, (H, lanes)).astype(np.float32)
+    eps = g.uniform(0.1, 1.0, (H, lanes)).astype(dtype)
     out = []
     for lo in range(0, lanes, LB):
         def part(x, lo=lo):
             return np.ascontiguousarray(x[..., lo:lo + LB])
 
-        def new(*shape, dtype=np.float32):
+        def new(*shape, dtype=dtype):
             return np.zeros(shape + (LB,), dtype)
 
         C0, C, Y, U = new(H), new(T, H), new(T, NO), new(T, H)
         S1, S2 = new(H, dtype=np.float64), new(H, dtype=np.float64)
         rnn.forward_pass(part(X), part(w_in), part(w_rec), part(w_out), part(b_c), part(b_o),
-                         part(eps), part(u0), True, C0, C, Y, U, S1, S2)
+                         part(eps), part(u0), True, C0, C, Y, U, S1, S2, sizes)
         grads = (new(H, NI), new(H, H), new(NO, H), new(H), new(NO), new(H), new(H))
         rnn.backward_pass(part(DY), part(X), C0, C, U, part(u0), part(w_rec), part(w_out),
-                          part(eps), *grads)
+                          part(eps), *grads, sizes)
         out.append(np.concatenate([np.moveaxis(a, -1, 0).reshape(LB, -1).astype(np.float64)
                                    for a in (C0, C, Y, U, S1, S2) + grads], 1))
     return np.concatenate(out)
@@ -805,6 +807,34 @@ def test_float32_blocks_of_8_and_16_lanes_give_the_same_bits(tmp_path):
     theirs, ours = np.load(tmp_path / "o.npy"), rnn_blocks(rnn, here)
     assert ours.shape == theirs.shape and np.isfinite(ours).all() and ours[:, :5].any()
     np.testing.assert_array_equal(ours, theirs)
+
+
+@pytest.mark.parametrize("dtype, NI, H, NO", [(np.float64, 1, 3, 1), (np.float32, 3, 5, 2)])
+def test_the_rnn_passes_compiled_for_their_sizes_give_the_bits_of_the_passes_for_any_size(
+        dtype, NI, H, NO):
+    """`lanes.sizes`: with H, NI and NO compiled in as constants LLVM unrolls the loops over them,
+    but no operation changes or moves (no reassociation is allowed): every output of the
+    forward pass and of BPTT (learned τ) equals the one-for-every-size kernel's, bit for bit."""
+    from moex.kernels.cpu import rnn, simd
+
+    LB = simd.width(dtype)
+    sized, any_size = (rnn_blocks(rnn, LB, lanes=2 * LB, T=9, NI=NI, H=H, NO=NO, compiled=c,
+                                  dtype=dtype) for c in (True, False))
+    assert np.isfinite(sized).all() and sized.any()
+    assert sized.tobytes() == any_size.tobytes()
+
+
+def test_the_kernels_size_choice_is_checked(monkeypatch):
+    from moex.errors import ConfigError
+    from moex.kernels.cpu.lanes import sizes
+
+    monkeypatch.setenv("MOEX_CPU_SIZES", "compiled")
+    assert sizes(3, 2, 1) == ((0, 0, 0), (0, 0), (0,))
+    monkeypatch.setenv("MOEX_CPU_SIZES", "runtime")
+    assert sizes(3, 2, 1) == ((), (), ())
+    monkeypatch.setenv("MOEX_CPU_SIZES", "fixed")
+    with pytest.raises(ConfigError, match="MOEX_CPU_SIZES=fixed; choose compiled or runtime"):
+        sizes(3, 2, 1)
 
 
 def test_forward_pass_record_of_runs_whose_lanes_share_blocks():

@@ -62,7 +62,7 @@ from moex.kernels.cpu import rnn, simd
 LB = simd.width(np.float64)
 z = np.zeros((1, 1, LB))
 args = (z, z, z, z, z[0], z[0], z[0] + 1.0, z[0], True, z[0], z, z,  # T = H = inputs = 1
-        np.zeros((0, 1, LB)), np.zeros((0, LB)), np.zeros((0, LB)))
+        np.zeros((0, 1, LB)), np.zeros((0, LB)), np.zeros((0, LB)), ((), (), ()))
 rnn.forward_pass(*args)
 stats = rnn.forward_pass.stats
 print(rnn.__file__, sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))

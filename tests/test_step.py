@@ -210,3 +210,16 @@ def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
         _same(one, _train(dtype, True, "paper", True))
     finally:
         numba.set_num_threads(before)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_kernels_compiled_for_the_network_sizes_train_to_the_same_bits(monkeypatch, dtype):
+    """Both phases, adaptive, τ learned, with the kernels compiled for the networks' sizes
+    (`lanes.sizes`, the default outside the suite) and with the kernels for any size: the same
+    parameters, β and training rows, bit for bit (about 40 s of compiles per precision)."""
+    results = []
+    for choice in ("compiled", "runtime"):
+        monkeypatch.setenv("MOEX_CPU_SIZES", choice)
+        results.append(_train(dtype, True, "paper", True))
+    _same(*results)

@@ -82,14 +82,18 @@ def test_without_a_helper_nothing_waits(monkeypatch, tmp_path):
     assert not warm.wait_for(_kernel("closed_blocks", tmp_path / "missing.nbi"))
 
 
-def _sleeper():
-    return subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+def _sleeper(told=None):
+    """A stand-in helper: it writes what it reads on stdin to the file `told`, then sleeps."""
+    script = f"import sys, time; open({str(told)!r}, 'w').write(sys.stdin.readline())" \
+        if told else "import time"
+    return subprocess.Popen([sys.executable, "-c", script + "; time.sleep(30)"],
+                            stdin=subprocess.PIPE, text=True)
 
 
 def test_a_signature_of_the_runs_precision_counts_as_cached():
-    def kernel(*signatures):
+    def kernel(*signatures, name="closed_blocks"):
         keys = {(signature, "magic"): 0 for signature in signatures}
-        return SimpleNamespace(_cache=SimpleNamespace(_cache_file=SimpleNamespace(
+        return SimpleNamespace(__name__=name, _cache=SimpleNamespace(_cache_file=SimpleNamespace(
             _load_index=lambda: keys)))
 
     f64 = "(int64, Tuple((Array(float64, 4, 'C', False, aligned=True),)))"
@@ -98,6 +102,13 @@ def test_a_signature_of_the_runs_precision_counts_as_cached():
     assert warm._indexed(kernel(f32), "float32") and not warm._indexed(kernel(f32), "float64")
     assert warm._indexed(kernel(f64, f32), "float32")
     assert not warm._indexed(kernel(), "float64")
+    # phase 2's kernel counts only when compiled for the run's sizes (`lanes.sizes`' type)
+    ours, theirs = (f"Tuple(UniTuple(int64 x {h}), UniTuple(int64 x 4), UniTuple(int64 x 2))"
+                    for h in (15, 7))
+    sized = f64.replace(")))", f")), {ours})")
+    assert warm._indexed(kernel(sized, name="gating_items"), "float64", ours)
+    assert not warm._indexed(kernel(sized, name="gating_items"), "float64", theirs)
+    assert warm._indexed(kernel(f64), "float64", theirs)  # the closed loop: any sizes
 
 
 @pytest.mark.parametrize("argv, precision", [
@@ -118,13 +129,21 @@ def test_the_command_starts_a_helper_only_for_a_cpu_training_in_its_process(argv
     assert launch.helper_precision(argv) == precision
 
 
-def test_the_run_adopts_the_commands_helper_of_its_precision(monkeypatch):
-    process = _sleeper()
+def test_the_run_adopts_the_commands_helper_of_its_precision_and_tells_it_the_sizes(
+        monkeypatch, tmp_path):
+    """The run writes its gating RNN's units, inputs and outputs to the helper's stdin, for
+    which it compiles phase 2 (`moex.precompile`)."""
+    process = _sleeper(tmp_path / "told")
     monkeypatch.setattr(compile_helper, "helper", ("float64", process))
     monkeypatch.setattr(warm, "_helper", None)
     try:
-        assert warm.start("float64", ()) is process
+        assert warm.start("float64", (), (15, 4, 2), "") is process
         assert warm._helper is process and compile_helper.helper is None
+        deadline = time.monotonic() + 20
+        while (not (tmp_path / "told").exists() or not (tmp_path / "told").read_text()) \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert (tmp_path / "told").read_text() == "15 4 2\n"
         assert process.poll() is None
     finally:
         process.kill()
@@ -135,8 +154,8 @@ def test_a_helper_of_another_precision_is_stopped(monkeypatch):
     process = _sleeper()
     monkeypatch.setattr(compile_helper, "helper", ("float32", process))
     monkeypatch.setattr(warm, "_helper", None)
-    monkeypatch.setattr(warm, "cached", lambda dtype, kernels: True)  # start no helper of its own
-    assert warm.start("float64", ()) is None
+    monkeypatch.setattr(warm, "cached", lambda dtype, kernels, sizes: True)  # no helper of its own
+    assert warm.start("float64", (), (3, 4, 2), "") is None
     assert process.poll() is not None and compile_helper.helper is None
 
 
@@ -153,8 +172,8 @@ def test_the_command_starts_no_helper_once_a_run_found_the_kernels_cached(monkey
     monkeypatch.setattr(compile_helper, "stamp", lambda precision: tmp_path / f"{precision}.stamp")
     monkeypatch.setattr(compile_helper, "helper", None)
     monkeypatch.setattr(warm, "_helper", None)
-    monkeypatch.setattr(warm, "cached", lambda dtype, kernels: True)
-    assert warm.start("float64", ()) is None
+    monkeypatch.setattr(warm, "cached", lambda dtype, kernels, sizes: True)
+    assert warm.start("float64", (), (3, 4, 2), "") is None
     assert (tmp_path / "float64.stamp").exists() and not (tmp_path / "float32.stamp").exists()
     compile_helper.start("float64")
     assert compile_helper.helper is None  # stamped: no process

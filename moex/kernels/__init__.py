@@ -13,7 +13,8 @@ device the `Backend` binds it to:
 - `momentum_step(...)`, `apply_step(...)`: the training loop's update of its (R, P) buffers
   (Eqs. 17-18), the reference's PyTorch operators as one compiled call (cpu) or launch (gpu);
 - `adaptive_trial(...)`: one trial of the adaptive rate (Sec. 2.1.4), one compiled call (cpu);
-- `warm_up(precision)`: before a first training, start compiling what comes later (cpu only).
+- `warm_up(precision, gating)`: before a first training, start compiling what comes later (cpu
+  only; `gating`: the gating RNN's units, inputs and outputs).
 
 The problems take data shared by all runs, (S, T, D), or data of each run's own, (R, S, T, D):
 jobs packed into one batch (`moex.jobs`).
@@ -95,8 +96,9 @@ class BackendModule(Protocol):
     def nearest_symbols(self, points: torch.Tensor, prototypes: torch.Tensor,
                         prototype_symbols: torch.Tensor, device: str = "cpu") -> torch.Tensor: ...
 
-    def warm_up(self, precision: str) -> None:
-        """Before a first training: start compiling what the run needs later (or nothing)."""
+    def warm_up(self, precision: str, gating: tuple[int, int, int]) -> None:
+        """Before a first training: start compiling what the run needs later (or nothing);
+        `gating`: the gating RNN's units, inputs and outputs."""
 
     def momentum_step(self, theta, grad, velocity, delta, *, rate, lr_scale, objective, failed,
                       momentum: float, paper_form: bool, apply: bool, tau=None) -> None: ...
@@ -141,9 +143,9 @@ class Backend:
         return self.module.nearest_symbols(points, prototypes, prototype_symbols,
                                            device=self.device)
 
-    def warm_up(self, precision: str) -> None:
+    def warm_up(self, precision: str, gating: tuple[int, int, int]) -> None:
         """Start compiling the kernels a first training needs after its first phase."""
-        self.module.warm_up(precision)
+        self.module.warm_up(precision, gating)
 
     def momentum_step(self, theta, grad, velocity, delta, **kwargs) -> None:
         """The ascent's step Δθ on the training loop's buffers, and with `apply` the step taken
@@ -219,9 +221,14 @@ def check_name(name: str) -> str:
 def check_backend(name: str, device: str) -> None:
     """A config's `backend` and `device` before anything is written: a known name, and gpu only
     where its device and Triton are (refused before a run folder exists, not when training
-    starts)."""
-    if check_name(name) == "gpu":
+    starts); on the cpu backend its MOEX_CPU_SIZES (`moex.kernels.cpu.lanes.sizes`)."""
+    name = check_name(name)
+    if name == "gpu":
         get_backend(name, device)
+    elif name == "cpu" or (name == "auto" and device == "cpu"):
+        from moex.kernels.cpu.lanes import sizes
+
+        sizes(1, 1, 1)
 
 
 def get_backend(name: str = "auto", device: str = "cpu") -> Backend:

@@ -186,7 +186,7 @@ def nearest_symbols(points: torch.Tensor, prototypes: torch.Tensor,
                                              host(prototype_symbols)), device=device)
 
 
-def warm_up(precision: str) -> None:
+def warm_up(precision: str, gating: tuple[int, int, int]) -> None:
     """Nothing to compile (PyTorch's eager operators)."""
 
 

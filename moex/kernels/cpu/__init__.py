@@ -12,6 +12,9 @@ loop innermost; blocks are shared out among threads (`threads`). The per-lane we
 are summed over the lanes of each network at the end. Phase 1's mixture, which runs along time
 one (run, series) at a time, reads the experts' outputs and writes ∂L/∂o as rows by lane, into
 which the forward and backward stages move each block's tiles across (`simd.transpose_tile`).
+The RNN passes are compiled for the sizes of the networks (`lanes.sizes`: units, inputs and
+outputs as constants, the loops over them unrolled), a kernel per size unless
+MOEX_CPU_SIZES=runtime.
 
 Modules: `cache` (numba's cache keyed on every source here), `simd` (lanes, exp/log/tanh, fma),
 `threads` (the kernels' thread pool), `rnn` (the leaky RNN's forward pass and BPTT over a block
@@ -38,9 +41,12 @@ __all__ = ["ExpertProblem", "GatingProblem", "adaptive_trial", "apply_step", "cl
 LATER = (closed_blocks, gating_items)  # the helper's two large kernels (`warm.cached`)
 
 
-def warm_up(precision: str) -> None:
-    """A first run (an empty cache) compiles phase 2 and the closed loop in a helper process
-    while it trains phase 1 (`warm`)."""
-    from moex.kernels.cpu import warm
+def warm_up(precision: str, gating: tuple[int, int, int]) -> None:
+    """A first run (an empty cache) compiles phase 2 (for the gating RNN's sizes `gating`: units,
+    inputs, outputs) and the closed loop in a helper process while it trains phase 1 (`warm`)."""
+    from numba import typeof
 
-    warm.start(precision, LATER)
+    from moex.kernels.cpu import warm
+    from moex.kernels.cpu.lanes import sizes
+
+    warm.start(precision, LATER, gating, str(typeof(sizes(*gating))))

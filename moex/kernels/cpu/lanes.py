@@ -7,12 +7,14 @@ the last network are padding: zero weights, no data.
 
 import contextlib
 import logging
+import os
 import time
 
 import numpy as np
 import torch
 from numba import njit
 
+from moex.errors import check
 from moex.kernels.cpu.simd import JIT, padded, width, zeros
 
 
@@ -276,13 +278,28 @@ def in_lanes(per_lane: np.ndarray) -> np.ndarray:
     return out
 
 
+SIZES = ("compiled", "runtime")  # the values of MOEX_CPU_SIZES, the default first
+
+
+def sizes(H: int, NI: int, NO: int) -> tuple:
+    """The RNN passes' `sizes` argument (`moex.kernels.cpu.rnn`): tuples of H, NI and NO zeros,
+    whose lengths numba compiles in as constants (a kernel for each network size, its loops
+    unrolled: 1.3-1.6x as fast), or with MOEX_CPU_SIZES=runtime three empty tuples (one kernel for
+    every size, for code that meets many sizes: the test suite). The same bits either way."""
+    choice = os.environ.get("MOEX_CPU_SIZES", SIZES[0])
+    check(choice in SIZES, f"MOEX_CPU_SIZES={choice}; choose compiled or runtime")
+    return ((0,) * H, (0,) * NI, (0,) * NO) if choice == SIZES[0] else ((), (), ())
+
+
 class Lanes:
     """Work arrays of one phase, block-major (NB, ..., LB) so that a block's history is one
-    contiguous piece of memory: per-lane weights, histories and per-lane gradients."""
+    contiguous piece of memory: per-lane weights, histories and per-lane gradients; the RNN's
+    `sizes` (H units, NI inputs, NO outputs)."""
 
     def __init__(self, T, H, NI, NO, *, num_lanes, lanes_per_run, num_runs, learn_tau,
                  attraction, dtype):
         self.width = LB = width(dtype)
+        self.sizes = sizes(H, NI, NO)
         NB = padded(num_lanes, dtype) // LB
 
         def blocks(*shape):

@@ -255,7 +255,7 @@ _CHUNKS, _FORWARD, _MIXTURE, _BACKWARD, _RUNS = range(5)
 @njit(nogil=True, **JIT)
 def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_grads, grads,
                   g_u0, g_log_sigma, g_beta, X, targets, floor, prior_std, attraction, want_grad,
-                  active, stale, reuse, block_runs, chunk, out):  # pragma: no cover
+                  active, stale, reuse, block_runs, chunk, out, sizes):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent);
     the forward pass only in blocks that hold a `stale` run (`Forwarded`). With `reuse` (the
     stepper's record of the lanes covers every parameter the mixture reads, β and log σ too) a
@@ -286,7 +286,7 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                 _expert_items(i0, i1, stage_of_chunk, params, u0, log_sigma, beta, net, work,
                               lane_grads, grads, g_u0, g_log_sigma, g_beta, X, targets, floor,
                               prior_std, attraction, want_grad, active, stale, reuse, block_runs,
-                              chunk, out)
+                              chunk, out, sizes)
         return
     for i in range(lo, hi):
         if stage == _FORWARD:
@@ -297,7 +297,7 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                 # compiles one each: 3-4 s more of a first run)
                 forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
                              u0_lane[i], bool(True),  # noqa: UP018
-                             C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                             C0[i], C[i], Y[i], U[i], S1[i], S2[i], sizes)
                 _by_lane(Y[i], Y_lane[i])
         elif stage == _MIXTURE:
             r = i // S
@@ -309,7 +309,7 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                 _by_step(DY_lane[i], DY[i])
                 backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
                               eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
-                              l_eps[i], l_u0[i])
+                              l_eps[i], l_u0[i], sizes)
         elif active[i]:
             _run_sums(i, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_log_sigma,
                       floor, attraction, want_grad, out)
@@ -358,7 +358,7 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
 @njit(nogil=True, **JIT)
 def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
                  entropy, sigma_min, attraction, want_grad, active, stale, reuse, block_runs,
-                 out):  # pragma: no cover
+                 out, sizes):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-2 step: with `blocks`, blocks of lanes (weights
     spread to the lanes, forward where a `stale` run is (`Forwarded`), objective, backward);
     otherwise runs, after every block
@@ -379,13 +379,13 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
                 if fresh:
                     forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
                                  u0_lane[i], bool(False),  # noqa: UP018
-                                 C0[i], C[i], Y[i], U[i], S1[i], S2[i])
+                                 C0[i], C[i], Y[i], U[i], S1[i], S2[i], sizes)
                 if fresh or not (reuse and want_grad):
                     _softmax_objective(Y[i], targets[i], want_grad or reuse, DY[i], log_lik[i])
                 if want_grad:
                     backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
                                   eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
-                                  l_eps[i], l_u0[i])
+                                  l_eps[i], l_u0[i], sizes)
         elif active[i]:
             total = lane_sum(log_lik, i * S, (i + 1) * S)
             out[1, i] = total
@@ -517,7 +517,7 @@ class ExpertProblem(_Problem):
                 g["log_sigma"], g["beta"], self.inputs, self.targets,
                 float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std),
                 bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
-                lanes.block_runs, self.chunk, lanes.out)
+                lanes.block_runs, self.chunk, lanes.out, lanes.sizes)
 
     def resample(self, step: int) -> None:
         pass
@@ -582,7 +582,7 @@ class GatingProblem(_Problem):
                 lanes.lane_grads, per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),
                 bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
-                lanes.block_runs, lanes.out)
+                lanes.block_runs, lanes.out, lanes.sizes)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""

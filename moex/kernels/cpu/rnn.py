@@ -6,6 +6,11 @@ Forward, per lane (T steps, H units, NI inputs, NO outputs):
     c_{-1} = tanh(u_0 + b_c),  u_t = (1-ε) u_{t-1} + ε (W_in x_t + W_rec c_{t-1}),
     c_t = tanh(u_t + b_c),     o_t = W_out c_t + b_o   (y_t = tanh(o_t) for the experts).
 
+The sizes H, NI and NO are the lengths of the `sizes` tuples (`lanes.sizes`) where they are not
+empty: constants where the kernel is compiled, so that LLVM unrolls the loops over units, inputs
+and outputs and keeps a step's vectors in registers (a kernel of its own for each network size);
+empty tuples leave them to the arrays' shapes (one kernel for every size, the loops at run time).
+
 Backward, given δo_t = ∂L/∂o_t. With a_t = ∂L/∂u_t (a_T = 0) and back_t = W_recᵀ (ε ⊙ a_{t+1}),
 the part of ∂L/∂c_t that flows through the next step:
     dq_t = (1 - c_t²) ⊙ (W_outᵀ δo_t + back_t)            (∂L/∂(u_t + b_c))
@@ -22,14 +27,27 @@ from numba import njit
 from moex.kernels.cpu.simd import JIT, fma, lanes, stack, sums, tanh, typed, width
 
 
+@njit(inline="always", **JIT)
+def count(known, shape):  # pragma: no cover
+    """len(known) (a constant where the kernel is compiled), or `shape` where `known` is empty."""
+    return len(known) if len(known) > 0 else shape
+
+
+@njit(inline="always", **JIT)
+def _sizes(sizes, X, w_rec, w_out):  # pragma: no cover
+    """H, NI, NO: the lengths of `sizes` (constants), or where those are empty the arrays'."""
+    return (count(sizes[0], w_rec.shape[0]), count(sizes[1], X.shape[1]),
+            count(sizes[2], w_out.shape[0]))
+
+
 @njit(**JIT)
-def forward_pass(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1,
-                 S2):  # pragma: no cover
+def forward_pass(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, S1, S2,
+                 sizes):  # pragma: no cover
     """One block of lanes (every array is that block's (..., LB) part): Y (T, NO, LB) = tanh(o_t)
     if `squash` else o_t; C (T, H, LB), U (T, H, LB) and the sums S1, S2 (H, LB) of u and u²
     over {u_0..u_T} are filled where their arrays are not empty."""
-    T, NI, LB = X.shape[0], X.shape[1], width(X)
-    H, NO = w_rec.shape[0], w_out.shape[0]
+    T, LB = X.shape[0], width(X)
+    H, NI, NO = _sizes(sizes, X, w_rec, w_out)
     keep_c, keep_u, keep_sums = C.shape[0] > 0, U.shape[0] > 0, S1.shape[0] > 0
     u, c, y = stack(X, H), stack(X, H), stack(X, NO)
     flat, c_flat = y.reshape(NO * LB), c.reshape(H * LB)
@@ -99,10 +117,10 @@ def forward_pass(X, w_in, w_rec, w_out, b_c, b_o, eps, u0, squash, C0, C, Y, U, 
 
 @njit(inline="always", **JIT)
 def _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps, acc,
-               learn_eps):  # pragma: no cover
+               learn_eps, H, NO):  # pragma: no cover
     """One step of BPTT, from t + 1 to t: a (∂L/∂u_t), ea = ε ⊙ a_t, back = W_recᵀ ea, and the
     sums of ∂b_c and ∂ε."""
-    H, NO, LB, one = w_rec.shape[0], w_out.shape[0], width(a), typed(a, 1.0)
+    LB, one = width(a), typed(a, 1.0)
     for i in range(H):  # a_t = (1 - c_t²)(W_outᵀ δo_t + back) + (1 - ε) a_{t+1}
         for v in range(LB):
             acc[v] = back[i, v]
@@ -131,12 +149,12 @@ def _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps
 
 @njit(**JIT)
 def backward_pass(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_out, g_b_c,
-                  g_b_o, g_eps, g_u0):  # pragma: no cover
+                  g_b_o, g_eps, g_u0, sizes):  # pragma: no cover
     """One block of lanes, given DY (T, NO, LB) = ∂L/∂o_t: every per-lane gradient (BPTT). g_eps
     is filled when U holds the potentials (learned time constants). Gradients are summed in
     stack arrays (they cannot alias the histories they read) and written once."""
-    T, NI, LB = X.shape[0], X.shape[1], width(X)
-    H, NO, one, zero = w_rec.shape[0], w_out.shape[0], typed(X, 1.0), typed(X, 0.0)
+    T, LB, one, zero = X.shape[0], width(X), typed(X, 1.0), typed(X, 0.0)
+    H, NI, NO = _sizes(sizes, X, w_rec, w_out)
     learn_eps = U.shape[0] > 0
     a, back = stack(X, H), stack(X, H)  # ∂L/∂u_t, W_recᵀ(ε ⊙ a_{t+1})
     ea, ea2 = stack(X, H), stack(X, H)  # ε ⊙ a of the two steps in hand
@@ -161,14 +179,14 @@ def backward_pass(DY, X, C0, C, U, u0, w_rec, w_out, eps, g_w_in, g_w_rec, g_w_o
             sum_b_o[o, v] = 0.0
     for t in range(T - 1, -1, -2):  # two steps back in time, then both steps' outer products
         _back_step(t, DY, C, U, u0, w_rec, w_out, eps, a, ea, back, sum_b_c, sum_eps, acc,
-                   learn_eps)
+                   learn_eps, H, NO)
         # the second step s = t - 1; an odd T ends on a lone t = 0, whose second step adds
         # exact zeros (ea2 = 0, δo weighted 0: fma(0, x, Σ) = Σ), the same sums as one at a time
         second = t > 0
         s = t - 1 if second else t
         if second:
             _back_step(s, DY, C, U, u0, w_rec, w_out, eps, a, ea2, back, sum_b_c, sum_eps, acc,
-                       learn_eps)
+                       learn_eps, H, NO)
         else:
             for i in range(H):
                 for v in range(LB):

@@ -25,7 +25,7 @@ __all__ = ["ExpertProblem", "GatingProblem", "adaptive_trial", "apply_step", "av
            "closed_loop", "kernel_report", "momentum_step", "nearest_symbols", "warm_up"]
 
 
-def warm_up(precision: str) -> None:
+def warm_up(precision: str, gating: tuple[int, int, int]) -> None:
     """Nothing: Triton compiles each kernel at its first launch (and caches it on disk)."""
 
 
