@@ -92,7 +92,9 @@ def main(argv=None) -> int:
                     moex_ms[(phase, runs)].append(
                         1e3 * marginal(moex[runs][phase], args.steps, args.base)[1] / runs)
     print(f"# {os.uname().nodename}, {os.cpu_count()} CPUs; C: gcc -O2 -fopenmp, 1 thread; "
-          f"moex: cpu backend, float64, 1 thread; {args.repeats} rounds, C and moex in turn")
+          f"moex: cpu backend, float64, 1 thread, MOEX_CPU_SIZES="
+          f"{os.environ.get('MOEX_CPU_SIZES', 'compiled')}; {args.repeats} rounds, C and moex in "
+          f"turn")
     head = " | ".join(f"moex R = {r} | C / moex R = {r}" for r in args.runs)
     print(f"\n| work | C ms | {head} |\n|---|---|" + "---|---|" * len(args.runs))
     for phase, c in c_ms.items():
