@@ -184,7 +184,7 @@ def _scored(gates: np.ndarray, labels: np.ndarray, delay: int) -> list[dict]:
     truth = labels[:, delay:]
     if not (truth >= 0).any():
         return []
-    return [scores(truth, run_gates.argmax(-1)) for run_gates in gates]
+    return [scores(truth, run_gates.argmax(-1), run_gates.shape[-1]) for run_gates in gates]
 
 
 def _numbers(run: dict, suffix: str = "") -> dict:

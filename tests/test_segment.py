@@ -53,6 +53,19 @@ def test_scores_ignore_names_and_unknown_steps_and_see_chance():
     assert chance["segment_accuracy"] < 0.4
 
 
+def test_experts_that_never_win_still_have_a_place_in_the_matching():
+    """Four experts of which expert 3 never wins (an early run of lissajous9 drew its
+    segmentation figure with one colour per expert and ran past the matching's end): every
+    expert gets an entry, the never-winning ones -1 when the labels are all taken, and the
+    scores are those without them."""
+    truth = np.array([0, 0, 1, 1, 2, 2])
+    found = np.array([1, 1, 0, 0, 2, 2])
+    alone, padded = scores(truth, found), scores(truth, found, 4)
+    assert len(alone["label_of_expert"]) == 3 and list(padded["label_of_expert"]) == [1, 0, 2, -1]
+    assert {k: v for k, v in alone.items() if k != "label_of_expert"} == \
+        {k: v for k, v in padded.items() if k != "label_of_expert"}
+
+
 def test_the_matching_is_the_best_one_to_one_assignment():
     """Against every assignment tried by brute force, for more labels than experts and fewer."""
     rng = np.random.default_rng(1)

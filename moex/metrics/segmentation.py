@@ -5,10 +5,11 @@ of experts to labels. Steps labelled < 0 (unknown) are left out of every score."
 import numpy as np
 
 
-def contingency(truth: np.ndarray, found: np.ndarray) -> np.ndarray:
-    """(L, K) counts of steps with label l and expert k; L, K = the largest index + 1."""
+def contingency(truth: np.ndarray, found: np.ndarray, experts: int = 0) -> np.ndarray:
+    """(L, K) counts of steps with label l and expert k; L = the largest label + 1, K = the
+    largest expert + 1 or `experts` if more (experts that never win: columns of zeros)."""
     truth, found = np.asarray(truth).ravel(), np.asarray(found).ravel()
-    table = np.zeros((truth.max() + 1, found.max() + 1), dtype=np.int64)
+    table = np.zeros((truth.max() + 1, max(found.max() + 1, experts)), dtype=np.int64)
     np.add.at(table, (truth, found), 1)
     return table
 
@@ -82,14 +83,16 @@ def best_matching(table: np.ndarray) -> np.ndarray:
     return label_of
 
 
-def scores(truth: np.ndarray, found: np.ndarray) -> dict[str, float]:
+def scores(truth: np.ndarray, found: np.ndarray, experts: int = 0) -> dict[str, float]:
     """ARI, NMI and matched accuracy of the winning experts `found` against labels `truth`
-    (same shape; steps with truth < 0 left out), and the matching itself (label of expert k)."""
+    (same shape; steps with truth < 0 left out), and the matching itself (label of expert k,
+    for every one of `experts` where given: experts that never win among them, -1 unless a
+    label is left for them)."""
     truth, found = np.asarray(truth).ravel(), np.asarray(found).ravel()
     known = truth >= 0
     if not known.any():
         return {}
-    table = contingency(truth[known], found[known])
+    table = contingency(truth[known], found[known], experts)
     label_of = best_matching(table)
     hits = sum(table[label, k] for k, label in enumerate(label_of) if label >= 0)
     return {"segment_ari": adjusted_rand(table), "segment_nmi": normalized_mutual_info(table),
