@@ -51,3 +51,13 @@ def test_an_error_in_another_thread_reaches_the_caller_after_every_thread_ends(t
     with pytest.raises(ValueError, match="other thread"):
         threads.over(kernel, 2)
     assert finished == [0]
+
+
+def test_the_count_follows_numbas_setting(two_threads):
+    """`threads.count` reads numba's threading layer directly (no process lock per call): what
+    `numba.set_num_threads` set, in this thread, before and after a change."""
+    assert threads.count() == numba.get_num_threads() == 2
+    numba.set_num_threads(1)
+    assert threads.count() == 1
+    numba.set_num_threads(2)
+    assert threads.count() == 2
