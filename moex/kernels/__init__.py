@@ -221,14 +221,14 @@ def check_name(name: str) -> str:
 def check_backend(name: str, device: str) -> None:
     """A config's `backend` and `device` before anything is written: a known name, and gpu only
     where its device and Triton are (refused before a run folder exists, not when training
-    starts); on the cpu backend its MOEX_CPU_SIZES (`moex.kernels.cpu.lanes.sizes`)."""
+    starts); on the cpu backend its MOEX_CPU_SIZES (`moex.kernels.cpu.lanes.size_choice`)."""
     name = check_name(name)
     if name == "gpu":
         get_backend(name, device)
     elif name == "cpu" or (name == "auto" and device == "cpu"):
-        from moex.kernels.cpu.lanes import sizes
+        from moex.kernels.cpu.lanes import size_choice
 
-        sizes(1, 1, 1)
+        size_choice()
 
 
 def get_backend(name: str = "auto", device: str = "cpu") -> Backend:

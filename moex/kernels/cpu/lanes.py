@@ -281,14 +281,19 @@ def in_lanes(per_lane: np.ndarray) -> np.ndarray:
 SIZES = ("compiled", "runtime")  # the values of MOEX_CPU_SIZES, the default first
 
 
+def size_choice() -> str:
+    """MOEX_CPU_SIZES (default compiled), a `ConfigError` naming the choices for another value."""
+    choice = os.environ.get("MOEX_CPU_SIZES", SIZES[0])
+    check(choice in SIZES, f"MOEX_CPU_SIZES={choice}; choose compiled or runtime")
+    return choice
+
+
 def sizes(H: int, NI: int, NO: int) -> tuple:
     """The RNN passes' `sizes` argument (`moex.kernels.cpu.rnn`): tuples of H, NI and NO zeros,
     whose lengths numba compiles in as constants (a kernel for each network size, its loops
     unrolled: 1.3-1.6x as fast), or with MOEX_CPU_SIZES=runtime three empty tuples (one kernel for
     every size, for code that meets many sizes: the test suite). The same bits either way."""
-    choice = os.environ.get("MOEX_CPU_SIZES", SIZES[0])
-    check(choice in SIZES, f"MOEX_CPU_SIZES={choice}; choose compiled or runtime")
-    return ((0,) * H, (0,) * NI, (0,) * NO) if choice == SIZES[0] else ((), (), ())
+    return ((0,) * H, (0,) * NI, (0,) * NO) if size_choice() == SIZES[0] else ((), (), ())
 
 
 class Lanes:

@@ -293,8 +293,9 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
             for lane in range(i * LB, (i + 1) * LB):
                 spread(lane, S, params, u0, net)
             if block_active(i, block_runs, stale):  # bool(True): a runtime flag, so that the
-                # experts and the gating share one compiled forward_pass (a literal True or False
-                # compiles one each: 3-4 s more of a first run)
+                # experts and the gating share one compiled forward_pass where its sizes are the
+                # arrays' (MOEX_CPU_SIZES=runtime; a literal True or False compiled one each: 3-4
+                # s more of a first run); compiled for their sizes, each phase has its own
                 forward_pass(X[i], w_in[i], w_rec[i], w_out[i], b_c[i], b_o[i], eps[i],
                              u0_lane[i], bool(True),  # noqa: UP018
                              C0[i], C[i], Y[i], U[i], S1[i], S2[i], sizes)

@@ -28,7 +28,7 @@ from moex.kernels.cpu.simd import JIT, fma, lanes, stack, sums, tanh, typed, wid
 
 
 @njit(inline="always", **JIT)
-def count(known, shape):  # pragma: no cover
+def _count(known, shape):  # pragma: no cover
     """len(known) (a constant where the kernel is compiled), or `shape` where `known` is empty."""
     return len(known) if len(known) > 0 else shape
 
@@ -36,8 +36,8 @@ def count(known, shape):  # pragma: no cover
 @njit(inline="always", **JIT)
 def _sizes(sizes, X, w_rec, w_out):  # pragma: no cover
     """H, NI, NO: the lengths of `sizes` (constants), or where those are empty the arrays'."""
-    return (count(sizes[0], w_rec.shape[0]), count(sizes[1], X.shape[1]),
-            count(sizes[2], w_out.shape[0]))
+    return (_count(sizes[0], w_rec.shape[0]), _count(sizes[1], X.shape[1]),
+            _count(sizes[2], w_out.shape[0]))
 
 
 @njit(**JIT)
