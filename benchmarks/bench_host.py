@@ -26,8 +26,8 @@ from bench_epochs import outside_pairs, trainers
 from moex.kernels.cpu import phases, step, threads
 
 COMPILED = [(threads, "over"), (phases.ExpertProblem, "evaluate"),
-            (phases.GatingProblem, "evaluate"), (step, "after_gradient"), (step, "after_trial"),
-            (step, "apply_runs"), (step, "stale_runs")]
+            (phases.GatingProblem, "evaluate"), (step, "before_gradient"), (step, "after_gradient"),
+            (step, "after_trial"), (step, "after_trials")]
 
 
 def host_share(fn, steps: int, base: int, repeats: int) -> tuple[float, float]:

@@ -230,18 +230,22 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         problem.resample(step)
         if whole is None:
             stats, retries = calls()
-        else:
-            stats = statistics(whole())
-            retries = tries if adaptive and rule.adaptive.max_retries > 0 else no_retries
+        else:  # (its statistics read only where this step reports them)
+            whole()
+            stats, retries = None, tries if adaptive and rule.adaptive.max_retries > 0 \
+                else no_retries
         tracked = hooks.monitor_every > 0 and step >= hooks.monitor_from and (
             step % hooks.monitor_every == 0 or step == steps - 1)
+        told = start < step < steps - 1 and (step + 1) % max(steps // 10, 1) == 0  # a log line
+        if stats is None and (tracked or told or step % log_every == 0):
+            stats = statistics(whole.statistics())
         if tracked:
             stats = {**stats, **statistics(hooks.monitor(_host(net)))}
         if tracked or step % log_every == 0:  # (the last row: the trained parameters, below)
             rows += _rows(phase, step, stats, lr_scale=lr_scale, retries=retries, failed=failed)
         if step == start:  # the rate leaves out the first step, which compiles the kernels
             started = time.perf_counter()
-        elif (step + 1) % max(steps // 10, 1) == 0 and step < steps - 1:  # progress in the log
+        elif told:  # progress in the log
             speed = (step - start) / (time.perf_counter() - started)  # steps per second
             log.info("%s: step %d/%d, %s mean %.4g over %s; %.1f steps/s, %s left",
                      phase, step + 1, steps, error or criterion,

@@ -2,12 +2,15 @@
 adaptive rate's trial (`adaptive_trial`): the reference's PyTorch operators give the bits, and
 the compiled call (cpu) and the launch (gpu) must give the same bits, with failed runs,
 non-finite gradients and objectives, a step that overflows, τ's clamp, a ratio at its threshold,
-both momentum forms and both precisions."""
+both momentum forms and both precisions. The cpu stepper's own update functions (the same
+operations bound into a training step, `moex.kernels.cpu.step`) are held to the same bits."""
 
+import numpy as np
 import pytest
 import torch
 
 from moex.kernels import get_backend
+from moex.kernels.cpu import update
 from tests.helpers import backend_params
 
 R, P, TAU = 6, 1500, (10, 20)  # P spans two of the gpu kernel's 1024-entry tiles
@@ -113,3 +116,65 @@ def test_an_adaptive_trial_gives_the_references_bits(backend, dtype):
     assert not get_backend("reference").adaptive_trial(
         every["delta"], every["values"], every["base"], every["pending"], every["lr_scale"],
         retries=every["retries"], decrease=0.7, increase=1.05, max_ratio=1.1)
+
+
+def _as(dtype) -> dict:
+    """numpy scalar type and unsigned integer type (the bits) of a torch dtype."""
+    kind = torch.empty(0, dtype=dtype).numpy().dtype
+    return {"float": kind.type, "bits": np.dtype(f"u{kind.itemsize}")}
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_steppers_trial_judges_as_the_separate_call_and_writes_the_next_point(dtype):
+    """cpu stepper (`update.after_trial`): a trial judged as `adaptive_trial` judges it, each run
+    still pending with its next trial's point θ + Δθ in scratch (PyTorch's sum, bit for bit),
+    every other row of scratch untouched."""
+    want, got = _trial(dtype), _trial(dtype)
+    get_backend("reference").adaptive_trial(want["delta"], want["values"], want["base"],
+                                            want["pending"], want["lr_scale"],
+                                            retries=want["retries"], decrease=0.7,
+                                            increase=1.05, max_ratio=1.1)
+    theta = _buffers(dtype)["theta"]
+    scratch = torch.full_like(theta, 7.0)
+    kind = _as(dtype)
+    now = (np.zeros((R, 1), kind["bits"]),)
+    update.after_trial(0, R, now, (now[0].copy(),), np.zeros(R, bool), np.zeros((1, 2), np.int64),
+                       np.zeros(R, np.int64), np.zeros(R, np.int64), False, theta.numpy(),
+                       got["delta"].numpy(), scratch.numpy(), got["values"].numpy(),
+                       got["base"].numpy(), got["pending"].numpy(), got["lr_scale"].numpy(),
+                       got["retries"].numpy(), 0.7, kind["float"](0.7), 1.05, kind["float"](1.1))
+    _same(want, got)
+    pending = want["pending"]
+    assert pending.tolist() == [False, False, True, True, False, True]
+    _same({"next": torch.add(theta, want["delta"])[pending]}, {"next": scratch[pending]})
+    assert (scratch[~pending] == 7).all()
+
+
+@pytest.mark.parametrize("paper_form", [True, False])
+def test_the_steppers_last_update_freezes_the_runs_pending_or_failed(paper_form):
+    """cpu stepper (`update.after_trials`): the step `apply_step` takes with frozen = pending |
+    failed, bit for bit."""
+    want, got = _buffers(torch.float64), _buffers(torch.float64)
+    pending = torch.tensor([False, True, False, False, False, True])
+    get_backend("reference").apply_step(want["theta"], want["grad"], want["velocity"],
+                                        pending | want["failed"], paper_form=paper_form, tau=TAU)
+    update.after_trials(0, R, got["theta"].numpy(), got["grad"].numpy(), got["velocity"].numpy(),
+                        pending.numpy(), got["failed"].numpy(), paper_form, *TAU)
+    _same(want, got)
+    assert (want["grad"][[1, 3, 5]] == 0).all() and want["grad"][0].ne(0).any()
+
+
+def test_the_steppers_first_update_runs_forward_only_the_runs_without_a_current_pass():
+    """cpu stepper (`update.before_gradient`): active = not failed; stale (run forward) = active,
+    with the record (`reuse`) less the runs whose lanes hold the pass at θ's very bits."""
+    failed = np.array([False, True, False, False])
+    current = np.array([True, True, True, False])  # run 1 failed, run 3's lanes hold nothing
+    then = (np.arange(8, dtype=np.uint64).reshape(4, 2),)
+    now = (then[0].copy(),)
+    now[0][2, 1] += 1  # run 2's parameters changed
+    active, stale = np.ones(4, bool), np.ones(4, bool)
+    update.before_gradient(0, 4, now, then, current, failed, active, stale, False)
+    assert active.tolist() == [True, False, True, True] and stale.tolist() == active.tolist()
+    update.before_gradient(0, 4, now, then, current, failed, active, stale, True)
+    assert active.tolist() == [True, False, True, True]
+    assert stale.tolist() == [False, False, True, True]

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import pytest
 
 from moex import compile_helper, launch
-from moex.kernels.cpu import warm
+from moex.kernels.cpu import lanes, warm
 
 
 def _kernel(name, index_path):
@@ -193,3 +193,18 @@ def test_the_stamp_is_named_after_the_kernels_sources_versions_and_precision(mon
     assert compile_helper.stamp("float64") != name  # another numba: another stamp
     compile_helper.mark_cached("float64")
     assert compile_helper.stamp("float64").exists() and not name.exists()
+
+
+def test_a_kernel_once_used_is_used_with_nothing_around_it(monkeypatch):
+    """`lanes.first_use`: a kernel's first use in the process goes through a context of its own
+    (it may wait for the helper and log), which marks the kernel ready; every later use gets the
+    one do-nothing context (the training loop's every step)."""
+    monkeypatch.setattr(lanes, "_ready", set())
+
+    def kernel():  # (hashable, as numba's dispatchers are)
+        pass
+    first = lanes.first_use(kernel, "test kernel")
+    assert first is not lanes._READY
+    with first:
+        assert kernel not in lanes._ready
+    assert lanes.first_use(kernel, "test kernel") is lanes._READY

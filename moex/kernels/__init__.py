@@ -64,9 +64,9 @@ class Problem(Protocol):
         point) may take it instead of running it again (the cpu backend does, bit for bit)."""
 
     def stepper(self, buffers: dict, columns: dict, fixed: dict, **settings):
-        """A callable that runs a whole training step on the training loop's buffers in one call
-        and returns the statistics at θ (cpu: `moex.kernels.cpu.step`), or None where the loop
-        makes its calls (`moex.train._ascend`: the arguments)."""
+        """A callable that runs a whole training step on the training loop's buffers in one call,
+        whose `statistics()` returns that step's statistics at θ (cpu: `moex.kernels.cpu.step`),
+        or None where the loop makes its calls (`moex.train._ascend`: the arguments)."""
 
     def value_of_candidates(self, params: dict) -> dict[str, torch.Tensor]:
         """Where `trials` > 1 (gpu): statistics (k·R,) of k = `trials` parameter sets per run in

@@ -224,15 +224,21 @@ logger = logging.getLogger("moex.kernels.cpu")
 _ready: set = set()
 
 
-@contextlib.contextmanager
 def first_use(kernel, what: str, after: float = 2.0):
     """Log lines around the first call of a kernel in this process where it takes a while: numba
     compiles it then (tens of seconds) or waits for the helper that compiles it beside the run
     (`warm`); a kernel loaded from the cache on disk (about a second) says nothing, so a cached
-    run's log has no line about kernels. The first line comes `after` seconds, while it waits."""
-    if kernel in _ready:
-        yield
-        return
+    run's log has no line about kernels. The first line comes `after` seconds, while it waits.
+    A context manager; once the kernel is ready, one that does nothing (the training loop's
+    every step: a generator's would cost it several µs)."""
+    return _READY if kernel in _ready else _first_use(kernel, what, after)
+
+
+_READY = contextlib.nullcontext()
+
+
+@contextlib.contextmanager
+def _first_use(kernel, what: str, after: float):
     import threading
 
     from moex.kernels.cpu import warm

@@ -6,11 +6,18 @@ The training loop (`moex.train._ascend`) otherwise makes each of those a backend
 converts its tensors, stages the parameters, checks the lanes' record of their forward pass and
 wraps the statistics: 160-390 µs of Python per step at R = 1, 6-11 % of an epoch. A `Stepper`
 binds every array once (the parameters' views of the flat (R, P) buffers where the kernels can
-read them as they are, at R = 1 all of them) and makes a step of a few compiled calls: the phase
-kernel per evaluation (`evaluate`), the update functions between (`update.after_gradient`,
-`after_trial`, `apply_runs`, and the lanes' record of their forward pass, `lanes.stale_runs`, on
-whole rows of the flat buffer). Those run without fast-math flags: inside the fast-math phase
-kernel LLVM may drop their NaN and infinity checks, which decide whether a run failed.
+read them as they are, at R = 1 all of them) and makes a step of a few compiled calls with
+nothing between them but the calls: the phase kernel per evaluation (`evaluate`) and the update
+functions around it (`update.before_gradient`: the runs to compute and the lanes' record of their
+forward pass; `after_gradient`: Δθ and the first trial's point θ + Δθ; `after_trial`: the trial
+judged and the next trial's point; `after_trials`: the step taken), on whole rows of the flat
+buffer. Those run without fast-math flags: inside the fast-math phase kernel LLVM may drop their
+NaN and infinity checks, which decide whether a run failed. The statistics stay in an array
+until the loop reads them (`statistics`, where it logs). Each NumPy or PyTorch operation between
+the calls had cost 5-60 µs there (line_profiler), 10-50 times its time in a loop of its own
+(timeit): after a kernel that has filled the caches with its lanes, the interpreter's code and
+data come back from memory (the likely cause; not measured with counters on this VM).
+Host time per step at R = 1 is now 30-70 µs (`benchmarks/bench_host.py`: 2.5-3.2 % of an epoch).
 
 A gradient step right after an accepted adaptive trial is at the trial's point: it takes the
 trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
@@ -31,8 +38,8 @@ import numpy as np
 import torch
 
 from moex.kernels.cpu import threads
-from moex.kernels.cpu.lanes import first_use, stale_runs, to_host
-from moex.kernels.cpu.update import after_gradient, after_trial, apply_runs
+from moex.kernels.cpu.lanes import first_use, to_host
+from moex.kernels.cpu.update import after_gradient, after_trial, after_trials, before_gradient
 
 
 class Stepper:
@@ -75,8 +82,7 @@ class Stepper:
         grads = views(grad)
         written = problem.staging.outputs(grads)
         self.copy_out = [(written[k], grads[k]) for k in columns if written[k] is not grads[k]]
-        self.masks = np.zeros((4, R), bool)  # active, stale, pending, frozen
-        active, stale, pending, _ = self.masks
+        active, stale, pending = np.zeros((3, R), bool)
         forwarded = problem.forwarded
         # with the record, a gradient step after an accepted trial reuses the trial's forward
         # pass, objective and ∂/∂o (the trial computes them); the record compares the columns
@@ -89,59 +95,59 @@ class Stepper:
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
-        self.bits = (theta[:, a:b].view(bits),), (scratch[:, a:b].view(bits),)
-        self.then, self.current = (np.zeros((R, b - a), bits),), np.zeros(R, bool)
+        then, current = (np.zeros((R, b - a), bits),), np.zeros(R, bool)
+        self.current, self.pending = current, pending
         self.stats = np.zeros((len(problem.STATS), R), dtype)
-        self.flat = theta, grad, velocity, delta, scratch
+        rate, lr_scale, failed, retries = (to_host(x) for x in (rate, lr_scale, failed, retries))
+        rule = (dtype.type(momentum), bool(paper_form), bool(adaptive), int(max_retries),
+                *(tau or (0, 0)))
+        c = problem.STATS.index(criterion)
+        # each stage's compiled function and its arguments after (lo, hi), bound once
+        self.before = (before_gradient, R, (theta[:, a:b].view(bits),), then, current, failed,
+                       active, stale, reuse)
+        after = partial(_after_gradient, copies=self.copy_out) if self.copy_out \
+            else after_gradient
+        self.after = (after, R, self.stats, lanes.out, current, theta, grad, velocity,
+                      delta, scratch, rate, lr_scale, failed, pending, retries, *rule)
+        self.trial = (after_trial, R, (scratch[:, a:b].view(bits),), then, current,
+                      lanes.block_runs, forwarded.first_block, forwarded.last_block,
+                      reuse, theta, delta, scratch, lanes.out[c], self.stats[c], pending,
+                      lr_scale, retries, float(decrease), dtype.type(decrease), float(increase),
+                      dtype.type(max_ratio))
+        self.finish = (after_trials, R, theta, delta, velocity, pending, failed, rule[1],
+                       *rule[4:])
+        self.trials = max_retries if adaptive else 0
+        self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
         self.over = threads.over if theta.size >= SPLIT else _one_thread
-        self.after_gradient = partial(_after_gradient, copies=self.copy_out) if self.copy_out \
-            else after_gradient
-        self.loop = (to_host(rate), to_host(lr_scale), to_host(failed), to_host(retries))
-        self.rule = (dtype.type(momentum), bool(paper_form), bool(adaptive), int(max_retries),
-                     *(tau or (0, 0)))
-        self.trial = (float(decrease), dtype.type(decrease), float(increase),
-                      dtype.type(max_ratio))
-        self.record = (lanes.block_runs, forwarded.first_block, forwarded.last_block, reuse)
-        self.criterion = problem.STATS.index(criterion)
+        self.rows = len(theta)
 
     def _evaluate(self, point: str, want_grad: bool) -> None:
         copies = self.point[point][1]
-        if point == "scratch":  # θ + Δθ (the separate calls' torch.add: the same bits)
-            theta, _, _, delta, scratch = self.flat
-            self.over(_rows, len(theta), [(theta, delta, scratch)], copies)
-        elif copies:
-            self.over(_rows, len(self.flat[0]), [], copies)
+        if copies:  # (the point itself written by the update before: θ, or θ + Δθ)
+            self.over(_rows, self.rows, copies)
         self.problem.evaluate(self.args[want_grad])
 
-    def __call__(self) -> dict[str, torch.Tensor]:
-        theta, grad, velocity, delta, scratch = self.flat
-        rate, lr_scale, failed, retries = self.loop
-        active, stale, pending, frozen = self.masks
-        block_runs, first_block, last_block, reuse = self.record
-        out, R = self.problem.lanes.out, len(theta)
-        np.logical_not(failed, out=active)
-        if reuse:
-            self.over(stale_runs, R, self.bits[0], self.then, self.current, active, stale)
-        else:
-            stale[:] = active
+    def __call__(self) -> None:
+        """One training step of every run; its statistics at θ in `statistics()` until the
+        next."""
+        over = self.over
+        over(*self.before)
         with first_use(*self.problem.KERNEL):
             self._evaluate("theta", True)
-        self.over(self.after_gradient, R, self.stats, out, self.current, theta, grad, velocity,
-                  delta, rate, lr_scale, failed, pending, retries, *self.rule)
-        _, paper_form, adaptive, max_retries, tau_start, tau_end = self.rule
-        c = self.criterion
-        for _ in range(max_retries if adaptive else 0):
+        over(*self.after)
+        for _ in range(self.trials):
             self._evaluate("scratch", False)
-            self.over(after_trial, R, self.bits[1], self.then, self.current, block_runs,
-                      first_block, last_block, reuse, delta, out[c], self.stats[c], pending,
-                      lr_scale, retries, *self.trial)
-            if not pending.any():
+            over(*self.trial)
+            if not np.count_nonzero(self.pending):
                 break
-        if adaptive:  # the step taken, runs still rejected frozen
-            np.logical_or(pending, failed, out=frozen)
-            self.over(apply_runs, R, theta, delta, velocity, frozen, paper_form, tau_start,
-                      tau_end)
+        if self.adaptive:  # the step taken, runs still rejected frozen
+            over(*self.finish)
+
+    def statistics(self) -> dict[str, torch.Tensor]:
+        """The last step's statistics at θ (before its update), (R,) each: read only where the
+        loop logs them, as converting them every step took 20-50 µs at R = 1 (a cold path after
+        the kernel, 2-3 % of an epoch)."""
         values = torch.from_numpy(self.stats.copy())
         return {name: values[i] for i, name in enumerate(self.problem.STATS)}
 
@@ -154,11 +160,9 @@ def _one_thread(kernel, items: int, *args) -> None:
     kernel(0, items, *args)
 
 
-def _rows(lo: int, hi: int, sums: list, copies: list) -> None:
-    """Rows lo..hi-1 (runs) of c = a + b for each (a, b, c) of `sums`, then of each (source,
-    destination) of `copies` (numpy lets go of the GIL while it copies)."""
-    for a, b, c in sums:
-        np.add(a[lo:hi], b[lo:hi], out=c[lo:hi])
+def _rows(lo: int, hi: int, copies: list) -> None:
+    """Rows lo..hi-1 (runs) of each (source, destination) of `copies` (numpy lets go of the GIL
+    while it copies)."""
     for source, destination in copies:
         np.copyto(destination[lo:hi], source[lo:hi])
 
@@ -166,5 +170,5 @@ def _rows(lo: int, hi: int, sums: list, copies: list) -> None:
 def _after_gradient(lo: int, hi: int, *args, copies: list) -> None:
     """Runs lo..hi-1: the gradients the kernel wrote copied out to the loop's buffer where they
     differ (`copies`), then `after_gradient`."""
-    _rows(lo, hi, [], copies)
+    _rows(lo, hi, copies)
     after_gradient(lo, hi, *args)

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 from moex.kernels.cpu import threads
-from moex.kernels.cpu.lanes import record_runs, to_host
+from moex.kernels.cpu.lanes import record_runs, stale_runs, to_host
 
 JIT = dict(nogil=True, error_model="numpy", cache=True)
 
@@ -96,11 +96,31 @@ def _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, d
 
 
 @njit(**JIT)
-def after_gradient(lo, hi, stats, out, current, theta, grad, velocity, delta, rate, lr_scale,
-                   failed, pending, retries, momentum, paper_form, adaptive, max_retries,
-                   tau_start, tau_end):
+def _trial_point(r, theta, delta, scratch):
+    """Run r's θ + Δθ, the point its next trial evaluates (the separate calls' torch.add)."""
+    for p in range(theta.shape[1]):
+        scratch[r, p] = theta[r, p] + delta[r, p]
+
+
+@njit(**JIT)
+def before_gradient(lo, hi, now, then, current, failed, active, stale, reuse):
+    """Runs lo..hi-1 before the gradient at θ: active, the runs not failed; stale, those the
+    phase kernel runs forward, with the record (`reuse`) the active ones whose lanes do not hold
+    the forward pass at θ's bits `now` (`lanes.stale_runs`), without it all active ones."""
+    for r in range(lo, hi):
+        active[r] = not failed[r]
+        stale[r] = active[r]
+    if reuse:
+        stale_runs(lo, hi, now, then, current, active, stale)
+
+
+@njit(**JIT)
+def after_gradient(lo, hi, stats, out, current, theta, grad, velocity, delta, scratch, rate,
+                   lr_scale, failed, pending, retries, momentum, paper_form, adaptive,
+                   max_retries, tau_start, tau_end):
     """Runs lo..hi-1: the statistics at θ kept, the step Δθ (taken at a fixed rate); with the
-    adaptive rate every run not failed pending (its trials follow where max_retries > 0)."""
+    adaptive rate every run not failed pending, and where max_retries > 0 its first trial's
+    point θ + Δθ in `scratch` and its retries 0."""
     for r in range(lo, hi):  # (loops written out: array expressions took a first run seconds)
         for i in range(stats.shape[0]):
             stats[i, r] = out[i, r]
@@ -112,18 +132,33 @@ def after_gradient(lo, hi, stats, out, current, theta, grad, velocity, delta, ra
             pending[r] = not failed[r]
             if max_retries > 0:
                 retries[r] = 0
+                _trial_point(r, theta, delta, scratch)
 
 
 @njit(**JIT)
-def after_trial(lo, hi, now, then, current, block_runs, first_block, last_block, reuse, delta,
-                values, base, pending, lr_scale, retries, decrease, decrease_cast, increase,
-                max_ratio):
+def after_trial(lo, hi, now, then, current, block_runs, first_block, last_block, reuse, theta,
+                delta, scratch, values, base, pending, lr_scale, retries, decrease, decrease_cast,
+                increase, max_ratio):
     """Runs lo..hi-1: the lanes of those evaluated (pending) hold θ + Δθ's forward pass; the
-    trial judged (`_trials`)."""
+    trial judged (`_trials`); the runs still pending have their next trial's point in
+    `scratch`."""
     if reuse:
         record_runs(lo, hi, now, then, pending, block_runs, first_block, last_block, current)
     _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, decrease_cast,
             increase, max_ratio)
+    for r in range(lo, hi):
+        if pending[r]:
+            _trial_point(r, theta, delta, scratch)
+
+
+@njit(**JIT)
+def after_trials(lo, hi, theta, delta, velocity, pending, failed, paper_form, tau_start,
+                 tau_end):
+    """Runs lo..hi-1 after the adaptive rate's trials: each run's step taken, a run still
+    rejected (pending) or failed frozen (`apply_runs` with frozen = pending | failed)."""
+    for r in range(lo, hi):
+        _apply(r, theta, delta, velocity, pending[r] or failed[r], paper_form, tau_start,
+               tau_end)
 
 
 def adaptive_trial(delta, values, base, pending, lr_scale, *, retries, decrease: float,
