@@ -6,11 +6,15 @@ run adopts it or stops it."""
 import subprocess
 import sys
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from numba import typeof, types
 
+import moex
 from moex import compile_helper, launch
+from moex.kernels import cpu
 from moex.kernels.cpu import lanes, warm
 
 
@@ -90,25 +94,39 @@ def _sleeper(told=None):
                             stdin=subprocess.PIPE, text=True)
 
 
-def test_a_signature_of_the_runs_precision_counts_as_cached():
+def test_a_signature_of_the_runs_precision_counts_as_cached(monkeypatch):
+    """Signatures as numba's cache index keeps them (tuples of numba types) and the run's sizes as
+    `warm_up` gives them: a string match on another spelling of the types (the run's sizes had
+    been `str` of their type, the index prints its `repr`) found no kernel ever cached, and every
+    later run started a helper and waited for it."""
     def kernel(*signatures, name="closed_blocks"):
         keys = {(signature, "magic"): 0 for signature in signatures}
         return SimpleNamespace(__name__=name, _cache=SimpleNamespace(_cache_file=SimpleNamespace(
             _load_index=lambda: keys)))
 
-    f64 = "(int64, Tuple((Array(float64, 4, 'C', False, aligned=True),)))"
-    f32 = f64.replace("float64", "float32")
+    f64 = (types.int64, types.Tuple((types.float64[:, :, :, ::1],)))
+    f32 = (types.int64, types.Tuple((types.float32[:, :, :, ::1],)))
     assert warm._indexed(kernel(f64), "float64") and not warm._indexed(kernel(f64), "float32")
     assert warm._indexed(kernel(f32), "float32") and not warm._indexed(kernel(f32), "float64")
     assert warm._indexed(kernel(f64, f32), "float32")
     assert not warm._indexed(kernel(), "float64")
     # phase 2's kernel counts only when compiled for the run's sizes (`lanes.sizes`' type)
-    ours, theirs = (f"Tuple(UniTuple(int64 x {h}), UniTuple(int64 x 4), UniTuple(int64 x 2))"
-                    for h in (15, 7))
-    sized = f64.replace(")))", f")), {ours})")
-    assert warm._indexed(kernel(sized, name="gating_items"), "float64", ours)
-    assert not warm._indexed(kernel(sized, name="gating_items"), "float64", theirs)
-    assert warm._indexed(kernel(f64), "float64", theirs)  # the closed loop: any sizes
+    monkeypatch.setenv("MOEX_CPU_SIZES", "compiled")  # (the tests' default: runtime)
+    ours, theirs = (typeof(lanes.sizes(h, 4, 2)) for h in (15, 7))
+    sized = (*f64, ours)
+    assert warm._indexed(kernel(sized, name="gating_items"), "float64", _told(15))
+    assert not warm._indexed(kernel(sized, name="gating_items"), "float64", _told(7))
+    assert not warm._indexed(kernel((*f64, theirs), name="gating_items"), "float64", _told(15))
+    assert warm._indexed(kernel(f64), "float64", _told(7))  # the closed loop: any sizes
+
+
+def _told(units: int) -> str:
+    """The sizes `warm.start` is given for a gating RNN of `units` units, 4 inputs, 2 outputs."""
+    told = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(warm, "start", lambda *args: told.setdefault("sizes", args[3]))
+        cpu.warm_up("float64", (units, 4, 2))
+    return told["sizes"]
 
 
 @pytest.mark.parametrize("argv, precision", [
@@ -208,3 +226,17 @@ def test_a_kernel_once_used_is_used_with_nothing_around_it(monkeypatch):
     with first:
         assert kernel not in lanes._ready
     assert lanes.first_use(kernel, "test kernel") is lanes._READY
+
+
+def test_the_helper_imports_the_runs_own_moex_wherever_the_command_runs(tmp_path):
+    """`compile_helper.python`: a working directory holding another moex (a checkout beside an
+    installed copy) is not what the helper imports; `python -m` would have put it first."""
+    (tmp_path / "moex").mkdir()
+    (tmp_path / "moex" / "__init__.py").write_text("")
+    argv, env = compile_helper.python("-c", "import moex; print(moex.__file__)")
+    found = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True,
+                           check=True).stdout.strip()
+    assert Path(found).resolve() == Path(moex.__file__).resolve()
+    plain = subprocess.run([sys.executable, "-c", "import moex; print(moex.__file__)"],
+                           cwd=tmp_path, capture_output=True, text=True, check=True).stdout
+    assert Path(plain.strip()).resolve().parent == (tmp_path / "moex").resolve()  # (the trap)

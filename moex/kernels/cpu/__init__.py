@@ -49,4 +49,5 @@ def warm_up(precision: str, gating: tuple[int, int, int]) -> None:
     from moex.kernels.cpu import warm
     from moex.kernels.cpu.lanes import sizes
 
-    warm.start(precision, LATER, gating, str(typeof(sizes(*gating))))
+    # (repr: numba's cache index keeps a signature's types, whose tuple prints them so)
+    warm.start(precision, LATER, gating, repr(typeof(sizes(*gating))))
