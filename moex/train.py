@@ -230,10 +230,10 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         problem.resample(step)
         if whole is None:
             stats, retries = calls()
-        else:  # (its statistics read only where this step reports them)
+        else:
             whole()
-            stats, retries = None, tries if adaptive and rule.adaptive.max_retries > 0 \
-                else no_retries
+            stats = None  # (read from the stepper only where this step reports them)
+            retries = tries if adaptive and rule.adaptive.max_retries > 0 else no_retries
         tracked = hooks.monitor_every > 0 and step >= hooks.monitor_from and (
             step % hooks.monitor_every == 0 or step == steps - 1)
         told = start < step < steps - 1 and (step + 1) % max(steps // 10, 1) == 0  # a log line

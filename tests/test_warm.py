@@ -96,9 +96,9 @@ def _sleeper(told=None):
 
 def test_a_signature_of_the_runs_precision_counts_as_cached(monkeypatch):
     """Signatures as numba's cache index keeps them (tuples of numba types) and the run's sizes as
-    `warm_up` gives them: a string match on another spelling of the types (the run's sizes had
-    been `str` of their type, the index prints its `repr`) found no kernel ever cached, and every
-    later run started a helper and waited for it."""
+    `warm_up` gives them: a string match on two spellings of the types (`str` of the run's, the
+    index's `repr`) had found no kernel ever cached, and every later run started a helper and
+    waited for it."""
     def kernel(*signatures, name="closed_blocks"):
         keys = {(signature, "magic"): 0 for signature in signatures}
         return SimpleNamespace(__name__=name, _cache=SimpleNamespace(_cache_file=SimpleNamespace(
@@ -155,7 +155,7 @@ def test_the_run_adopts_the_commands_helper_of_its_precision_and_tells_it_the_si
     monkeypatch.setattr(compile_helper, "helper", ("float64", process))
     monkeypatch.setattr(warm, "_helper", None)
     try:
-        assert warm.start("float64", (), (15, 4, 2), "") is process
+        assert warm.start("float64", (), (15, 4, 2), None) is process
         assert warm._helper is process and compile_helper.helper is None
         deadline = time.monotonic() + 20
         while (not (tmp_path / "told").exists() or not (tmp_path / "told").read_text()) \
@@ -173,7 +173,7 @@ def test_a_helper_of_another_precision_is_stopped(monkeypatch):
     monkeypatch.setattr(compile_helper, "helper", ("float32", process))
     monkeypatch.setattr(warm, "_helper", None)
     monkeypatch.setattr(warm, "cached", lambda dtype, kernels, sizes: True)  # no helper of its own
-    assert warm.start("float64", (), (3, 4, 2), "") is None
+    assert warm.start("float64", (), (3, 4, 2), None) is None
     assert process.poll() is not None and compile_helper.helper is None
 
 
@@ -191,7 +191,7 @@ def test_the_command_starts_no_helper_once_a_run_found_the_kernels_cached(monkey
     monkeypatch.setattr(compile_helper, "helper", None)
     monkeypatch.setattr(warm, "_helper", None)
     monkeypatch.setattr(warm, "cached", lambda dtype, kernels, sizes: True)
-    assert warm.start("float64", (), (3, 4, 2), "") is None
+    assert warm.start("float64", (), (3, 4, 2), None) is None
     assert (tmp_path / "float64.stamp").exists() and not (tmp_path / "float32.stamp").exists()
     compile_helper.start("float64")
     assert compile_helper.helper is None  # stamped: no process

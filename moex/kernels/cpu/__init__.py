@@ -49,5 +49,4 @@ def warm_up(precision: str, gating: tuple[int, int, int]) -> None:
     from moex.kernels.cpu import warm
     from moex.kernels.cpu.lanes import sizes
 
-    # (repr: numba's cache index keeps a signature's types, whose tuple prints them so)
-    warm.start(precision, LATER, gating, repr(typeof(sizes(*gating))))
+    warm.start(precision, LATER, gating, typeof(sizes(*gating)))

@@ -73,15 +73,15 @@ class Stepper:
         fixed = {k: to_host(v) for k, v in fixed.items()}
         # the arrays the kernel reads (views of the buffers where it can take them as they are)
         # and the copies each evaluation needs into the others
-        self.point = {}
-        for name, flat in (("theta", theta), ("scratch", scratch)):
+        staged, copies = [], []  # at θ (the gradient), at θ + Δθ (a trial)
+        for flat in (theta, scratch):
             source = {**views(flat), **fixed}
-            staged = problem.staging.load(source)
-            self.point[name] = (staged, [(source[k], staged[k]) for k in columns
-                                         if not np.shares_memory(staged[k], flat)])
+            staged.append(problem.staging.load(source))
+            copies.append([(source[k], staged[-1][k]) for k in columns
+                           if not np.shares_memory(staged[-1][k], flat)])
         grads = views(grad)
         written = problem.staging.outputs(grads)
-        self.copy_out = [(written[k], grads[k]) for k in columns if written[k] is not grads[k]]
+        copy_out = [(written[k], grads[k]) for k in columns if written[k] is not grads[k]]
         active, stale, pending = np.zeros((3, R), bool)
         forwarded = problem.forwarded
         # with the record, a gradient step after an accepted trial reuses the trial's forward
@@ -89,9 +89,11 @@ class Stepper:
         # that all of those read (phase 1's β among them: most of a row)
         reuse = forwarded.enabled
         kernel_args = partial(problem.kernel_args, reuse=reuse)
-        self.args = {True: kernel_args(self.point["theta"][0], written, True, active, stale),
-                     False: kernel_args(self.point["scratch"][0], written, False, pending,
-                                        pending)}
+        # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
+        # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs)
+        self.evaluations = {
+            True: (copies[0], kernel_args(staged[0], written, True, active, stale)),
+            False: (copies[1], kernel_args(staged[1], written, False, pending, pending))}
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
@@ -105,8 +107,7 @@ class Stepper:
         # each stage's compiled function and its arguments after (lo, hi), bound once
         self.before = (before_gradient, R, (theta[:, a:b].view(bits),), then, current, failed,
                        active, stale, reuse)
-        after = partial(_after_gradient, copies=self.copy_out) if self.copy_out \
-            else after_gradient
+        after = partial(_after_gradient, copies=copy_out) if copy_out else after_gradient
         self.after = (after, R, self.stats, lanes.out, current, theta, grad, velocity,
                       delta, scratch, rate, lr_scale, failed, pending, retries, *rule)
         self.trial = (after_trial, R, (scratch[:, a:b].view(bits),), then, current,
@@ -120,13 +121,13 @@ class Stepper:
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
         self.over = threads.over if theta.size >= SPLIT else _one_thread
-        self.rows = len(theta)
+        self.runs = R
 
-    def _evaluate(self, point: str, want_grad: bool) -> None:
-        copies = self.point[point][1]
+    def _evaluate(self, want_grad: bool) -> None:
+        copies, args = self.evaluations[want_grad]
         if copies:  # (the point itself written by the update before: θ, or θ + Δθ)
-            self.over(_rows, self.rows, copies)
-        self.problem.evaluate(self.args[want_grad])
+            self.over(_rows, self.runs, copies)
+        self.problem.evaluate(args)
 
     def __call__(self) -> None:
         """One training step of every run; its statistics at θ in `statistics()` until the
@@ -134,10 +135,10 @@ class Stepper:
         over = self.over
         over(*self.before)
         with first_use(*self.problem.KERNEL):
-            self._evaluate("theta", True)
+            self._evaluate(True)
         over(*self.after)
         for _ in range(self.trials):
-            self._evaluate("scratch", False)
+            self._evaluate(False)
             over(*self.trial)
             if not np.count_nonzero(self.pending):
                 break

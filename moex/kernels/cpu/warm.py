@@ -19,41 +19,41 @@ from moex import compile_helper
 
 _helper: subprocess.Popen | None = None
 _dtype: str | None = None  # the precision of the run (and its helper)
-_sizes: str | None = None  # repr of the numba type of the gating RNN's `lanes.sizes`
+_sizes = None  # the numba type of the gating RNN's `lanes.sizes` in the run
 _COMPILES = ("gating_items", "closed_blocks", "_nearest")  # what the helper compiles
 _SIZED = ("gating_items",)  # compiled for the run's sizes
 _failure_told = False
 logger = logging.getLogger("moex.kernels.cpu")
 
 
-def _indexed(kernel, dtype: str | None = None, sizes: str | None = None) -> bool:
+def _indexed(kernel, dtype: str | None = None, sizes=None) -> bool:
     """Whether `kernel` has a cache index on disk holding a signature of `dtype` (any, when None;
     float32 arrays in the signature mean a float32 run) and, for the kernels compiled for the
-    run's sizes, of `sizes` (the repr of the numba type of `lanes.sizes`, as the index's
-    signatures print it). numba's internals; False when unsure."""
+    run's sizes, with `sizes` (the numba type of `lanes.sizes`) among its argument types: types
+    compared as types (a string match had compared two spellings of them and never matched).
+    numba's internals; False when unsure."""
     try:
         if dtype is None:
             return Path(kernel._cache._cache_file._index_path).exists()
         sized = sizes is not None and kernel.__name__ in _SIZED
         return any(("float32" in str(key[0])) == (dtype == "float32")
-                   and (not sized or sizes in str(key[0]))
+                   and (not sized or sizes in key[0])
                    for key in kernel._cache._cache_file._load_index())
     except (AttributeError, OSError, EOFError, pickle.UnpicklingError):
         return False
 
 
-def cached(dtype: str, kernels: tuple, sizes: str | None = None) -> bool:
+def cached(dtype: str, kernels: tuple, sizes=None) -> bool:
     """Whether `kernels` (the helper's two large ones: closed loop, phase 2) are cached for
-    `dtype` (phase 2 for `sizes`, the repr of the numba type of its `lanes.sizes`)."""
+    `dtype` (phase 2 for `sizes`, the numba type of its `lanes.sizes`)."""
     return all(_indexed(kernel, dtype, sizes) for kernel in kernels)
 
 
 def start(dtype: str, later: tuple, gating: tuple[int, int, int],
-          sizes: str) -> subprocess.Popen | None:
+          sizes) -> subprocess.Popen | None:
     """Adopt the helper the `moex` command started for `dtype` (stopping one of another
     precision), or start one when the kernels `later` are not cached for `dtype` and the gating
-    RNN's units, inputs and outputs `gating` (`sizes`: the repr of the numba type of their
-    `lanes.sizes`);
+    RNN's units, inputs and outputs `gating` (`sizes`: the numba type of their `lanes.sizes`);
     tell the helper those sizes. None when no helper is needed."""
     global _helper, _dtype, _sizes
     _dtype, _sizes = dtype, sizes
