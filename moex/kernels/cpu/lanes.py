@@ -188,7 +188,7 @@ def _equal(now, then, r):  # pragma: no cover
     return True
 
 
-@njit(nogil=True, **JIT)
+@njit(nogil=True, inline="always", **JIT)
 def stale_runs(lo, hi, now, then, current, active, out):  # pragma: no cover
     """out[r] for runs r = lo..hi-1: whether r is active and not current with exactly the
     parameter bits `now`."""
@@ -196,7 +196,7 @@ def stale_runs(lo, hi, now, then, current, active, out):  # pragma: no cover
         out[r] = active[r] and not (current[r] and _equal(now, then, r))
 
 
-@njit(nogil=True, **JIT)
+@njit(nogil=True, inline="always", **JIT)
 def record_runs(lo, hi, now, then, stale, block_runs, first_block, last_block,
                 current):  # pragma: no cover
     """Runs lo..hi-1 after a call that recomputed every block holding a `stale` run, with
