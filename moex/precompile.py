@@ -44,8 +44,6 @@ def compile_later_phases(dtype: str, sizes=None) -> None:
     grads = {k: torch.zeros_like(v) for k, v in gating.items()}
     active = torch.ones(1, dtype=torch.bool)
     problem.value_and_grad(gating, grads, active)
-    problem.value(gating, active)  # an adaptive trial: the record of the lanes' forward pass
-    problem.value_and_grad(gating, grads, active)  # and its reuse (`lanes.Forwarded`)
     nearest_symbols(torch.zeros((1, 2, 2)), torch.zeros((2, 2)), torch.arange(2))
 
 

@@ -111,6 +111,30 @@ def test_a_whole_step_without_the_record_of_forward_passes_gives_the_same_bits(o
     _same(kept, _train(dtype, True, "paper", True, steps=12, rate=2.0, retries=2, noise=0.0))
 
 
+def test_a_separate_call_between_whole_steps_leaves_their_bits(one_thread, monkeypatch):
+    """A separate call (`value`) between the stepper's steps runs its own forward passes in the
+    lanes (here at parameters scaled by 0.9): the stepper's record of its passes is dropped, so
+    its next gradient step computes them afresh instead of reusing the lanes, and the training
+    gives the bits it gives without the call. The separate calls leave no record of their own
+    while a stepper keeps one."""
+    args = (torch.float64, True, "paper", True)
+    kw = dict(steps=8, rate=2.0, retries=2, noise=0.0)  # trials accepted, rejected, given up
+    plain = _train(*args, **kw)
+    call, recorded = step.Stepper.__call__, []
+
+    def interrupted(self):
+        call(self)
+        problem = self.problem
+        other = {n: torch.from_numpy(a * (1.1 if n == "tau" else 0.9))
+                 for n, a in problem.staging.params.items()}
+        problem.value(other, np.ones(R, bool))
+        recorded.append(problem.forwarded.current.any())
+
+    monkeypatch.setattr(step.Stepper, "__call__", interrupted)
+    _same(plain, _train(*args, **kw))
+    assert len(recorded) == 16 and not any(recorded)
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("phase", ["experts", "gating"])
 def test_a_gradient_call_reuses_the_objective_of_the_trial_before_it(one_thread, dtype, phase):

@@ -420,8 +420,12 @@ class _Problem:
             self._step(p, g, lanes, active, stale=stale, want_grad=want_grad)
         if want_grad:
             self.forwarded.forget()  # the next call is at other parameters (a step was taken)
-        else:
-            self.forwarded.record(p, stale)
+        elif not self._stepper_record.size:  # the separate calls' adaptive trial: its passes
+            self.forwarded.record(p, stale)  # on record for the gradient call after it
+        # a stepper keeps a record of its own (`moex.kernels.cpu.step`), which this call's
+        # passes void; and the training loop's last call (the trained parameters' value) needs
+        # none: it recorded, and compiled the record's function on a first run, for nothing
+        self._stepper_record[:] = False
         self.staging.store(grads, g)
         return lanes.stats(self.STATS)
 
