@@ -63,7 +63,7 @@ def _total(x, n):  # pragma: no cover
     return total
 
 
-@njit(**JIT)
+@njit(no_cpython_wrapper=True, **JIT)
 def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pragma: no cover
     """Series s of run r: ln p(y | X, β, γ) in log space (Eqs. 10-12), the Brownian prior on β
     (Eq. 13) and the E error; with want_grad ∂/∂o of every expert output and ∂/∂β (Eq. 19).
@@ -225,7 +225,7 @@ def _variances(first, last, log_sigma, floor, prior_std, var):  # pragma: no cov
         var[r, K] = prior_std
 
 
-@njit(**JIT)
+@njit(no_cpython_wrapper=True, **JIT)
 def _run_sums(r, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_log_sigma, floor,
               attraction, want_grad, out):  # pragma: no cover
     """Run r after its backward pass: its K networks' gradients gathered from their lanes, and

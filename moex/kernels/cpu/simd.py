@@ -45,8 +45,12 @@ ALIGN = 64
 # same kernel loaded from numba's cache (the chaotic closed loop amplified them into other
 # metrics). Fused multiply-adds are written out with `fma` instead: one rounding, everywhere.
 FASTMATH = {"nnan", "ninf", "nsz"}
-# error_model="numpy": no ZeroDivisionError branch on float division, which blocks vectorisation
-JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
+# error_model="numpy": no ZeroDivisionError branch on float division, which blocks vectorisation;
+# no_cfunc_wrapper: numba builds a C-callable wrapper of every function unless told not to, and
+# nothing here takes a kernel's C address (a first run's phase-1 compile spent ~0.2 s on them).
+# A function only other kernels call also goes without the wrapper that Python calls through
+# (`no_cpython_wrapper=True` where it is compiled: ~0.7 s of that compile, 2026-12-07)
+JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True, no_cfunc_wrapper=True)
 
 
 @intrinsic

@@ -12,13 +12,14 @@ from numba import njit
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import record_runs, stale_runs, to_host
 
-JIT = dict(nogil=True, error_model="numpy", cache=True)
+JIT = dict(nogil=True, error_model="numpy", cache=True, no_cfunc_wrapper=True)
 # The helpers the stage functions call (`_finite`, `_steps`, `_trials`, `_trial_point`, and
 # `lanes.stale_runs` / `record_runs`) are inlined by numba into their callers (each still callable
 # from Python): a function of its own costs a first run a compile pipeline of its own (wrappers,
 # optimisation, machine code). The stage functions' first compile 2.8-2.95 s instead of
 # 3.6-3.75 (Ice Lake VM, 2026-12-07, the trees in turn); the same bits. `_apply`, called from
-# two stage functions, stays a function of its own (inlined into both: no faster to compile).
+# two stage functions, stays a function of its own (inlined into both: no faster to compile),
+# without the wrapper Python would call it through; no C-callable wrappers (`simd.JIT`).
 
 
 @njit(inline="always", **JIT)
@@ -29,7 +30,7 @@ def _finite(row) -> bool:
     return True
 
 
-@njit(**JIT)
+@njit(no_cpython_wrapper=True, **JIT)
 def _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
     zero = delta.dtype.type(0.0)
     for p in range(theta.shape[1]):
