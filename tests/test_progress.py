@@ -59,7 +59,9 @@ def test_summary_lines_fit_the_terminal_and_never_split_a_number(columns, monkey
 
     from moex.progress import STAMP, packed
 
-    monkeypatch.setattr("shutil.get_terminal_size", lambda *a: os.terminal_size((columns, 24)))
+    # (as shutil's own: pytest -v asks it for its progress column with fallback= meanwhile)
+    monkeypatch.setattr("shutil.get_terminal_size",
+                        lambda *a, **k: os.terminal_size((columns, 24)))
     parts = [f"metric{i} {0.0358 * i:.4g} ± {i / 7:.2g}" for i in range(12)]
     lines = packed("run 0:", parts)
     assert all(STAMP + len(line) <= min(columns, 100) for line in lines)
