@@ -120,7 +120,7 @@ def test_a_signature_of_the_runs_precision_counts_as_cached(monkeypatch):
     assert warm._indexed(kernel(f64), "float64", _told(7))  # the closed loop: any sizes
 
 
-def _told(units: int) -> str:
+def _told(units: int) -> types.Type:
     """The sizes `warm.start` is given for a gating RNN of `units` units, 4 inputs, 2 outputs."""
     told = {}
     with pytest.MonkeyPatch.context() as patch:
