@@ -18,6 +18,13 @@ With two --dtype (cpu): both precisions' trainers in one process, each phase tim
 turn, --repeats rounds, each round a pair (`marginal`, CPU time) and a ratio: the medians and the
 ratio's median (min-max). Separate processes' best times swung by a fifth within minutes on a
 shared VM; a pair's two sides see the same minute.
+
+With two --threads and --paired (cpu): the same, for one set of trainers run on each number of
+threads in turn (`numba.set_num_threads` between the runs): wall ms per network-epoch on each, the
+speed-up (the first's wall time over the second's) as median (min-max), and the second's CPU time
+over the first's (what the threads cost in all).
+
+    python benchmarks/bench_epochs.py --runs 30 --threads 1 2 --paired --steps 40 --repeats 6
 """
 
 import argparse
@@ -26,6 +33,7 @@ import itertools
 import os
 import statistics
 import time
+from functools import partial
 
 import numba
 import torch
@@ -198,24 +206,50 @@ def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repea
     return results
 
 
+def rounds(sides: list[tuple], steps: int, base: int, repeats: int) -> list[list[tuple]]:
+    """Per side (prepare, fn): `repeats` pairs (`marginal`: wall, cpu seconds per epoch) of
+    fn(n) (n epochs), prepare() called before each, all sides warmed up first and then timed in
+    turn, round by round, the order alternating."""
+    for prepare, fn in sides:
+        prepare()
+        warm_up(fn, steps, base)
+    times = [[] for _ in sides]
+    for round_ in range(repeats):
+        for i in range(len(sides))[::-1 if round_ % 2 else 1]:
+            prepare, fn = sides[i]
+            prepare()
+            times[i].append(marginal(fn, steps, base))
+    return times
+
+
 def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
                 context_size: int, dtypes: list[str], base: int = 5) -> None:
     """Prints a row per phase: CPU ms per network-epoch in each of two precisions, medians of
-    `repeats` rounds that time both in turn (the order alternating), and their ratio round by
-    round."""
+    `repeats` rounds that time both in turn (`rounds`), and their ratio round by round."""
     fns = {d: trainers(task, runs, "cpu", threads=threads, context_size=context_size,
                        dtype=d)[0] for d in dtypes}
     for name in fns[dtypes[0]]:
-        times = {d: [] for d in dtypes}
-        for d in dtypes:
-            warm_up(fns[d][name], steps, base)
-        for round_ in range(repeats):
-            for d in dtypes[::-1] if round_ % 2 else dtypes:
-                times[d].append(1e3 * marginal(fns[d][name], steps, base)[1] / runs)
-        a, b = (times[d] for d in dtypes)
+        a, b = ([1e3 * cpu / runs for _, cpu in side] for side in rounds(
+            [(lambda: None, fns[d][name]) for d in dtypes], steps, base, repeats))
         print(f"| {task} | {name} | {runs} | {threads} | {context_size} | "
               f"{statistics.median(a):.2f} | {statistics.median(b):.2f} | {ratios(a, b)} |",
               flush=True)
+
+
+def thread_pairs(task: str, runs: int, *, threads: list[int], steps: int, repeats: int,
+                 context_size: int, dtype: str, base: int = 5) -> None:
+    """Prints a row per phase: wall ms per network-epoch on each of two numbers of threads,
+    medians of `repeats` rounds that time both in turn (`rounds`), the speed-up and the CPU time
+    ratio round by round."""
+    fns, _ = trainers(task, runs, "cpu", threads=max(threads), context_size=context_size,
+                      dtype=dtype)
+    for name, fn in fns.items():
+        one, two = rounds([(partial(numba.set_num_threads, t), fn) for t in threads], steps,
+                          base, repeats)
+        wall = [[1e3 * w / runs for w, _ in side] for side in (one, two)]
+        print(f"| {task} | {name} | {runs} | {context_size} | {statistics.median(wall[0]):.2f} | "
+              f"{statistics.median(wall[1]):.2f} | {ratios(*wall, unit='x')} | "
+              f"{ratios([c for _, c in two], [c for _, c in one])} |", flush=True)
 
 
 def main():
@@ -236,9 +270,24 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--kernels", action="store_true",
                         help="then print each compiled Triton kernel's registers and spills")
+    parser.add_argument("--paired", action="store_true",
+                        help="two --threads in one process, paired round by round (cpu)")
     args = parser.parse_args()
+    if args.paired and (len(args.threads) != 2 or len(args.dtype) != 1
+                        or args.backends != ["cpu"]):
+        parser.error("--paired takes two --threads, one --dtype and the cpu backend")
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
     print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {' and '.join(args.dtype)}")
+    if args.paired:
+        first, second = args.threads
+        print(f"| task | phase | runs | NC | wall ms per network-epoch, {first} thread(s) | "
+              f"{second} thread(s) | speed-up | CPU time, {second} / {first} |\n"
+              "|---|---|---|---|---|---|---|---|")
+        for runs, size in itertools.product(args.runs, args.context_sizes):
+            thread_pairs(args.task, runs, threads=args.threads, steps=args.steps,
+                         repeats=args.repeats, context_size=size, dtype=args.dtype[0],
+                         base=args.base)
+        return
     if len(args.dtype) == 2:
         first, second = args.dtype
         print(f"| task | phase | runs | threads | NC | CPU ms per network-epoch, {first} | "

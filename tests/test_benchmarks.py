@@ -149,6 +149,27 @@ def test_the_epoch_benchmark_pairs_two_precisions_round_by_round(tmp_path):
                          rf"{number} \({number}-{number}\) \|", done.stdout), phase
 
 
+def test_the_epoch_benchmark_pairs_two_thread_counts_round_by_round(tmp_path):
+    """With --paired and two --threads: a row per phase with the wall time on each, the
+    speed-up and the CPU time ratio as medians (min-max) of the rounds; --paired with one thread
+    count is refused in one line, exit 2."""
+    script = [sys.executable, str(ROOT / "benchmarks" / "bench_epochs.py"), "--runs", "2",
+              "--series", "2", "--length", "30", "--steps", "2", "--base", "1", "--repeats", "2",
+              "--paired"]
+    done = subprocess.run(script + ["--threads", "1", "2"], capture_output=True, text=True,
+                          timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    number = r"-?\d+\.\d+"
+    assert "| speed-up | CPU time, 2 / 1 |" in done.stdout
+    for phase in ("phase 1, fixed rate", "phase 1, adaptive rate", "phase 2, adaptive rate"):
+        assert re.search(rf"\| lissajous2 \| {phase} \| 2 \| 15 \| {number} \| {number} \| "
+                         rf"{number}x \({number}-{number}\) \| {number} \({number}-{number}\) \|",
+                         done.stdout), phase
+    refused = subprocess.run(script + ["--threads", "2"], capture_output=True, text=True,
+                             timeout=60, cwd=tmp_path)
+    assert refused.returncode == 2 and "--paired takes two --threads" in refused.stderr
+
+
 def test_the_gpu_profile_names_where_each_phase_spends_its_epoch():
     """benchmarks/gpu_profile.py on the CPU (its CI path): a line per phase with the epoch's wall
     time and the host's operators, and a table of them; the same for the closed loop's chunks."""
