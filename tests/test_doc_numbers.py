@@ -101,12 +101,12 @@ def csv_values(name: str) -> tuple[float, ...]:
     groupings = [everything, *([frame[a]] for a in keys),
                  *([frame[a], frame[b]] for i, a in enumerate(keys) for b in keys[i + 1:])]
     values = [numbers.to_numpy(float).ravel()]
-    for by in groupings:
-        stats = numbers.groupby(by).agg(["mean", "median", "min", "max", "std", "count"])
-        stats = stats.astype(float)
-        values.append(stats.to_numpy().ravel())
-        std, count = (stats.xs(s, axis=1, level=1) for s in ("std", "count"))
-        values.append((std / np.sqrt(count)).to_numpy().ravel())
+    for by in groupings:  # each statistic by its own groupby method: .agg([...]) took 20 s
+        groups = numbers.groupby(by)
+        stats = {f: getattr(groups, f)().astype(float)
+                 for f in ("mean", "median", "min", "max", "std", "count")}
+        values += [frame.to_numpy().ravel() for frame in stats.values()]
+        values.append((stats["std"] / np.sqrt(stats["count"])).to_numpy().ravel())
     values = np.concatenate(values).astype(float)
     return tuple(values[np.isfinite(values)])
 
