@@ -105,7 +105,7 @@ def csv_values(name: str) -> tuple[float, ...]:
         groups = numbers.groupby(by)
         stats = {f: getattr(groups, f)().astype(float)
                  for f in ("mean", "median", "min", "max", "std", "count")}
-        values += [frame.to_numpy().ravel() for frame in stats.values()]
+        values += [stat.to_numpy().ravel() for stat in stats.values()]
         values.append((stats["std"] / np.sqrt(stats["count"])).to_numpy().ravel())
     values = np.concatenate(values).astype(float)
     return tuple(values[np.isfinite(values)])
