@@ -4,10 +4,10 @@ step timed alone, one thread, with its arithmetic per element.
     python benchmarks/bench_phase1_parts.py [--runs 1 30] [--repeats 30] [--dtype float32]
     python benchmarks/bench_phase1_parts.py --phase 2 --runs 30
 
-The step (`moex.kernels.cpu.phases.ExpertProblem`) is called stage by stage, as it runs when
-there are fewer chunks of runs than threads: the forward pass of every block of lanes (Eqs. 1-3
-teacher-forced), the mixture likelihood and its gradient per (run, series) (Eqs. 9-13), BPTT per
-block, and the sums per run; plus the staging of parameters into lanes and back (the whole
+The step (`moex.kernels.cpu.phases.ExpertProblem`, which takes chunks of series through the
+first three stages in turn) is called stage by stage: the forward pass of every block of lanes
+(Eqs. 1-3 teacher-forced), the mixture likelihood and its gradient per (run, series) (Eqs. 9-13),
+BPTT per block, and the sums per run; plus the staging of parameters into lanes and back (the whole
 `value_and_grad` minus its stages) and the training loop around the call (`train_experts`
 outside its calls: momentum update, checks, bookkeeping). Stages are timed
 round-robin, `--repeats` rounds, and the minimum is kept, so that other load on the machine

@@ -1,16 +1,17 @@
 """Compiled CPU backend (numba): the functions of `moex.kernels.reference`; a training step of all
-R runs is one compiled call per thread (and for the chunks of runs left over after an equal
-share per thread, one per thread for each of three stages).
+R runs is one compiled call per thread, then the sums per run on the calling thread.
 
 Layout. Every independent recurrence is a *lane*: an (expert, series) pair of one run in phase 1
-(lane (r·K + k)·S + s), a series of one run in phase 2 (lane r·S + s), a (run, sample) trajectory
-of the closed loop. Lanes are the last axis of every work array, padded to whole blocks of
-`simd.width` lanes (8 in float64, 16 in float32 on a CPU with AVX-512); each lane carries its own
-copy of its network's weights, so a block of lanes is one SIMD vector whichever networks its
-lanes belong to. A block runs its whole time loop with the lane
-loop innermost; blocks are shared out among threads (`threads`). The per-lane weight gradients
-are summed over the lanes of each network at the end. Phase 1's mixture, which runs along time
-one (run, series) at a time, reads the experts' outputs and writes ∂L/∂o as rows by lane, into
+(lane (r·S + s)·K + k: a series' K lanes side by side), a series of one run in phase 2 (lane
+r·S + s), a (run, sample) trajectory of the closed loop. Lanes are the last axis of every work
+array, padded to whole blocks of `simd.width` lanes (8 in float64, 16 in float32 on a CPU with
+AVX-512); each lane carries its own copy of its network's weights, so a block of lanes is one
+SIMD vector whichever networks its lanes belong to. A block runs its whole time loop with the
+lane loop innermost; blocks are shared out among threads (`threads`). The per-lane weight gradients
+are summed over the lanes of each network at the end. Phase 1 takes chunks of whole series that
+fill whole blocks (one block of four series at K = 2 in float64) through the forward pass, the
+mixture and BPTT in one thread, its histories in that core's cache; its mixture, which runs along
+time one (run, series) at a time, reads the experts' outputs and writes ∂L/∂o as rows by lane, into
 which the forward and backward stages move each block's tiles across (`simd.transpose_tile`).
 The RNN passes are compiled for the sizes of the networks (`lanes.sizes`: units, inputs and
 outputs as constants, the loops over them unrolled), a kernel per size unless

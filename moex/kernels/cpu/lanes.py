@@ -1,8 +1,10 @@
 """Parameters to lanes and back, and the work arrays of a phase (layout: `moex.kernels.cpu`).
 
-Lane l is entry l % LB of block l // LB (LB = `simd.width` of the run's dtype); network g (an
-expert of a run, or a run's gating RNN) owns lanes g·S .. g·S + S - 1, one per series. Lanes past
-the last network are padding: zero weights, no data.
+Lane l is entry l % LB of block l // LB (LB = `simd.width` of the run's dtype). A run's lanes are
+contiguous, series by series: lane (r·S + s)·K' + k is series s of run r for network k of the K'
+the run has (its K experts in phase 1, its gating RNN in phase 2: lane r·S + s), so that a
+series' K' lanes sit side by side and whole blocks hold whole series. Lanes past the last run are
+padding: zero weights, no data.
 """
 
 import contextlib
@@ -27,9 +29,9 @@ def spread(lane, S, params, u0, net):  # pragma: no cover
     lane_w_in, lane_w_rec, lane_w_out, lane_b_c, lane_b_o, eps, u0_lane = net
     R, KK, LB = w_in.shape[0], w_in.shape[1], width(lane_b_c)
     b, v = lane // LB, lane % LB
-    g, s = lane // S, lane % S
-    r, k = min(g // KK, R - 1), g % KK
-    real = g < R * KK
+    q, k = lane // KK, lane % KK  # q = r·S + s
+    r, s = min(q // S, R - 1), q % S
+    real = q < R * S
     H, NI, NO = w_rec.shape[2], w_in.shape[3], w_out.shape[2]
     for i in range(H):
         lane_b_c[b, i, v] = b_c[r, k, i] if real else 0.0
@@ -46,36 +48,36 @@ def spread(lane, S, params, u0, net):  # pragma: no cover
 
 
 @njit(inline="always", **JIT)
-def lane_sum(x, lo, hi):  # pragma: no cover
-    """Σ over lanes lo..hi-1 of x (NB, LB)."""
+def lane_sum(x, lo, hi, step=1):  # pragma: no cover
+    """Σ over lanes lo, lo + step, .. below hi of x (NB, LB), in that order."""
     total, LB = 0.0, width(x)
-    for lane in range(lo, hi):
+    for lane in range(lo, hi, step):
         total += x[lane // LB, lane % LB]
     return total
 
 
 @njit(inline="always", **JIT)
 def gather(g, S, tau, lane_grads, grads, learn_eps):  # pragma: no cover
-    """Sum the per-lane gradients of network g's S lanes into its parameter gradients
-    (∂/∂τ = -ε² ∂/∂ε); layouts as in `spread`."""
+    """Sum the per-lane gradients of network g's S lanes (series 0..S-1 in turn) into its
+    parameter gradients (∂/∂τ = -ε² ∂/∂ε); layouts as in `spread`."""
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps = lane_grads
     g_w_in, g_w_rec, g_w_out, g_b_c, g_b_o, g_tau = grads
     KK = g_w_in.shape[1]
     r, k = g // KK, g % KK
     H, NI, NO = g_w_rec.shape[2], g_w_in.shape[3], g_w_out.shape[2]
-    lo, hi = g * S, g * S + S
+    lo, hi = r * S * KK + k, (r + 1) * S * KK  # its lanes, every KK-th
     for i in range(H):
-        g_b_c[r, k, i] = lane_sum(l_b_c[:, i], lo, hi)
+        g_b_c[r, k, i] = lane_sum(l_b_c[:, i], lo, hi, KK)
         if learn_eps:
-            g_tau[r, k, i] = -lane_sum(l_eps[:, i], lo, hi) / (tau[r, k, i] * tau[r, k, i])
+            g_tau[r, k, i] = -lane_sum(l_eps[:, i], lo, hi, KK) / (tau[r, k, i] * tau[r, k, i])
         for d in range(NI):
-            g_w_in[r, k, i, d] = lane_sum(l_w_in[:, i, d], lo, hi)
+            g_w_in[r, k, i, d] = lane_sum(l_w_in[:, i, d], lo, hi, KK)
         for j in range(H):
-            g_w_rec[r, k, i, j] = lane_sum(l_w_rec[:, i, j], lo, hi)
+            g_w_rec[r, k, i, j] = lane_sum(l_w_rec[:, i, j], lo, hi, KK)
     for o in range(NO):
-        g_b_o[r, k, o] = lane_sum(l_b_o[:, o], lo, hi)
+        g_b_o[r, k, o] = lane_sum(l_b_o[:, o], lo, hi, KK)
         for i in range(H):
-            g_w_out[r, k, o, i] = lane_sum(l_w_out[:, o, i], lo, hi)
+            g_w_out[r, k, o, i] = lane_sum(l_w_out[:, o, i], lo, hi, KK)
 
 
 @njit(inline="always", **JIT)
@@ -86,9 +88,10 @@ def run_lanes(r, S, T, u0_lane, S1, S2, floor, attraction, want_grad, l_u0,
     (μ - u_0)/max(var, floor) added) and the u_0 gradients copied out to g_u0 (R, S, K', H)."""
     value, LB = 0.0, width(u0_lane)
     KK = g_u0.shape[2]
-    for lane in range(r * KK * S, (r + 1) * KK * S):
+    for n in range(KK * S):  # network by network, series by series
+        k, s = n // S, n % S
+        lane = (r * S + s) * KK + k
         b, v = lane // LB, lane % LB
-        k, s = (lane // S) % KK, lane % S
         for i in range(u0_lane.shape[1]):
             if attraction:
                 mean = S1[b, i, v] / (T + 1)

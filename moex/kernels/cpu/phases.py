@@ -89,7 +89,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     z, ghat, err = rows[q + 2 * K:q + 3 * K], rows[q + 3 * K:q + 4 * K], rows[q + 4 * K:q + 5 * K]
     top, total, sq = rows[q + 5 * K], rows[q + 5 * K + 1], rows[q + 5 * K + 2]
     for k in range(K):
-        lane = (r * K + k) * S + s
+        lane = (r * S + s) * K + k
         for d in range(D):
             column = Y[lane // LB, d, lane % LB]
             for t in range(T):
@@ -169,7 +169,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         return
     resp, term = total, sq
     for k in range(K):
-        lane = (r * K + k) * S + s
+        lane = (r * S + s) * K + k
         var_k = var[r, k]
         for t in range(T):  # exp(z_k - ln p): the posterior responsibility of expert k
             resp[t] = exp(z[k, t] - top[t])
@@ -248,7 +248,7 @@ def _run_sums(r, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_lo
                 * (var[r, k] - floor) / var[r, k]
 
 
-# the stages of a phase-1 step: whole chunks of runs, or blocks / series / blocks / runs
+# the stages of a phase-1 step: whole chunks of series, or blocks / series / blocks / runs
 _CHUNKS, _FORWARD, _MIXTURE, _BACKWARD, _RUNS = range(5)
 
 
@@ -263,11 +263,12 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     in the lanes, ∂L/∂β, the partial sums for ∂/∂ log σ), and a gradient call skips the mixture
     of the runs that are not stale: their lanes hold that trial's, at these very parameters.
 
-    _CHUNKS: chunks of `chunk` runs (whole blocks of lanes), each taken through every stage (a
-    call of this function per stage) in one thread while its histories are in that thread's
-    cache. Otherwise, after `_variances` of
-    every run, in turn: _FORWARD (blocks), _MIXTURE (series r·S + s), _BACKWARD (blocks), _RUNS
-    (runs). The forward stage leaves each block's outputs also by lane (`Y_lane`), where the
+    The stages, after `_variances` of every run: _FORWARD (blocks), _MIXTURE (series r·S + s),
+    _BACKWARD (blocks), _RUNS (runs). _CHUNKS: chunks of `chunk` series (of any runs), the fewest
+    whose lanes fill whole blocks, each taken through the first three stages in one thread while
+    its histories are in that thread's cache (a series' mixture reads only its own K lanes, and
+    a block's backward pass only the ∂L/∂o of its own series); _RUNS follows once every chunk is
+    done. The forward stage leaves each block's outputs also by lane (`Y_lane`), where the
     mixture reads them and writes ∂L/∂o (`DY_lane`), which the backward stage takes back into
     the block's layout by whole tiles of vectors (read along a lane in the block's layout, every
     element was a load of a line of its own: as slow in float32 as in float64)."""
@@ -278,11 +279,10 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     NB, LB = w_in.shape[0], width(X)
     if stage == _CHUNKS:
         for c in range(lo, hi):
-            first, last = c * chunk, min((c + 1) * chunk, R)
-            b0, b1 = first * K * S // LB, min(-(-last * K * S // LB), NB)
-            _variances(first, last, log_sigma, floor, prior_std, var)
-            for stage_of_chunk, i0, i1 in ((_FORWARD, b0, b1), (_MIXTURE, first * S, last * S),
-                                           (_BACKWARD, b0, b1), (_RUNS, first, last)):
+            first, last = c * chunk, min((c + 1) * chunk, R * S)  # series
+            b0, b1 = first * K // LB, min(-(-last * K // LB), NB)
+            for stage_of_chunk, i0, i1 in ((_FORWARD, b0, b1), (_MIXTURE, first, last),
+                                           (_BACKWARD, b0, b1)):
                 _expert_items(i0, i1, stage_of_chunk, params, u0, log_sigma, beta, net, work,
                               lane_grads, grads, g_u0, g_log_sigma, g_beta, X, targets, floor,
                               prior_std, attraction, want_grad, active, stale, reuse, block_runs,
@@ -472,10 +472,10 @@ class ExpertProblem(_Problem):
         self.lanes = Lanes(T, M, D, D, num_lanes=R * K * S, lanes_per_run=K * S, num_runs=R,
                            learn_tau=model.learn_time_constants, attraction=phase.attraction,
                            dtype=dtype)
-        # lane (r·K + k)·S + s reads series s of run r
+        # lane (r·S + s)·K + k reads series s of run r
         x = np.broadcast_to(inputs, (R, S, T, D)).transpose(2, 3, 0, 1)
-        self.inputs = in_lanes(np.broadcast_to(x[:, :, :, None], (T, D, R, K, S)).reshape(
-            T, D, R * K * S))
+        self.inputs = in_lanes(np.broadcast_to(x[:, :, :, :, None], (T, D, R, S, K)).reshape(
+            T, D, R * S * K))
         self.targets = np.ascontiguousarray(targets.reshape(-1, S, T, D))
         LB, NB = self.lanes.width, self.lanes.num_lanes // self.lanes.width
         # then the partial sums, σ², and the outputs y and ∂L/∂o by lane for the mixture: rows
@@ -483,7 +483,7 @@ class ExpertProblem(_Problem):
         by_lane = (NB, D, LB, -(-T // LB) * LB)
         self.lanes.work += [np.zeros((R * S, 3 + K), dtype), np.zeros((R, K + 1), dtype),
                             zeros(by_lane, dtype), zeros(by_lane, dtype)]
-        self.chunk = LB // math.gcd(K * S, LB)  # the fewest runs whose lanes fill whole blocks
+        self.chunk = LB // math.gcd(K, LB)  # the fewest series whose lanes fill whole blocks
         self.staging = Staging({
             "w_in": (R, K, M, D), "w_rec": (R, K, M, M), "w_out": (R, K, D, M), "b_c": (R, K, M),
             "b_o": (R, K, D), "tau": (R, K, M), "log_sigma": (R, K), "u0": (R, S, K, M),
@@ -495,24 +495,14 @@ class ExpertProblem(_Problem):
         self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
 
     def evaluate(self, args: tuple) -> None:
-        """One phase-1 step of every active run (`kernel_args`): whole chunks of runs, as many
-        per thread (`_expert_items`), and the chunks left over (fewer than threads) stage by
-        stage over their blocks, series and runs, shared out among the threads as well."""
+        """One phase-1 step of every active run (`kernel_args`): σ² of every run, the chunks of
+        series shared out among the threads (`_expert_items`), then every run's sums (one
+        thread is enough)."""
         R, S, T, K = self.shape
-        chunks = -(-R // self.chunk)
-        whole = chunks - chunks % threads.count()
-        threads.over(_expert_items, whole, _CHUNKS, *args)
-        first = min(whole * self.chunk, R)  # the runs left over
-        if first == R:
-            return
-        lanes = self.lanes  # (`kernel_args`' order: log σ, the floor σ_min², prior std, want_grad)
-        log_sigma, floor, prior_std, want_grad = args[2], *args[13:15], args[16]
-        _variances(first, R, log_sigma, floor, prior_std, lanes.work[8])
-        blocks = range(first * K * S // lanes.width, lanes.net[0].shape[0])
-        for stage, items in ((_FORWARD, blocks), (_MIXTURE, range(first * S, R * S)),
-                             (_BACKWARD, blocks if want_grad else range(0))):
-            threads.over(_expert_items, items, stage, *args)
-        _expert_items(first, R, _RUNS, *args)  # a few runs: less work than handing it to a thread
+        log_sigma, floor, prior_std = args[2], *args[13:15]  # (`kernel_args`' order)
+        _variances(0, R, log_sigma, floor, prior_std, self.lanes.work[8])
+        threads.over(_expert_items, -(-R * S // self.chunk), _CHUNKS, *args)
+        _expert_items(0, R, _RUNS, *args)
 
     def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
         """`_expert_items`' arguments after its stage (`reuse`: the stepper's, see there)."""

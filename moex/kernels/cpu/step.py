@@ -23,7 +23,7 @@ A gradient step right after an accepted adaptive trial is at the trial's point: 
 trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
 1's mixture is a quarter of a step) and runs only BPTT and the sums.
 
-On more than one thread the evaluation's chunks of runs or blocks are shared out as in the
+On more than one thread the evaluation's chunks of series or blocks are shared out as in the
 separate calls (`threads.over`), and so are the update's runs, with the staging copies of their
 rows, where the (R, P) buffers hold at least `SPLIT` entries (phase 1's β at R = 30: nothing of
 their size is left to one thread); smaller updates are one call, cheaper than a handoff.

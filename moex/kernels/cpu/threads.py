@@ -1,5 +1,5 @@
 """The kernels' threads: every compiled kernel is a serial `nogil` function over a range of
-independent items (blocks of lanes, runs, chunks of runs), and `over` runs one call per thread on
+independent items (blocks of lanes, runs, chunks of series), and `over` runs one call per thread on
 contiguous ranges, the calling thread taking the first.
 
 Why not numba's `prange`: each `prange` loop compiles into a function of its own that links and
