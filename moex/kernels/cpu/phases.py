@@ -69,14 +69,16 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
     (Eq. 13) and the E error; with want_grad ∂/∂o of every expert output and ∂/∂β (Eq. 19).
     partial[r·S + s] gets (ln p, ln φ(β), Σ‖ŷ - y‖², then per expert ∂ ln p/∂s of
     σ² = e^{2s} + σ̄² without its factor (σ² - σ̄²)/σ²). The expert outputs y are read from,
-    and ∂/∂o written to, rows by lane (Y, DY: (NB, D, LB, T'), `_by_lane` / `_by_step`); the
-    targets and β (strided) go through 1-D views of their column (one stride per step: 4-D
-    indexing made each element's address anew, the mixture 4-19 % slower). Inputs are copied
+    and ∂/∂o written to, rows by lane (Y, DY: (NB, D, LB, T'), `_by_lane` / `_by_step`); β and
+    ∂/∂β are (rows, first column) pairs (`rows_of`), each run's (S, T, K) from that column on;
+    the targets and β go through 1-D views of their column (one stride per step: 4-D indexing
+    made each element's address anew, the mixture 4-19 % slower). Inputs are copied
     to contiguous rows of the run's precision first (float32 runs compute here in float32);
     every loop runs over time, innermost, element by element (LLVM vectorises them, exp and log
     included), and sums over time are `_total`'s, in float64."""
     S, T, D = targets.shape[1:]
-    K, LB = beta.shape[3], width(Y)
+    K, LB = var.shape[1] - 1, width(Y)
+    (beta, at), (g_beta, g_at) = beta, g_beta
     half, one, two, dims = typed(Y, 0.5), typed(Y, 1.0), typed(Y, 2.0), typed(Y, D)
     prior_std = var[r, K]
     # every row of time steps (≥ T + 1 long) in one allocation, each starting on a cache line:
@@ -100,7 +102,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
         for t in range(T):
             target[d, t] = column[t]
     for k in range(K):
-        column = beta[r, s, :, k]
+        column = beta[r, at + s * T * K + k:at + (s + 1) * T * K:K]
         for t in range(T):
             b[k, t] = column[t]
     for k in range(K):
@@ -175,7 +177,7 @@ def _mixture(r, s, Y, targets, beta, var, want_grad, DY, g_beta, partial):  # pr
             resp[t] = exp(z[k, t] - top[t])
             term[t] = resp[t] * (err[k, t] / var_k - dims)
         partial[r * S + s, 3 + k] = _total(term, T)
-        column = g_beta[r, s, :, k]
+        column = g_beta[r, g_at + s * T * K + k:g_at + (s + 1) * T * K:K]
         for t in range(T):  # with G_n / ς² of Eq. 19 (b[k, T] repeats β_{T-1})
             column[t] = resp[t] - ghat[k, t] + inv * (
                 b[k, t + 1] - two * b[k, t] + b[k, max(t - 1, 0)])
@@ -275,7 +277,7 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     C0, C, Y, U, S1, S2, DY, partial, var, Y_lane, DY_lane = work
     w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
-    R, S, T, K = beta.shape
+    (R, K), S, T = log_sigma.shape, targets.shape[1], targets.shape[2]
     NB, LB = w_in.shape[0], width(X)
     if stage == _CHUNKS:
         for c in range(lo, hi):
@@ -314,6 +316,13 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
         elif active[i]:
             _run_sums(i, S, T, targets, net, work, lane_grads, params, grads, g_u0, g_log_sigma,
                       floor, attraction, want_grad, out)
+
+
+def rows_of(x) -> tuple:
+    """A group's values for the kernels as (rows, first column): a (rows, first) pair as it is
+    (the stepper's: the (R, P) buffer and the group's first column), or an (R, ...)
+    C-contiguous array as its (R, -1) view and column 0."""
+    return x if isinstance(x, tuple) else (x.reshape(len(x), -1), 0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -409,6 +418,10 @@ class _Problem:
     # (phase 1's mixture: β, log σ); with them in the stepper's record a gradient step reuses an
     # accepted trial's objective and its ∂/∂o too (the kernels' `reuse`)
     AFTER_FORWARD: tuple[str, ...] = ()
+    # the groups the kernel takes as (rows, first column) pairs (`rows_of`): the stepper hands
+    # it the training loop's (R, P) buffers themselves, where the groups' views are strided
+    # (R > 1) and would be staged (phase 1's β: a copy in and out of 20 000 numbers per run)
+    ROWS: tuple[str, ...] = ()
     trials = 1  # adaptive-rate candidates per call: one (an accepted trial's pass is reused)
 
     def _call(self, params, grads, active, want_grad):
@@ -462,6 +475,7 @@ class ExpertProblem(_Problem):
     STATS = ("objective", "log_likelihood", "log_prior", "E")
     KERNEL = (_expert_items, "phase-1 kernel")
     AFTER_FORWARD = ("beta", "log_sigma")
+    ROWS = ("beta",)
 
     def __init__(self, inputs, targets, model, phase, *, num_runs, device="cpu"):
         inputs, targets = to_host(inputs), to_host(targets)
@@ -507,9 +521,9 @@ class ExpertProblem(_Problem):
     def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
         """`_expert_items`' arguments after its stage (`reuse`: the stepper's, see there)."""
         lanes = self.lanes
-        return (per_network(p, True), p["u0"], p["log_sigma"], p["beta"], lanes.net,
+        return (per_network(p, True), p["u0"], p["log_sigma"], rows_of(p["beta"]), lanes.net,
                 tuple(lanes.work), lanes.lane_grads, per_network(g, True), g["u0"],
-                g["log_sigma"], g["beta"], self.inputs, self.targets,
+                g["log_sigma"], rows_of(g["beta"]), self.inputs, self.targets,
                 float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std),
                 bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
                 lanes.block_runs, self.chunk, lanes.out, lanes.sizes)

@@ -2,22 +2,23 @@
 momentum step Δθ (Eqs. 17-18), the adaptive rate's trials at θ + Δθ and their judgement
 (Sec. 2.1.4), and the step taken.
 
-The training loop (`moex.train._ascend`) otherwise makes each of those a backend call that
-converts its tensors, stages the parameters, checks the lanes' record of their forward pass and
-wraps the statistics: 160-390 µs of Python per step at R = 1, 6-11 % of an epoch. A `Stepper`
-binds every array once (the parameters' views of the flat (R, P) buffers where the kernels can
-read them as they are, at R = 1 all of them) and makes a step of a few compiled calls with
+The training loop (`moex.train._ascend`) otherwise makes each of those a backend call that converts
+its tensors, stages the parameters, checks the lanes' record of their forward pass and wraps the
+statistics: 160-390 µs of Python per step at R = 1, 6-11 % of an epoch. A `Stepper` binds every
+array once (the parameters' views of the flat (R, P) buffers where the kernels can read them as
+they are, at R = 1 all of them, and the buffers themselves for the groups the kernel takes as rows:
+phase 1's β, read and written in place at any R) and makes a step of a few compiled calls with
 nothing between them but the calls: the phase kernel per evaluation (`evaluate`) and the update
 functions around it (`update.before_gradient`: the runs to compute and the lanes' record of their
 forward pass; `after_gradient`: Δθ and the first trial's point θ + Δθ; `after_trial`: the trial
 judged and the next trial's point; `after_trials`: the step taken), on whole rows of the flat
 buffer. Those run without fast-math flags: inside the fast-math phase kernel LLVM may drop their
-NaN and infinity checks, which decide whether a run failed. The statistics stay in an array
-until the loop reads them (`statistics`, where it logs). Each NumPy or PyTorch operation between
-the calls had cost 5-60 µs there (line_profiler), 10-50 times its time in a loop of its own
-(timeit): after a kernel that has filled the caches with its lanes, the interpreter's code and
-data come back from memory (the likely cause; not measured with counters on this VM).
-Host time per step at R = 1 is now 30-70 µs (`benchmarks/bench_host.py`: 2.5-3.2 % of an epoch).
+NaN and infinity checks, which decide whether a run failed. The statistics stay in an array until
+the loop reads them (`statistics`, where it logs). Each NumPy or PyTorch operation between the
+calls had cost 5-60 µs there (line_profiler), 10-50 times its time in a loop of its own (timeit):
+after a kernel that has filled the caches with its lanes, the interpreter's code and data come back
+from memory (the likely cause; not measured with counters on this VM). Host time per step at R = 1
+is now 30-70 µs (`benchmarks/bench_host.py`: 2.5-3.2 % of an epoch).
 
 A gradient step right after an accepted adaptive trial is at the trial's point: it takes the
 trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
@@ -71,17 +72,20 @@ class Stepper:
             return {k: flat[:, a:b].reshape(shapes[k]) for k, (a, b) in columns.items()}
 
         fixed = {k: to_host(v) for k, v in fixed.items()}
-        # the arrays the kernel reads (views of the buffers where it can take them as they are)
-        # and the copies each evaluation needs into the others
+        # the arrays the kernel reads (views of the buffers where it can take them as they are,
+        # the buffers themselves for the groups it takes as rows) and the copies each
+        # evaluation needs into the others
+        rows = [k for k in problem.ROWS if k in columns]
         staged, copies = [], []  # at θ (the gradient), at θ + Δθ (a trial)
         for flat in (theta, scratch):
-            source = {**views(flat), **fixed}
-            staged.append(problem.staging.load(source))
+            source = {k: v for k, v in {**views(flat), **fixed}.items() if k not in rows}
+            staged.append({**problem.staging.load(source),
+                           **{k: (flat, columns[k][0]) for k in rows}})
             copies.append([(source[k], staged[-1][k]) for k in columns
-                           if not np.shares_memory(staged[-1][k], flat)])
-        grads = views(grad)
-        written = problem.staging.outputs(grads)
-        copy_out = [(written[k], grads[k]) for k in columns if written[k] is not grads[k]]
+                           if k not in rows and not np.shares_memory(staged[-1][k], flat)])
+        grads = {k: v for k, v in views(grad).items() if k not in rows}
+        written = {**problem.staging.outputs(grads), **{k: (grad, columns[k][0]) for k in rows}}
+        copy_out = [(written[k], grads[k]) for k in grads if written[k] is not grads[k]]
         active, stale, pending = np.zeros((3, R), bool)
         forwarded = problem.forwarded
         # with the record, a gradient step after an accepted trial reuses the trial's forward
@@ -133,7 +137,9 @@ class Stepper:
         """One training step of every run; its statistics at θ in `statistics()` until the
         next."""
         over = self.over
-        over(*self.before)
+        # (the record's comparison, where a lane holds a forward pass, outlasts a handoff; the
+        # rest of `before_gradient` is two flags per run)
+        (over if self.current.any() else _one_thread)(*self.before)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
         over(*self.after)
