@@ -26,8 +26,9 @@ trial's forward pass, objective and ∂/∂o from the lanes (the trial computes 
 
 On more than one thread the evaluation's chunks of series or blocks are shared out as in the
 separate calls (`threads.over`), and so are the update's runs, with the staging copies of their
-rows, where the (R, P) buffers hold at least `SPLIT` entries (phase 1's β at R = 30: nothing of
-their size is left to one thread); smaller updates are one call, cheaper than a handoff.
+rows, where the (R, P) buffers (or the copies) hold at least `SPLIT` entries (phase 1's buffers at
+R = 30: nothing of their size is left to one thread); smaller ones are one call, cheaper than a
+handoff.
 
 A step gives the bits of the separate calls, on any number of threads: the same compiled
 functions on the same numbers in the same order (tests/test_step.py trains both ways).
@@ -96,8 +97,10 @@ class Stepper:
         # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
         # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs)
         self.evaluations = {
-            True: (copies[0], kernel_args(staged[0], written, True, active, stale)),
-            False: (copies[1], kernel_args(staged[1], written, False, pending, pending))}
+            True: (copies[0], _split(copies[0]), kernel_args(staged[0], written, True, active,
+                                                               stale)),
+            False: (copies[1], _split(copies[1]), kernel_args(staged[1], written, False, pending,
+                                                                pending))}
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
@@ -128,9 +131,9 @@ class Stepper:
         self.runs = R
 
     def _evaluate(self, want_grad: bool) -> None:
-        copies, args = self.evaluations[want_grad]
+        copies, over, args = self.evaluations[want_grad]
         if copies:  # (the point itself written by the update before: θ, or θ + Δθ)
-            self.over(_rows, self.runs, copies)
+            over(_rows, self.runs, copies)
         self.problem.evaluate(args)
 
     def __call__(self) -> None:
@@ -161,6 +164,11 @@ class Stepper:
 
 SPLIT = 1 << 16  # entries of the (R, P) buffers from which the update's stages go to the threads:
 # a handoff costs 40-50 µs, a pass over 2^16 entries ~30-60 µs (phase 1 at R = 30: 6 · 10^5)
+
+
+def _split(copies: list):
+    """How to make the staging `copies`: over the threads where they hold `SPLIT` entries."""
+    return threads.over if sum(x.size for x, _ in copies) >= SPLIT else _one_thread
 
 
 def _one_thread(kernel, items: int, *args) -> None:
