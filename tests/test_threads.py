@@ -1,10 +1,12 @@
 """The kernels' thread pool (`moex.kernels.cpu.threads.over`): contiguous ranges that cover every
-item once, the calling thread taking the first; errors reach the caller after every thread ends."""
+item once, the calling thread taking the first; errors reach the caller after every thread ends.
+`share`: every thread claims items from one counter, each item taken exactly once."""
 
 import threading
 import time
 
 import numba
+import numpy as np
 import pytest
 
 from moex.kernels.cpu import threads
@@ -61,3 +63,29 @@ def test_the_count_follows_numbas_setting(two_threads):
     assert threads.count() == 1
     numba.set_num_threads(2)
     assert threads.count() == 2
+
+
+@numba.njit(nogil=True)
+def _claiming(lo, hi, queue, taken, spin):
+    """Claims items until none is left, counting each item's takings, with `spin` iterations of
+    work per item (so that both threads are inside at once)."""
+    item = lo + threads.claim(queue)
+    while item < hi:
+        x = 0.0
+        for k in range(spin):
+            x += k * 1e-9
+        taken[item] += 1 if x >= 0 else 2
+        item = lo + threads.claim(queue)
+
+
+@pytest.mark.parametrize("items", [1, 2, 7, 75, 1000])
+def test_shared_items_are_each_taken_exactly_once(two_threads, items):
+    """On two threads and on one, again with the counter left as the last call left it (`share`
+    resets it): every item taken once, none past the end."""
+    queue = np.zeros(1, np.int64)
+    for count in (2, 1, 2):
+        numba.set_num_threads(count)
+        taken = np.zeros(items + 1, np.int64)
+        threads.share(_claiming, items, queue, queue, taken, 20_000)
+        assert (taken[:items] == 1).all() and taken[items] == 0
+        assert queue[0] >= items  # (each thread's last claim went past the end)

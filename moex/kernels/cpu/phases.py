@@ -39,6 +39,7 @@ from moex.kernels.cpu.simd import (
     zeros,
 )
 from moex.kernels.cpu.step import Stepper
+from moex.kernels.cpu.threads import claim
 from moex.kernels.noise import input_noise
 
 # phase 1: the experts and β (Eqs. 9-13)
@@ -257,7 +258,7 @@ _CHUNKS, _FORWARD, _MIXTURE, _BACKWARD, _RUNS = range(5)
 @njit(nogil=True, **JIT)
 def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_grads, grads,
                   g_u0, g_log_sigma, g_beta, X, targets, floor, prior_std, attraction, want_grad,
-                  active, stale, reuse, block_runs, chunk, out, sizes):  # pragma: no cover
+                  active, stale, reuse, block_runs, chunk, out, sizes, queue):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent);
     the forward pass only in blocks that hold a `stale` run (`Forwarded`). With `reuse` (the
     stepper's record of the lanes covers every parameter the mixture reads, β and log σ too) a
@@ -268,7 +269,8 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     The stages, after `_variances` of every run: _FORWARD (blocks), _MIXTURE (series r·S + s),
     _BACKWARD (blocks), _RUNS (runs). _CHUNKS: chunks of `chunk` series (of any runs), the fewest
     whose lanes fill whole blocks, each taken through the first three stages in one thread while
-    its histories are in that thread's cache (a series' mixture reads only its own K lanes, and
+    its histories are in that thread's cache, the threads claiming chunks lo.. below hi one at a
+    time from `queue` (`threads.share`) (a series' mixture reads only its own K lanes, and
     a block's backward pass only the ∂L/∂o of its own series); _RUNS follows once every chunk is
     done. The forward stage leaves each block's outputs also by lane (`Y_lane`), where the
     mixture reads them and writes ∂L/∂o (`DY_lane`), which the backward stage takes back into
@@ -280,7 +282,8 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     (R, K), S, T = log_sigma.shape, targets.shape[1], targets.shape[2]
     NB, LB = w_in.shape[0], width(X)
     if stage == _CHUNKS:
-        for c in range(lo, hi):
+        c = lo + claim(queue)
+        while c < hi:
             first, last = c * chunk, min((c + 1) * chunk, R * S)  # series
             b0, b1 = first * K // LB, min(-(-last * K // LB), NB)
             for stage_of_chunk, i0, i1 in ((_FORWARD, b0, b1), (_MIXTURE, first, last),
@@ -288,7 +291,8 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                 _expert_items(i0, i1, stage_of_chunk, params, u0, log_sigma, beta, net, work,
                               lane_grads, grads, g_u0, g_log_sigma, g_beta, X, targets, floor,
                               prior_std, attraction, want_grad, active, stale, reuse, block_runs,
-                              chunk, out, sizes)
+                              chunk, out, sizes, queue)
+            c = lo + claim(queue)
         return
     for i in range(lo, hi):
         if stage == _FORWARD:
@@ -368,10 +372,10 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
 @njit(nogil=True, **JIT)
 def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
                  entropy, sigma_min, attraction, want_grad, active, stale, reuse, block_runs,
-                 out, sizes):  # pragma: no cover
+                 out, sizes, queue):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-2 step: with `blocks`, blocks of lanes (weights
-    spread to the lanes, forward where a `stale` run is (`Forwarded`), objective, backward);
-    otherwise runs, after every block
+    spread to the lanes, forward where a `stale` run is (`Forwarded`), objective, backward),
+    claimed one at a time from `queue` (`threads.share`); otherwise runs, after every block
     (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes). With `reuse`
     (the stepper's) a call without gradients (an adaptive trial) computes ∂/∂o as well, and a
     gradient call skips the objective where it skips the forward pass (as `_expert_items`)."""
@@ -380,7 +384,8 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
     S, LB = u0.shape[1], width(X)
     T, K = targets.shape[1], targets.shape[2]
-    for i in range(lo, hi):
+    i = lo + claim(queue) if blocks else lo
+    while i < hi:
         if blocks:
             for lane in range(i * LB, (i + 1) * LB):
                 spread(lane, S, params, u0, net)
@@ -405,6 +410,7 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
                                           attraction, want_grad, l_u0, g_u0)
             if want_grad:
                 gather(i, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
+        i = lo + claim(queue) if blocks else i + 1
 
 
 class _Problem:
@@ -504,18 +510,19 @@ class ExpertProblem(_Problem):
             "beta": (R, S, T, K)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",), LB)
         self._stepper_record = np.zeros(0, bool)
+        self.queue = np.zeros(1, np.int64)  # the threads' next chunk (`threads.share`)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
 
     def evaluate(self, args: tuple) -> None:
         """One phase-1 step of every active run (`kernel_args`): σ² of every run, the chunks of
-        series shared out among the threads (`_expert_items`), then every run's sums (one
-        thread is enough)."""
+        series taken by the threads one at a time (`_expert_items`, `threads.share`), then every
+        run's sums (one thread is enough)."""
         R, S, T, K = self.shape
         log_sigma, floor, prior_std = args[2], *args[13:15]  # (`kernel_args`' order)
         _variances(0, R, log_sigma, floor, prior_std, self.lanes.work[8])
-        threads.over(_expert_items, -(-R * S // self.chunk), _CHUNKS, *args)
+        threads.share(_expert_items, -(-R * S // self.chunk), self.queue, _CHUNKS, *args)
         _expert_items(0, R, _RUNS, *args)
 
     def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
@@ -526,7 +533,7 @@ class ExpertProblem(_Problem):
                 g["log_sigma"], rows_of(g["beta"]), self.inputs, self.targets,
                 float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std),
                 bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
-                lanes.block_runs, self.chunk, lanes.out, lanes.sizes)
+                lanes.block_runs, self.chunk, lanes.out, lanes.sizes, self.queue)
 
     def resample(self, step: int) -> None:
         pass
@@ -574,14 +581,15 @@ class GatingProblem(_Problem):
             "b_o": (R, K), "tau": (R, H), "u0": (R, S, H)}, dtype)
         self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",), LB)
         self._stepper_record = np.zeros(0, bool)
+        self.queue = np.zeros(1, np.int64)  # the threads' next block (`threads.share`)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
 
     def evaluate(self, args: tuple) -> None:
-        """One phase-2 step of every active run (`kernel_args`): its blocks shared out among
-        the threads, then every run's sums (one thread is enough)."""
-        threads.over(gating_items, self.lanes.net[0].shape[0], True, *args)
+        """One phase-2 step of every active run (`kernel_args`): its blocks taken by the threads
+        one at a time (`threads.share`), then every run's sums (one thread is enough)."""
+        threads.share(gating_items, self.lanes.net[0].shape[0], self.queue, True, *args)
         gating_items(0, self.shape[0], False, *args)
 
     def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
@@ -591,7 +599,7 @@ class GatingProblem(_Problem):
                 lanes.lane_grads, per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),
                 bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
-                lanes.block_runs, lanes.out, lanes.sizes)
+                lanes.block_runs, lanes.out, lanes.sizes, self.queue)
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""

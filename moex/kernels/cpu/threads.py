@@ -1,6 +1,9 @@
 """The kernels' threads: every compiled kernel is a serial `nogil` function over a range of
 independent items (blocks of lanes, runs, chunks of series), and `over` runs one call per thread on
-contiguous ranges, the calling thread taking the first.
+contiguous ranges, the calling thread taking the first; `share` runs one call per thread on all of
+them, each thread taking the next item from a counter it adds to atomically (`claim`) until none
+is left: a training step's main call, whose many items (a block of lanes each) balance out a
+thread held up (1.02-1.08x over equal halves at 30 networks, BENCHMARKS.md).
 
 Why not numba's `prange`: each `prange` loop compiles into a function of its own that links and
 re-optimises everything it calls, and the function around it does so again; the phase-1 kernel's
@@ -17,8 +20,10 @@ at half speed beside them; BENCHMARKS.md's history).
 import logging
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
 import torch
-from numba import get_num_threads
+from numba import get_num_threads, types
+from numba.extending import intrinsic
 from numba.np.ufunc import parallel
 
 logger = logging.getLogger("moex.kernels.cpu")
@@ -44,23 +49,56 @@ def count() -> int:
 def over(kernel, items: int | range, *args) -> None:
     """kernel(lo, hi, *args) for contiguous ranges that cover 0..items-1 (or the range `items`),
     one per thread."""
-    global _pool, _workers
     first, items = (items.start, len(items)) if isinstance(items, range) else (0, items)
     threads = min(count(), items)
     if threads <= 1:
         if items > 0:
             kernel(first, first + items, *args)
         return
+    bounds = [first + items * t // threads for t in range(threads + 1)]
+    _run(kernel, [(bounds[t], bounds[t + 1]) for t in range(threads)], args)
+
+
+def share(kernel, items: int, queue: np.ndarray, *args) -> None:
+    """kernel(0, items, *args) on every thread at once, the threads taking the items one at a
+    time from `queue` (`claim`; reset here), which `args` hand the kernel: a thread held up
+    (this VM's vCPUs stall for milliseconds now and then) takes fewer, instead of the others
+    waiting for its equal share. Which thread computes an item changes no bit."""
+    queue[0] = 0
+    threads = min(count(), items)
+    if threads <= 1:
+        if items > 0:
+            kernel(0, items, *args)
+        return
+    _run(kernel, [(0, items)] * threads, args)
+
+
+@intrinsic
+def claim(typingctx, queue):
+    """The next item of a `share` call: queue[0] before adding 1 to it, atomically (queue: a
+    C-contiguous int64 array)."""
+    def codegen(context, builder, signature, arguments):
+        array = context.make_array(signature.args[0])(context, builder, arguments[0])
+        one = context.get_constant(types.int64, 1)
+        return builder.atomic_rmw("add", array.data, one, "monotonic")
+
+    return types.int64(queue), codegen
+
+
+def _run(kernel, ranges: list, args: tuple) -> None:
+    """kernel(lo, hi, *args) for each (lo, hi) of `ranges`, one per thread, the calling thread
+    taking the first."""
+    global _pool, _workers
+    threads = len(ranges)
     if _workers < threads - 1:
         _pool, _workers = ThreadPoolExecutor(threads - 1, "moex-kernel"), threads - 1
         if torch.get_num_threads() > 1:
             torch.set_num_threads(1)
             logger.info("PyTorch's intra-op threads set to 1: the compiled kernels' %d threads "
                         "use the cores", threads)
-    bounds = [first + items * t // threads for t in range(threads + 1)]
-    futures = [_pool.submit(kernel, bounds[t], bounds[t + 1], *args) for t in range(1, threads)]
+    futures = [_pool.submit(kernel, *ranges[t], *args) for t in range(1, threads)]
     try:
-        kernel(bounds[0], bounds[1], *args)
+        kernel(*ranges[0], *args)
     finally:  # never return (or raise) while another thread still writes the arrays
         for future in futures:
             future.exception()
