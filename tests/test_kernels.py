@@ -144,10 +144,10 @@ def test_inactive_runs_are_skipped_and_others_unchanged(backend):
 @pytest.mark.parametrize("R", [3, 9, 17])
 def test_cpu_kernels_give_the_same_bits_on_any_number_of_threads(R):
     """Both phases (value and every gradient) and the closed loop with a tangent give the same
-    bits on 1 and 2 threads. With K·S = 9 lanes a chunk is 8 runs: R = 3 compares the
-    whole-chunk path (1 thread) with the stage-by-stage path (2 threads), R = 9 the whole-chunk
-    path on 1 and 2 threads, R = 17 (3 chunks) one chunk per thread and the last chunk stage by
-    stage on 2 threads."""
+    bits on 1 and 2 threads. With K = 3 experts a phase-1 chunk is 8 series (three blocks of 8
+    lanes) of whichever runs: R = 3 (9 series of 3) makes 2 chunks, the second a single series,
+    R = 9 makes 4 and R = 17 makes 7, most of them holding series of two runs; on 2 threads the
+    threads claim them in an order that varies from call to call."""
     _, fast = _problems(R, 3, 11, 3, 2, 4, 1, True, True, torch.float64)
     model = ModelConfig(num_experts=3)
     gens = generators(range(R))
