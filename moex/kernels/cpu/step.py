@@ -97,10 +97,10 @@ class Stepper:
         # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
         # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs)
         self.evaluations = {
-            True: (copies[0], _split(copies[0]), kernel_args(staged[0], written, True, active,
-                                                               stale)),
-            False: (copies[1], _split(copies[1]), kernel_args(staged[1], written, False, pending,
-                                                                pending))}
+            True: (copies[0], _split(_entries(copies[0])), kernel_args(staged[0], written, True,
+                                                                         active, stale)),
+            False: (copies[1], _split(_entries(copies[1])), kernel_args(staged[1], written, False,
+                                                                          pending, pending))}
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
@@ -127,7 +127,7 @@ class Stepper:
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
-        self.over = threads.over if theta.size >= SPLIT else _one_thread
+        self.over = _split(theta.size)
         self.runs = R
 
     def _evaluate(self, want_grad: bool) -> None:
@@ -166,9 +166,14 @@ SPLIT = 1 << 16  # entries of the (R, P) buffers from which the update's stages 
 # a handoff costs 40-50 µs, a pass over 2^16 entries ~30-60 µs (phase 1 at R = 30: 6 · 10^5)
 
 
-def _split(copies: list):
-    """How to make the staging `copies`: over the threads where they hold `SPLIT` entries."""
-    return threads.over if sum(x.size for x, _ in copies) >= SPLIT else _one_thread
+def _split(entries: int):
+    """How to run a stage that passes over `entries` numbers: over the threads from `SPLIT` on,
+    else on the calling thread."""
+    return threads.over if entries >= SPLIT else _one_thread
+
+
+def _entries(copies: list) -> int:
+    return sum(source.size for source, _ in copies)
 
 
 def _one_thread(kernel, items: int, *args) -> None:

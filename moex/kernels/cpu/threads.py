@@ -19,6 +19,7 @@ at half speed beside them; BENCHMARKS.md's history).
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
 
 import numpy as np
 import torch
@@ -51,12 +52,8 @@ def over(kernel, items: int | range, *args) -> None:
     one per thread."""
     first, items = (items.start, len(items)) if isinstance(items, range) else (0, items)
     threads = min(count(), items)
-    if threads <= 1:
-        if items > 0:
-            kernel(first, first + items, *args)
-        return
-    bounds = [first + items * t // threads for t in range(threads + 1)]
-    _run(kernel, [(bounds[t], bounds[t + 1]) for t in range(threads)], args)
+    bounds = [first + items * t // threads for t in range(threads + 1)] if threads else []
+    _run(kernel, list(pairwise(bounds)), args)
 
 
 def share(kernel, items: int, queue: np.ndarray, *args) -> None:
@@ -65,12 +62,7 @@ def share(kernel, items: int, queue: np.ndarray, *args) -> None:
     (this VM's vCPUs stall for milliseconds now and then) takes fewer, instead of the others
     waiting for its equal share. Which thread computes an item changes no bit."""
     queue[0] = 0
-    threads = min(count(), items)
-    if threads <= 1:
-        if items > 0:
-            kernel(0, items, *args)
-        return
-    _run(kernel, [(0, items)] * threads, args)
+    _run(kernel, [(0, items)] * min(count(), items), args)
 
 
 @intrinsic
@@ -87,9 +79,13 @@ def claim(typingctx, queue):
 
 def _run(kernel, ranges: list, args: tuple) -> None:
     """kernel(lo, hi, *args) for each (lo, hi) of `ranges`, one per thread, the calling thread
-    taking the first."""
+    taking the first (alone, without the pool, where there is one)."""
     global _pool, _workers
     threads = len(ranges)
+    if threads <= 1:
+        for lo, hi in ranges:
+            kernel(lo, hi, *args)
+        return
     if _workers < threads - 1:
         _pool, _workers = ThreadPoolExecutor(threads - 1, "moex-kernel"), threads - 1
         if torch.get_num_threads() > 1:
