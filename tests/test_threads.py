@@ -1,9 +1,12 @@
 """The kernels' thread pool (`moex.kernels.cpu.threads.over`): contiguous ranges that cover every
 item once, the calling thread taking the first; errors reach the caller after every thread ends.
-`share`: every thread claims items from one counter, each item taken exactly once."""
+`share`: every thread claims items from one counter, each item taken exactly once. The pool:
+none of its threads carried into a forked child, two callers at once each served whole."""
 
+import os
 import threading
 import time
+import warnings
 
 import numba
 import numpy as np
@@ -89,3 +92,50 @@ def test_shared_items_are_each_taken_exactly_once(two_threads, items):
         threads.share(_claiming, items, queue, queue, taken, 20_000)
         assert (taken[:items] == 1).all() and taken[items] == 0
         assert queue[0] >= items  # (each thread's last claim went past the end)
+
+
+def _cover(items: int) -> list[int]:
+    """Every item `over` hands out on the threads, sorted."""
+    calls = []
+    threads.over(lambda lo, hi: calls.append((lo, hi)), items)
+    return sorted(i for lo, hi in calls for i in range(lo, hi))
+
+
+def test_a_forked_child_starts_a_pool_of_its_own(two_threads):
+    """A child of fork() has none of the parent's threads: its first call on two threads must
+    not wait on one (it would hang)."""
+    assert _cover(4) == list(range(4))  # (the parent's pool running)
+    with warnings.catch_warnings():  # (Python 3.12 warns of a fork beside threads)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:  # pragma: no cover (the child)
+        os._exit(0 if _cover(4) == list(range(4)) else 1)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            assert os.waitstatus_to_exitcode(status) == 0
+            return
+        time.sleep(0.05)
+    os.kill(pid, 9)
+    os.waitpid(pid, 0)
+    pytest.fail("the forked child's call on two threads never returned")
+
+
+def test_two_callers_at_once_each_get_every_item(two_threads):
+    results, errors = {}, []
+
+    def caller(name: str, items: int) -> None:
+        try:
+            for _ in range(200):
+                results[name] = _cover(items)
+                assert results[name] == list(range(items))
+        except BaseException as error:  # noqa: BLE001
+            errors.append(error)
+
+    callers = [threading.Thread(target=caller, args=(n, k)) for n, k in (("a", 5), ("b", 8))]
+    for t in callers:
+        t.start()
+    for t in callers:
+        t.join(60)
+    assert not errors and results == {"a": list(range(5)), "b": list(range(8))}

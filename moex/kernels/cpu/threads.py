@@ -18,6 +18,7 @@ at half speed beside them; BENCHMARKS.md's history).
 """
 
 import logging
+import os
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
 
@@ -31,6 +32,16 @@ logger = logging.getLogger("moex.kernels.cpu")
 
 _pool: ThreadPoolExecutor | None = None
 _workers = 0
+
+
+def _forget_pool() -> None:
+    """In a child of fork(), which has none of the pool's threads: a new pool at the first call
+    on more than one thread (the old one would queue the calls for threads that do not exist)."""
+    global _pool, _workers
+    _pool, _workers = None, 0
+
+
+os.register_at_fork(after_in_child=_forget_pool)
 _read = None  # the threading layer's own count, once numba has loaded it
 
 
