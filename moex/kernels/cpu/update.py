@@ -24,10 +24,12 @@ JIT = dict(nogil=True, error_model="numpy", cache=True, no_cfunc_wrapper=True)
 
 @njit(inline="always", **JIT)
 def _finite(row) -> bool:
-    for x in row:
-        if not np.isfinite(x):
-            return False
-    return True
+    """Whether every entry of `row` is finite: a check of all of them ANDed, which LLVM
+    vectorises (a loop that leaves at the first non-finite entry stays scalar: 4-8x slower)."""
+    ok = True
+    for p in range(row.shape[0]):
+        ok &= np.isfinite(row[p])
+    return ok
 
 
 @njit(no_cpython_wrapper=True, **JIT)
@@ -68,11 +70,11 @@ def _steps(lo, hi, theta, grad, velocity, delta, rate, lr_scale, objective, fail
                 velocity[r, p] += grad[r, p]
                 delta[r, p] = velocity[r, p] * rate[p] * scale
         if apply:
-            if not bad:
+            if not bad:  # (ANDed, as in `_finite`)
+                ok = True
                 for p in range(grad.shape[1]):
-                    if not np.isfinite(theta[r, p] + delta[r, p]):
-                        bad = True
-                        break
+                    ok &= np.isfinite(theta[r, p] + delta[r, p])
+                bad = not ok
             failed[r] = bad
             _apply(r, theta, delta, velocity, bad, paper_form, tau_start, tau_end)
 
