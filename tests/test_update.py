@@ -178,3 +178,27 @@ def test_the_steppers_first_update_runs_forward_only_the_runs_without_a_current_
     update.before_gradient(0, 4, now, then, current, failed, active, stale, True)
     assert active.tolist() == [True, False, True, True]
     assert stale.tolist() == [False, False, True, True]
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_vectorised_checks_agree_with_numpy_wherever_the_odd_entry_sits(dtype):
+    """`update._finite` (every entry checked, ANDed) and `lanes._equal` (every XOR ORed) find a
+    non-finite entry, or one bit changed, at the first, a middle and the last place of a row."""
+    from moex.kernels.cpu.lanes import _equal
+
+    rng = np.random.default_rng(0)
+    row = rng.standard_normal(1037).astype(dtype)
+    assert update._finite(row)
+    for place in (0, 517, 1036):
+        for odd in (np.inf, -np.inf, np.nan):
+            bad = row.copy()
+            bad[place] = odd
+            assert not update._finite(bad)
+    bits = np.dtype(f"u{np.dtype(dtype).itemsize}")
+    then = np.stack([row, -row]).view(bits)
+    assert _equal((then.copy(),), (then,), 0) and _equal((then.copy(),), (then,), 1)
+    for place in (0, 517, 1036):
+        for flip in (1, 1 << (8 * bits.itemsize - 1)):  # the lowest bit; the sign (-0.0 vs 0.0)
+            now = then.copy()
+            now[1, place] ^= bits.type(flip)
+            assert _equal((now,), (then,), 0) and not _equal((now,), (then,), 1)
