@@ -116,7 +116,12 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
     layout = _Flat(params, device)
     R = layout.num_runs
     batch = problem.trials if adaptive else 1  # candidate steps per call
-    theta, grad, velocity, delta = (layout.zeros() for _ in range(4))
+    paper_form = rule.momentum_form == "paper"
+    theta, grad, delta = (layout.zeros() for _ in range(3))
+    # the paper form's momentum term is the last step Δθ itself (Eq. 17): one buffer holds
+    # both, each backend reading a run's Δθ_prev before it writes the new Δθ (a pass over the
+    # (R, P) buffer fewer in each of a step's two updates, and the copy of Δθ gone)
+    velocity = delta if paper_form else layout.zeros()
     candidates = layout.zeros(batch)  # the first is also scratch space
     shrunk = layout.zeros(batch + 1) if batch > 1 else None  # Δθ·α_dec^j, j <= batch
     scratch, shrinks = candidates.unbind(0)[0], () if shrunk is None else shrunk.unbind(0)
@@ -144,7 +149,6 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         failed.copy_(state["failed"])
         rows, start = state["rows"], state["step"]
     rate = layout.per_entry(rates)
-    paper_form = rule.momentum_form == "paper"
     tau = layout.bounds.get("tau")  # (its columns: ε <= 1 kept, as in the C code)
     no_retries, tries = (torch.zeros(R, dtype=torch.int64, device=device) for _ in range(2))
 

@@ -78,6 +78,33 @@ def test_an_adaptive_steps_update_gives_the_references_bits(backend, paper_form)
     assert torch.equal(want["theta"][1, 30:], _buffers(torch.float64)["theta"][1, 30:])
 
 
+
+@pytest.mark.parametrize("backend", backend_params(), indirect=True)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("apply", [True, False])
+def test_the_paper_forms_one_buffer_gives_the_bits_of_two(backend, dtype, apply):
+    """The training loop keeps the paper form's Δθ_prev in Δθ's own buffer (`moex.train`): a step
+    and the adaptive rate's update with `velocity` and `delta` one tensor give what two give (Δθ
+    in the one, and in both where the step was taken), on every backend."""
+    two, one = _buffers(dtype), _buffers(dtype)
+    one = {k: v.to(backend.device) for k, v in one.items()}
+    two = {k: v.to(backend.device) for k, v in two.items()}
+    one["delta"] = one.pop("velocity")  # Δθ_prev where the step reads it
+    one["velocity"] = one["delta"]
+    frozen = torch.tensor([False, True, False, False, True, False], device=backend.device)
+    for b in (two, one):
+        backend.momentum_step(b["theta"], b["grad"], b["velocity"], b["delta"], rate=b["rate"],
+                              lr_scale=b["lr_scale"], objective=b["objective"],
+                              failed=b["failed"], momentum=0.9, paper_form=True, apply=apply,
+                              tau=TAU)
+        if not apply:
+            backend.apply_step(b["theta"], b["delta"], b["velocity"], frozen | b["failed"],
+                               paper_form=True, tau=TAU)
+    assert one["velocity"] is one["delta"]
+    _same({k: two[k] for k in ("theta", "grad", "delta", "velocity", "failed")},
+          {k: one[k] for k in ("theta", "grad", "delta", "velocity", "failed")})
+
+
 def _trial(dtype) -> dict:
     """Runs: 0 accepts (r < 1: its rate grows), 1 accepts at r = r_th exactly (in the values'
     type), 2 rejects, 3 a NaN candidate (rejects), 4 not pending, 5 rejects with r = inf."""

@@ -41,7 +41,13 @@ import torch
 
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import first_use, to_host
-from moex.kernels.cpu.update import after_gradient, after_trial, after_trials, before_gradient
+from moex.kernels.cpu.update import (
+    after_gradient,
+    after_trial,
+    after_trials,
+    before_gradient,
+    momentum_buffer,
+)
 
 
 class Stepper:
@@ -110,6 +116,7 @@ class Stepper:
         rate, lr_scale, failed, retries = (to_host(x) for x in (rate, lr_scale, failed, retries))
         rule = (dtype.type(momentum), bool(paper_form), bool(adaptive), int(max_retries),
                 *(tau or (0, 0)))
+        velocity = momentum_buffer(velocity, delta, paper_form)
         c = problem.STATS.index(criterion)
         # each stage's compiled function and its arguments after (lo, hi), bound once
         self.before = (before_gradient, R, (theta[:, a:b].view(bits),), then, current, failed,

@@ -39,7 +39,9 @@ def _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
         if frozen:
             delta[r, p] = zero
         theta[r, p] += delta[r, p]
-        if paper_form:
+        if velocity is None:  # (the paper form: Δθ_prev is `delta` itself, `momentum_buffer`)
+            pass
+        elif paper_form:
             velocity[r, p] = delta[r, p]
         elif frozen:
             velocity[r, p] = zero
@@ -60,7 +62,12 @@ def _steps(lo, hi, theta, grad, velocity, delta, rate, lr_scale, objective, fail
         for p in range(grad.shape[1]):
             if bad:
                 grad[r, p] = zero
-            if paper_form:
+            if velocity is None:  # the paper form, Δθ_prev read in `delta` (`momentum_buffer`)
+                kept = delta[r, p] * momentum
+                step = grad[r, p] * rate[p]
+                delta[r, p] = step * scale
+                delta[r, p] += kept
+            elif paper_form:
                 kept = velocity[r, p] * momentum
                 step = grad[r, p] * rate[p]
                 delta[r, p] = step * scale  # (float64, then rounded to the buffer's type)
@@ -186,6 +193,7 @@ def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, fa
     """`moex.kernels.reference.momentum_step`, bit for bit."""
     arrays = [to_host(x) for x in (theta, grad, velocity, delta, rate, lr_scale, objective,
                                    failed)]
+    arrays[2] = momentum_buffer(arrays[2], arrays[3], paper_form)
     threads.over(_steps, len(arrays[0]), *arrays, arrays[0].dtype.type(momentum),
                  bool(paper_form), bool(apply), *(tau or (0, 0)))
 
@@ -193,4 +201,13 @@ def momentum_step(theta, grad, velocity, delta, *, rate, lr_scale, objective, fa
 def apply_step(theta, delta, velocity, frozen, *, paper_form: bool, tau=None) -> None:
     """`moex.kernels.reference.apply_step`, bit for bit."""
     arrays = [to_host(x) for x in (theta, delta, velocity, frozen)]
+    arrays[2] = momentum_buffer(arrays[2], arrays[1], paper_form)
     threads.over(apply_runs, len(arrays[0]), *arrays, bool(paper_form), *(tau or (0, 0)))
+
+
+def momentum_buffer(velocity: np.ndarray, delta: np.ndarray, paper_form: bool):
+    """The momentum buffer as the compiled functions take it: None where it is Δθ's own buffer
+    (the training loop's paper form, `moex.train`), so that they read Δθ_prev in `delta` and
+    write it once (with two names for one buffer, LLVM's vectorised loops would check them at
+    run time, find them overlapping and take their scalar versions)."""
+    return None if paper_form and np.shares_memory(velocity, delta) else velocity
