@@ -107,6 +107,26 @@ def test_the_phase1_breakdown_times_every_stage(tmp_path):
         assert re.search(rf"\| 1 \| {stage}[^|]* \| \d+\.\d+ \|", done.stdout), stage
 
 
+
+def test_the_stage_benchmark_times_each_stage_on_each_thread_count(tmp_path):
+    """benchmarks/bench_stages.py: per phase a row per stage the step calls (the shared main call
+    among them), the rest, and the step, one column per thread count."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_stages.py"), "--runs",
+                           "2", "--threads", "1", "--steps", "2", "--base", "1", "--series", "2",
+                           "--length", "60"], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    number = r"-?\d+\.\d+"
+    for phase, kernel in (("phase 1, fixed rate", "_expert_items"),
+                          ("phase 1, adaptive rate", "_expert_items"),
+                          ("phase 2, adaptive rate", "gating_items")):
+        part = done.stdout.split(f"## {phase}")[1].split("## ")[0]
+        assert re.search(rf"\| shared by the threads: {kernel} \| {number} \({number}\) \|",
+                         part), phase
+        assert re.search(rf"\| \*\*a step\*\* \| \*\*{number}\*\* \|", part), phase
+        assert "the rest (the training loop's Python)" in part
+
+
 def test_the_host_share_benchmark_prints_a_share_per_phase(tmp_path):
     """benchmarks/bench_host.py: per phase an epoch time, the host's part of it and the share."""
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_host.py"), "--runs",
