@@ -111,6 +111,36 @@ def test_a_whole_step_without_the_record_of_forward_passes_gives_the_same_bits(o
     _same(kept, _train(dtype, True, "paper", True, steps=12, rate=2.0, retries=2, noise=0.0))
 
 
+
+def test_a_run_that_accepted_its_trial_is_current_and_skips_the_next_forward_pass(one_thread,
+                                                                                 monkeypatch):
+    """The stepper's record is θ + Δθ's own buffer: after a step, a run that accepted a trial is
+    current (its lanes hold the forward pass at that point, which θ now equals bit for bit) and
+    the next gradient leaves it out of the forward pass; a run still pending after its last
+    trial (its row of the record rewritten) is not current."""
+    seen, gradients = [], []
+    call, before = step.Stepper.__call__, step.before_gradient
+
+    def watched(self):
+        call(self)
+        seen.append((self.current.copy(), self.pending.copy()))
+
+    def recorded(lo, hi, now, then, current, failed, active, stale, reuse):
+        was = current.copy()
+        before(lo, hi, now, then, current, failed, active, stale, reuse)
+        gradients.append((was[lo:hi], active[lo:hi].copy(), stale[lo:hi].copy()))
+
+    monkeypatch.setattr(step.Stepper, "__call__", watched)
+    monkeypatch.setattr(step, "before_gradient", recorded)
+    _train(torch.float64, True, "paper", True, steps=12, rate=2.0, retries=2, noise=0.0)
+    assert any(current.any() for current, _ in seen)
+    assert not any((current & pending).any() for current, pending in seen)
+    reused = [(was & active & ~stale).sum() for was, active, stale in gradients]
+    assert sum(reused) > 0  # forward passes left out
+    assert all((~stale[active] <= was[active]).all() for was, active, stale in gradients)
+    assert sum((was & active & stale).sum() for was, active, stale in gradients) < sum(reused)
+
+
 def test_a_separate_call_between_whole_steps_leaves_their_bits(one_thread, monkeypatch):
     """A separate call (`value`) between the stepper's steps runs its own forward passes in the
     lanes (here at parameters scaled by 0.9): the stepper's record of its passes is dropped, so

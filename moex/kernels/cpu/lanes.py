@@ -209,18 +209,21 @@ def record_runs(lo, hi, now, then, stale, block_runs, first_block, last_block,
     """Runs lo..hi-1 after a call that recomputed every block holding a `stale` run, with
     parameters of the bits `now`: a run all of whose blocks were recomputed is current (its row
     of `then` := `now`), one none of whose blocks was keeps its state, and one in between stays
-    current only if its parameters did not change."""
+    current only if its parameters did not change. `then` None: the record is `now` itself, whose
+    row the caller never changes while its run is current (the stepper's θ + Δθ: nothing to copy
+    or compare)."""
     for r in range(lo, hi):  # (loops written out: array expressions here took
         count = 0  # seconds of a first run to compile)
         for b in range(first_block[r], last_block[r] + 1):
             count += block_active(b, block_runs, stale)
         if count == last_block[r] - first_block[r] + 1:
-            for k in range(len(now)):
-                new, old = now[k], then[k]
-                for q in range(new.shape[1]):
-                    old[r, q] = new[r, q]
+            if then is not None:
+                for k in range(len(now)):
+                    new, old = now[k], then[k]
+                    for q in range(new.shape[1]):
+                        old[r, q] = new[r, q]
             current[r] = True
-        elif count > 0:
+        elif count > 0 and then is not None:
             current[r] = current[r] and _equal(now, then, r)
 
 

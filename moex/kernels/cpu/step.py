@@ -28,7 +28,15 @@ On more than one thread the evaluation's chunks of series or blocks are shared o
 separate calls (`threads.over`), and so are the update's runs, with the staging copies of their
 rows, where the (R, P) buffers (or the copies) hold at least `SPLIT` entries (phase 1's buffers at
 R = 30: nothing of their size is left to one thread); smaller ones are one call, cheaper than a
-handoff.
+handoff, and so is each trial's judgement (`after_trial`: flags per run, and the next point of the
+runs still pending).
+
+The record of the lanes' forward pass (with `reuse`) is θ + Δθ's own buffer: a run is current
+while its lanes hold the forward pass of its row of `scratch`, which nothing rewrites while it is
+(`after_gradient` clears every run before it writes the trial points, `after_trial` each run
+whose next point it writes, a separate call or fresh input noise all of them), and
+`before_gradient` compares that row with θ (equal after an accepted step unless τ's clamp moved
+it): no copy of the point after each trial.
 
 A step gives the bits of the separate calls, on any number of threads: the same compiled
 functions on the same numbers in the same order (tests/test_step.py trains both ways).
@@ -110,7 +118,10 @@ class Stepper:
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
-        then, current = (np.zeros((R, b - a), bits),), np.zeros(R, bool)
+        # the record: a current run's lanes hold the forward pass of its row of θ + Δθ's bits,
+        # `scratch` itself (`after_trial` clears `current` where it writes a row; `after_gradient`
+        # for every run), which `before_gradient` compares with θ
+        trial_bits, current = (scratch[:, a:b].view(bits),), np.zeros(R, bool)
         self.current, self.pending = current, pending
         self.stats = np.zeros((len(problem.STATS), R), dtype)
         rate, lr_scale, failed, retries = (to_host(x) for x in (rate, lr_scale, failed, retries))
@@ -119,12 +130,12 @@ class Stepper:
         velocity = momentum_buffer(velocity, delta, paper_form)
         c = problem.STATS.index(criterion)
         # each stage's compiled function and its arguments after (lo, hi), bound once
-        self.before = (before_gradient, R, (theta[:, a:b].view(bits),), then, current, failed,
+        self.before = (before_gradient, R, (theta[:, a:b].view(bits),), trial_bits, current, failed,
                        active, stale, reuse)
         after = partial(_after_gradient, copies=copy_out) if copy_out else after_gradient
         self.after = (after, R, self.stats, lanes.out, current, theta, grad, velocity,
                       delta, scratch, rate, lr_scale, failed, pending, retries, *rule)
-        self.trial = (after_trial, R, (scratch[:, a:b].view(bits),), then, current,
+        self.trial = (after_trial, R, trial_bits, None, current,
                       lanes.block_runs, forwarded.first_block, forwarded.last_block,
                       reuse, theta, delta, scratch, lanes.out[c], self.stats[c], pending,
                       lr_scale, retries, float(decrease), dtype.type(decrease), float(increase),
@@ -155,7 +166,9 @@ class Stepper:
         over(*self.after)
         for _ in range(self.trials):
             self._evaluate(False)
-            over(*self.trial)
+            # (the trial judged, flags per run, and the next point of the runs still pending:
+            # rarely more than a few rows, less than a handoff)
+            _one_thread(*self.trial)
             if not np.count_nonzero(self.pending):
                 break
         if self.adaptive:  # the step taken, runs still rejected frozen

@@ -155,15 +155,17 @@ def after_gradient(lo, hi, stats, out, current, theta, grad, velocity, delta, sc
 def after_trial(lo, hi, now, then, current, block_runs, first_block, last_block, reuse, theta,
                 delta, scratch, values, base, pending, lr_scale, retries, decrease, decrease_cast,
                 increase, max_ratio):
-    """Runs lo..hi-1: the lanes of those evaluated (pending) hold θ + Δθ's forward pass; the
-    trial judged (`_trials`); the runs still pending have their next trial's point in
-    `scratch`."""
+    """Runs lo..hi-1: the lanes of those evaluated (pending) hold θ + Δθ's forward pass (`now`,
+    the bits of `scratch`; `then` None: that row is the record, `lanes.record_runs`); the trial
+    judged (`_trials`); the runs still pending have their next trial's point in `scratch`, and
+    their lanes are no longer current (their row of the record changed)."""
     if reuse:
         record_runs(lo, hi, now, then, pending, block_runs, first_block, last_block, current)
     _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, decrease_cast,
             increase, max_ratio)
     for r in range(lo, hi):
         if pending[r]:
+            current[r] = False
             _trial_point(r, theta, delta, scratch)
 
 
