@@ -165,7 +165,7 @@ def test_the_steppers_trial_judges_as_the_separate_call_and_writes_the_next_poin
     scratch = torch.full_like(theta, 7.0)
     kind = _as(dtype)
     now = (np.zeros((R, 1), kind["bits"]),)
-    update.after_trial(0, R, now, (now[0].copy(),), np.zeros(R, bool), np.zeros((1, 2), np.int64),
+    update.after_trial(0, R, now, np.zeros(R, bool), np.zeros((1, 2), np.int64),
                        np.zeros(R, np.int64), np.zeros(R, np.int64), False, theta.numpy(),
                        got["delta"].numpy(), scratch.numpy(), got["values"].numpy(),
                        got["base"].numpy(), got["pending"].numpy(), got["lr_scale"].numpy(),

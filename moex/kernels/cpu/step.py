@@ -135,7 +135,7 @@ class Stepper:
         after = partial(_after_gradient, copies=copy_out) if copy_out else after_gradient
         self.after = (after, R, self.stats, lanes.out, current, theta, grad, velocity,
                       delta, scratch, rate, lr_scale, failed, pending, retries, *rule)
-        self.trial = (after_trial, R, trial_bits, None, current,
+        self.trial = (after_trial, R, trial_bits, current,
                       lanes.block_runs, forwarded.first_block, forwarded.last_block,
                       reuse, theta, delta, scratch, lanes.out[c], self.stats[c], pending,
                       lr_scale, retries, float(decrease), dtype.type(decrease), float(increase),

@@ -32,6 +32,7 @@ logger = logging.getLogger("moex.kernels.cpu")
 
 _pool: ThreadPoolExecutor | None = None
 _workers = 0
+_read = None  # the threading layer's own count, once numba has loaded it
 
 
 def _forget_pool() -> None:
@@ -42,7 +43,6 @@ def _forget_pool() -> None:
 
 
 os.register_at_fork(after_in_child=_forget_pool)
-_read = None  # the threading layer's own count, once numba has loaded it
 
 
 def count() -> int:

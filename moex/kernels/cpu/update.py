@@ -152,15 +152,15 @@ def after_gradient(lo, hi, stats, out, current, theta, grad, velocity, delta, sc
 
 
 @njit(**JIT)
-def after_trial(lo, hi, now, then, current, block_runs, first_block, last_block, reuse, theta,
-                delta, scratch, values, base, pending, lr_scale, retries, decrease, decrease_cast,
+def after_trial(lo, hi, now, current, block_runs, first_block, last_block, reuse, theta, delta,
+                scratch, values, base, pending, lr_scale, retries, decrease, decrease_cast,
                 increase, max_ratio):
     """Runs lo..hi-1: the lanes of those evaluated (pending) hold θ + Δθ's forward pass (`now`,
-    the bits of `scratch`; `then` None: that row is the record, `lanes.record_runs`); the trial
-    judged (`_trials`); the runs still pending have their next trial's point in `scratch`, and
-    their lanes are no longer current (their row of the record changed)."""
+    the bits of `scratch`, which are the record itself: `lanes.record_runs` with `then` None);
+    the trial judged (`_trials`); the runs still pending have their next trial's point in
+    `scratch`, and their lanes are no longer current (their row of the record changed)."""
     if reuse:
-        record_runs(lo, hi, now, then, pending, block_runs, first_block, last_block, current)
+        record_runs(lo, hi, now, None, pending, block_runs, first_block, last_block, current)
     _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, decrease_cast,
             increase, max_ratio)
     for r in range(lo, hi):
