@@ -143,9 +143,10 @@ def gate_targets(runs: int, S: int, T: int, K: int) -> torch.Tensor:
 
 def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_size: int = 15,
              dtype: str = "float64", device: str = "cpu", series: int = 0,
-             length: int = 0) -> tuple[dict, Backend]:
+             length: int = 0, noise: float = 0.0) -> tuple[dict, Backend]:
     """{phase name: fn(n) training n epochs of `runs` networks} and the backend they train on
-    (`moex.kernels.Backend`); `series` and `length` (0: the task's) shrink the data."""
+    (`moex.kernels.Backend`); `series` and `length` (0: the task's) shrink the data; `noise`:
+    phase 2's input noise variance (`train.gating.input_noise_var`)."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
     torch.set_num_threads(1 if chosen.name == "cpu" else threads)
@@ -157,6 +158,7 @@ def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_si
     cfg.task.num_series = series or cfg.task.num_series
     cfg.task.length = length or cfg.task.length
     cfg.model.gating.context_size = context_size
+    cfg.train.gating.input_noise_var = noise
     dtype = getattr(torch, dtype)
     data = load_task(cfg)
     series = torch.as_tensor(data.series, dtype=dtype)
@@ -190,10 +192,11 @@ def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_si
 
 def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repeats: int,
           context_size: int, dtype: str, device: str = "cpu", series: int = 0,
-          length: int = 0, base: int = 5) -> list[dict]:
+          length: int = 0, base: int = 5, noise: float = 0.0) -> list[dict]:
     """Rows of ms per network-epoch (`trainers` for the arguments)."""
     fns, chosen = trainers(task, runs, backend, threads=threads, context_size=context_size,
-                           dtype=dtype, device=device, series=series, length=length)
+                           dtype=dtype, device=device, series=series, length=length,
+                           noise=noise)
     results = []
     for name, fn in fns.items():
         wall, cpu = _time(fn, steps, repeats, base, chosen.device.startswith("cuda"),
@@ -223,11 +226,11 @@ def rounds(sides: list[tuple], steps: int, base: int, repeats: int) -> list[list
 
 
 def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
-                context_size: int, dtypes: list[str], base: int = 5) -> None:
+                context_size: int, dtypes: list[str], base: int = 5, noise: float = 0.0) -> None:
     """Prints a row per phase: CPU ms per network-epoch in each of two precisions, medians of
     `repeats` rounds that time both in turn (`rounds`), and their ratio round by round."""
     fns = {d: trainers(task, runs, "cpu", threads=threads, context_size=context_size,
-                       dtype=d)[0] for d in dtypes}
+                       dtype=d, noise=noise)[0] for d in dtypes}
     for name in fns[dtypes[0]]:
         a, b = ([1e3 * cpu / runs for _, cpu in side] for side in rounds(
             [(lambda: None, fns[d][name]) for d in dtypes], steps, base, repeats))
@@ -237,12 +240,12 @@ def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
 
 
 def thread_pairs(task: str, runs: int, *, threads: list[int], steps: int, repeats: int,
-                 context_size: int, dtype: str, base: int = 5) -> None:
+                 context_size: int, dtype: str, base: int = 5, noise: float = 0.0) -> None:
     """Prints a row per phase: wall ms per network-epoch on each of two numbers of threads,
     medians of `repeats` rounds that time both in turn (`rounds`), the speed-up and the CPU time
     ratio round by round."""
     fns, _ = trainers(task, runs, "cpu", threads=max(threads), context_size=context_size,
-                      dtype=dtype)
+                      dtype=dtype, noise=noise)
     for name, fn in fns.items():
         one, two = rounds([(partial(numba.set_num_threads, t), fn) for t in threads], steps,
                           base, repeats)
@@ -268,6 +271,8 @@ def main():
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--base", type=int, default=5, help="epochs of the subtracted run")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--noise", type=float, default=0.0,
+                        help="phase 2's input noise variance (train.gating.input_noise_var)")
     parser.add_argument("--kernels", action="store_true",
                         help="then print each compiled Triton kernel's registers and spills")
     parser.add_argument("--paired", action="store_true",
@@ -277,7 +282,8 @@ def main():
                         or args.backends != ["cpu"]):
         parser.error("--paired takes two --threads, one --dtype and the cpu backend")
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
-    print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {' and '.join(args.dtype)}")
+    print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {' and '.join(args.dtype)}"
+          + (f"; phase 2 with input noise of variance {args.noise:g}" if args.noise else ""))
     if args.paired:
         first, second = args.threads
         print(f"| task | phase | runs | NC | wall ms per network-epoch, {first} thread(s) | "
@@ -286,7 +292,7 @@ def main():
         for runs, size in itertools.product(args.runs, args.context_sizes):
             thread_pairs(args.task, runs, threads=args.threads, steps=args.steps,
                          repeats=args.repeats, context_size=size, dtype=args.dtype[0],
-                         base=args.base)
+                         base=args.base, noise=args.noise)
         return
     if len(args.dtype) == 2:
         first, second = args.dtype
@@ -294,7 +300,7 @@ def main():
               f"{second} | {first} / {second} |\n|---|---|---|---|---|---|---|---|")
         for runs, threads, size in itertools.product(args.runs, args.threads, args.context_sizes):
             dtype_pairs(args.task, runs, threads=threads, steps=args.steps, repeats=args.repeats,
-                        context_size=size, dtypes=args.dtype, base=args.base)
+                        context_size=size, dtypes=args.dtype, base=args.base, noise=args.noise)
         return
     print("| task | phase | runs | backend | threads | NC | CPU ms per network-epoch | "
           "wall ms per network-epoch |")
@@ -306,7 +312,7 @@ def main():
                     bench(args.task, runs, backend, threads=threads, steps=args.steps,
                           repeats=args.repeats, context_size=size, dtype=args.dtype[0],
                           device=args.device, series=args.series, length=args.length,
-                          base=args.base)
+                          base=args.base, noise=args.noise)
     if args.kernels:
         print_kernels()
 

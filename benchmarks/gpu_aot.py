@@ -23,7 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -36,7 +36,10 @@ SIZES = {  # name: (Hydra overrides, what it is)
     "lissajous9": (["task=lissajous9"], "Figs. 10-13: 24 experts, NC 30, τ 5, 1 x 10 000 steps"),
 }
 TRAINING = ("rnn_forward", "rnn_backward", "rnn_weight_gradients", "mixture_objective",
-            "softmax_objective", "momentum_kernel")
+            "softmax_objective", "momentum_kernel", "noise_kernel")
+# kernels that promise the CPU's bits (the momentum step, the input noise): compiled without
+# fused multiply-adds, so their PTX may hold none (`fma` below: fma.rn instructions)
+EXACT = ("momentum_kernel", "noise_kernel")
 # the most each kernel may use at any size above (registers per thread, SHFL and BAR
 # instructions in its machine code); a training kernel may not spill at all (BENCHMARKS.md,
 # "Compiled for an H200", states these and the redesign's goals beside them)
@@ -45,6 +48,7 @@ BUDGET = {  # the counts at the sizes above on 2026-12-04 (4 warps), rounded up:
     "rnn_backward": {"registers": 255, "shuffles": 32, "barriers": 24},  # by columns too
     "rnn_weight_gradients": {"registers": 255, "shuffles": 330, "barriers": 30},
     "momentum_kernel": {"registers": 96, "shuffles": 8, "barriers": 6},
+    "noise_kernel": {"registers": 96, "shuffles": 0, "barriers": 0},  # 2026-12-07: 90
     "mixture_objective": {"registers": 255, "shuffles": 330, "barriers": 30},
     "softmax_objective": {"registers": 112, "shuffles": 330, "barriers": 2},
     "closed_loop_kernel": {"registers": 255, "shuffles": 512, "barriers": 128},  # by columns
@@ -62,6 +66,7 @@ class Launch:
     constexprs: dict
     num_warps: int
     num_stages: int | None = None  # Triton's default where a launch does not say
+    options: dict = field(default_factory=dict)  # compile options a launch sets (fp fusion)
 
     @property
     def name(self) -> str:
@@ -70,7 +75,7 @@ class Launch:
     def key(self) -> tuple:
         return (self.name, tuple(sorted(self.signature.items())),
                 tuple(sorted((k, repr(v)) for k, v in self.constexprs.items())), self.num_warps,
-                self.num_stages)
+                self.num_stages, tuple(sorted(self.options.items())))
 
 
 def signature(kernel, args, kwargs) -> tuple[dict, dict]:
@@ -105,7 +110,8 @@ def recording(size: str, into: list[Launch]):
     def run(kernel, *args, **kwargs):  # JITFunction.run(*args, grid, warmup, **kwargs)
         types, constexprs = signature(kernel, args, kwargs)
         into.append(Launch(size, kernel, types, constexprs, kwargs.get("num_warps", 4),
-                           kwargs.get("num_stages")))
+                           kwargs.get("num_stages"), {k: kwargs[k] for k in ("enable_fp_fusion",)
+                                                      if k in kwargs}))
 
     saved = JITFunction.run, gpu.available
     JITFunction.run, gpu.available = run, (lambda device: True)
@@ -155,7 +161,7 @@ def record(size: str, evaluation: bool = True) -> list[Launch]:
         targets = phase2_targets(beta, data, cfg.num_runs, dtype,
                                  cfg.train.gating.target_temperature)
         gating = init_gating(cfg.model, S, D, gens, dtype)
-        cfg.train.gating.steps = 1
+        cfg.train.gating.steps, cfg.train.gating.input_noise_var = 1, 1e-3  # noise drawn too
         gating, _ = train_gating(gating, targets, series[:, :targets.shape[2]], cfg.model,
                                  cfg.train.gating, rule=cfg.train, backend=backend)
         if not evaluation:
@@ -195,7 +201,8 @@ def resources(compiled, tools: Path, ptxas: str) -> dict:
     return {"registers": number["registers"], "spill_bytes": number["bytes spill stores"],
             "stack_bytes": number["bytes stack frame"], "shared_bytes": compiled.metadata.shared,
             "shuffles": sum(op.startswith("SHFL") for op in ops),
-            "barriers": sum(op.startswith("BAR") for op in ops), "instructions": len(ops)}
+            "barriers": sum(op.startswith("BAR") for op in ops), "instructions": len(ops),
+            "fma": len(re.findall(r"\bfma\.rn\.", compiled.asm["ptx"]))}
 
 
 def compile_all(launches: list[Launch]) -> list[dict]:
@@ -220,7 +227,7 @@ def compile_all(launches: list[Launch]) -> list[dict]:
         stages = {} if launch.num_stages is None else {"num_stages": launch.num_stages}
         compiled = triton.compile(ASTSource(launch.kernel, launch.signature, launch.constexprs),
                                   target=target, options={"num_warps": launch.num_warps,
-                                                          **stages, **OPTIONS})
+                                                          **stages, **OPTIONS, **launch.options})
         shown = {k: v for k, v in launch.constexprs.items()
                  if k in ("KT", "TANGENT", "COUNT", "KEEP_U", "LEARN_EPS", "ATTRACT", "KEEP_C",
                           "BL", "BN", "HP", "KP")}
@@ -242,6 +249,8 @@ def over_budget(row: dict) -> list[str]:
            if row[k] > budget[k]]
     if row["kernel"] in TRAINING and row["spill_bytes"] > 0:
         out.append(f"spills {row['spill_bytes']} B")
+    if row["kernel"] in EXACT and row["fma"] > 0:
+        out.append(f"fma {row['fma']} > 0")
     return out
 
 

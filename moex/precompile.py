@@ -1,5 +1,5 @@
 """The helper process of a first run (`python -m moex.precompile <precision>`, started by
-`moex.compile_helper`, adopted by `warm.start`): it calls the phase-2, closed-loop and symbol
+`moex.compile_helper`, adopted by `warm.start`): it calls the phase-2, closed-loop, noise and symbol
 kernels once on tiny inputs, so that numba compiles them into its cache while the run trains
 phase 1; phase 2 with the gating RNN's units, inputs and outputs that the run writes to its stdin
 (`compile_helper.tell`; phase 2's kernel is compiled for them, `lanes.sizes`). Nothing imports
@@ -15,13 +15,15 @@ from moex.config.train import GatingPhaseConfig
 from moex.kernels.cpu import phases
 from moex.kernels.cpu.closed_loop import closed_loop
 from moex.kernels.cpu.symbols import nearest_symbols
+from moex.kernels.noise import input_noise
 from moex.model import init_experts, init_gating, random_state
 
 
 def compile_later_phases(dtype: str, sizes=None) -> None:
-    """Call the phase-2, closed-loop and symbol kernels once on tiny inputs of `dtype`; phase 2
-    for the gating RNN's units, inputs and outputs that `sizes` returns (a callable, called once
-    the closed loop is compiled), or where it returns None 3 units, 2 experts and 2 features."""
+    """Call the phase-2, closed-loop, noise and symbol kernels once on tiny inputs of `dtype`;
+    phase 2 for the gating RNN's units, inputs and outputs that `sizes` returns (a callable,
+    called once the closed loop is compiled), or where it returns None 3 units, 2 experts and 2
+    features."""
     torch_dtype = getattr(torch, dtype)
     model = ModelConfig()
     model.experts.context_size, model.gating.context_size = 2, 3
@@ -44,6 +46,7 @@ def compile_later_phases(dtype: str, sizes=None) -> None:
     grads = {k: torch.zeros_like(v) for k, v in gating.items()}
     active = torch.ones(1, dtype=torch.bool)
     problem.value_and_grad(gating, grads, active)
+    input_noise([0], 0, (1,), 1.0, torch_dtype)  # phase 2's input noise, where a run has some
     nearest_symbols(torch.zeros((1, 2, 2)), torch.zeros((2, 2)), torch.arange(2))
 
 

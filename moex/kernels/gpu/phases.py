@@ -24,8 +24,8 @@ import triton
 import triton.language as tl
 
 from moex.kernels.gpu.lanes import TRIALS, Net, launch, pow2, strides
+from moex.kernels.gpu.noise import DeviceNoise
 from moex.kernels.gpu.rnn import device, divide, exp, lane_moments, load_rows, log, stable_tanh
-from moex.kernels.noise import input_noise
 
 BT = 64  # time steps per tile of the objective kernels, at most
 TILE = 1024  # entries of an objective kernel's (BT, K, D) tiles, at most (`time_tile`)
@@ -279,7 +279,8 @@ class ExpertProblem(_Problem):
 class GatingProblem(_Problem):
     """Phase 2 of R runs (Eqs. 14-16), the arguments of the CPU backend's `GatingProblem`.
     Lane r·S + s runs the gating RNN of run r on series s, reading [ĝ_n, x_n] and fitted to
-    ĝ_{n+τ}; `resample(step)` draws the input noise of `phase.input_noise_var` per run seed."""
+    ĝ_{n+τ}; `resample(step)` draws the input noise of `phase.input_noise_var` per run seed, on
+    the device (`moex.kernels.gpu.noise`)."""
 
     STATS = ("objective", "log_likelihood", "kl", "E_g")
 
@@ -287,7 +288,7 @@ class GatingProblem(_Problem):
         R, S, T, K = gate_targets.shape
         D, H, delay = inputs.shape[-1], model.gating.context_size, model.delay
         T_g = T - delay
-        self.shape, self.model, self.phase, self.seeds = (R, S, T_g, K, D, H), model, phase, seeds
+        self.shape, self.model, self.phase = (R, S, T_g, K, D, H), model, phase
         self.device = torch.device(device)
         ghat = torch.as_tensor(gate_targets).to(self.device)
         self.dtype = ghat.dtype
@@ -296,6 +297,8 @@ class GatingProblem(_Problem):
         feed = torch.cat([ghat[:, :, :T_g], x[..., :T_g, :].expand(R, -1, -1, -1)], -1)
         self.clean = feed.reshape(R * S, T_g, K + D).contiguous()
         self.X = self.clean.clone()
+        self.noise = None if phase.input_noise_var <= 0 else DeviceNoise(
+            seeds, phase.input_noise_var, S=S, T_FULL=T, device=self.device)
         self.entropy = torch.xlogy(self.targets, self.targets).sum((1, 2, 3))
         self.const = torch.tensor([model.sigma_min ** 2], dtype=self.dtype, device=self.device)
         self.meta = dict(S=S, T=T_g, K=K, KP=pow2(K), H=H, HP=pow2(H), BT=time_tile(T_g, K),
@@ -313,13 +316,8 @@ class GatingProblem(_Problem):
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""
-        if self.phase.input_noise_var <= 0:
-            return
-        R, S, T_g, K, D, H = self.shape
-        noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),
-                            self.phase.input_noise_var, self.X.dtype)
-        noise = torch.as_tensor(noise[:, :, :T_g].reshape(R * S, T_g, D), device=self.device)
-        self.X[:, :, K:] = self.clean[:, :, K:] + noise
+        if self.noise is not None:
+            self.noise.add(self.X, self.clean, step, K=self.shape[3])
 
     def _objective(self, rnn, params, grads, active, *, stats, want):
         launch(softmax_objective, len(active), rnn.O, self.targets, self.entropy, rnn.S,
