@@ -125,9 +125,9 @@ def test_a_run_that_accepted_its_trial_is_current_and_skips_the_next_forward_pas
         call(self)
         seen.append((self.current.copy(), self.pending.copy()))
 
-    def recorded(lo, hi, now, then, current, failed, active, stale, reuse):
+    def recorded(lo, hi, current, failed, active, stale):
         was = current.copy()
-        before(lo, hi, now, then, current, failed, active, stale, reuse)
+        before(lo, hi, current, failed, active, stale)
         gradients.append((was[lo:hi], active[lo:hi].copy(), stale[lo:hi].copy()))
 
     monkeypatch.setattr(step.Stepper, "__call__", watched)

@@ -186,25 +186,43 @@ def test_the_steppers_last_update_freezes_the_runs_pending_or_failed(paper_form)
     get_backend("reference").apply_step(want["theta"], want["grad"], want["velocity"],
                                         pending | want["failed"], paper_form=paper_form, tau=TAU)
     update.after_trials(0, R, got["theta"].numpy(), got["grad"].numpy(), got["velocity"].numpy(),
-                        pending.numpy(), got["failed"].numpy(), paper_form, *TAU)
+                        pending.numpy(), got["failed"].numpy(), np.zeros(R, bool), paper_form,
+                        *TAU)
     _same(want, got)
     assert (want["grad"][[1, 3, 5]] == 0).all() and want["grad"][0].ne(0).any()
 
 
 def test_the_steppers_first_update_runs_forward_only_the_runs_without_a_current_pass():
-    """cpu stepper (`update.before_gradient`): active = not failed; stale (run forward) = active,
-    with the record (`reuse`) less the runs whose lanes hold the pass at θ's very bits."""
+    """cpu stepper (`update.before_gradient`): active = not failed; stale (run forward) = the
+    active runs whose lanes do not hold the pass at θ (not `current`)."""
     failed = np.array([False, True, False, False])
-    current = np.array([True, True, True, False])  # run 1 failed, run 3's lanes hold nothing
-    then = (np.arange(8, dtype=np.uint64).reshape(4, 2),)
-    now = (then[0].copy(),)
-    now[0][2, 1] += 1  # run 2's parameters changed
+    current = np.array([True, True, False, False])  # run 1 failed, runs 2 and 3 hold nothing
     active, stale = np.ones(4, bool), np.ones(4, bool)
-    update.before_gradient(0, 4, now, then, current, failed, active, stale, False)
-    assert active.tolist() == [True, False, True, True] and stale.tolist() == active.tolist()
-    update.before_gradient(0, 4, now, then, current, failed, active, stale, True)
+    update.before_gradient(0, 4, current, failed, active, stale)
     assert active.tolist() == [True, False, True, True]
     assert stale.tolist() == [False, False, True, True]
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_after_the_trials_a_run_stays_current_only_where_theta_is_its_trial_point(dtype):
+    """`update.after_trials`: a run that took its step is at its accepted trial's point θ + Δθ
+    (the record, `scratch`) bit for bit and stays current; one that τ's clamp moved, one still
+    rejected or failed (frozen), or one not current before, is not current after."""
+    rng = np.random.default_rng(0)
+    R, P, tau = 6, 40, (30, 34)
+    theta, delta = (rng.normal(size=(R, P)).astype(dtype) for _ in range(2))
+    theta[:, tau[0]:tau[1]] = 3.0
+    delta[:, tau[0]:tau[1]] = 0.5
+    delta[2, tau[0] + 1] = -2.5  # run 2's τ falls below 1: clamped
+    scratch = theta + delta  # the trials' point (`_trial_point`'s addition)
+    pending = np.array([False, False, False, True, False, False])
+    failed = np.array([False, False, False, False, True, False])
+    current = np.array([True, True, True, True, True, False])
+    update.after_trials(0, R, theta, delta, None, pending, failed, current, True, *tau)
+    assert current.tolist() == [True, True, False, False, False, False]
+    same = (theta.view(f"u{theta.itemsize}") == scratch.view(f"u{theta.itemsize}")).all(1)
+    assert same[:2].all() and not same[2:5].any()
+    assert (theta[:, tau[0]:tau[1]] >= 1).all()
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -5,20 +5,20 @@ momentum step Δθ (Eqs. 17-18), the adaptive rate's trials at θ + Δθ and the
 The training loop (`moex.train._ascend`) otherwise makes each of those a backend call that converts
 its tensors, stages the parameters, checks the lanes' record of their forward pass and wraps the
 statistics: 160-390 µs of Python per step at R = 1, 6-11 % of an epoch. A `Stepper` binds every
-array once (the parameters' views of the flat (R, P) buffers where the kernels can read them as
-they are, at R = 1 all of them, and the buffers themselves for the groups the kernel takes as rows:
-phase 1's β, read and written in place at any R) and makes a step of a few compiled calls with
-nothing between them but the calls: the phase kernel per evaluation (`evaluate`) and the update
-functions around it (`update.before_gradient`: the runs to compute and the lanes' record of their
-forward pass; `after_gradient`: Δθ and the first trial's point θ + Δθ; `after_trial`: the trial
-judged and the next trial's point; `after_trials`: the step taken), on whole rows of the flat
-buffer. Those run without fast-math flags: inside the fast-math phase kernel LLVM may drop their
-NaN and infinity checks, which decide whether a run failed. The statistics stay in an array until
-the loop reads them (`statistics`, where it logs). Each NumPy or PyTorch operation between the
-calls had cost 5-60 µs there (line_profiler), 10-50 times its time in a loop of its own (timeit):
-after a kernel that has filled the caches with its lanes, the interpreter's code and data come back
-from memory (the likely cause; not measured with counters on this VM). Host time per step at R = 1
-is now 30-70 µs (`benchmarks/bench_host.py`: 2.5-3.2 % of an epoch).
+array once (the parameters' views of the flat (R, P) buffers where the kernels can read them as they
+are, at R = 1 all of them, and the buffers themselves for the groups the kernel takes as rows: phase
+1's β, read and written in place at any R) and makes a step of a few compiled calls with nothing
+between them but the calls: the phase kernel per evaluation (`evaluate`) and the update functions
+around it (`update.before_gradient`: the runs to compute; `after_gradient`: Δθ and the first trial's
+point θ + Δθ; `after_trial`: the trial judged and the next trial's point; `after_trials`: the step
+taken, and whose lanes still hold θ's forward pass), on whole rows of the flat buffer. Those run
+without fast-math flags: inside the fast-math phase kernel LLVM may drop their NaN and infinity
+checks, which decide whether a run failed. The statistics stay in an array until the loop reads them
+(`statistics`, where it logs). Each NumPy or PyTorch operation between the calls had cost 5-60 µs
+there (line_profiler), 10-50 times its time in a loop of its own (timeit): after a kernel that has
+filled the caches with its lanes, the interpreter's code and data come back from memory (the likely
+cause; not measured with counters on this VM). Host time per step at R = 1 is now 30-70 µs
+(`benchmarks/bench_host.py`: 2.5-3.2 % of an epoch).
 
 A gradient step right after an accepted adaptive trial is at the trial's point: it takes the
 trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
@@ -34,9 +34,11 @@ runs still pending).
 The record of the lanes' forward pass (with `reuse`) is θ + Δθ's own buffer: a run is current
 while its lanes hold the forward pass of its row of `scratch`, which nothing rewrites while it is
 (`after_gradient` clears every run before it writes the trial points, `after_trial` each run
-whose next point it writes, a separate call or fresh input noise all of them), and
-`before_gradient` compares that row with θ (equal after an accepted step unless τ's clamp moved
-it): no copy of the point after each trial.
+whose next point it writes, a separate call or fresh input noise all of them). `after_trials`
+then keeps a run current only where its step was taken and τ's clamp moved nothing: θ is then
+that row bit for bit (θ + Δθ, the same addition), so nothing is copied after a trial and nothing
+compared before the next gradient (the comparison was a pass over two (R, P) buffers, 0.3 ms a
+step at 30 networks).
 
 A step gives the bits of the separate calls, on any number of threads: the same compiled
 functions on the same numbers in the same order (tests/test_step.py trains both ways).
@@ -120,7 +122,7 @@ class Stepper:
         bits = np.dtype(f"u{dtype.itemsize}")
         # the record: a current run's lanes hold the forward pass of its row of θ + Δθ's bits,
         # `scratch` itself (`after_trial` clears `current` where it writes a row; `after_gradient`
-        # for every run), which `before_gradient` compares with θ
+        # for every run), which θ equals after `after_trials` where it keeps the run current
         trial_bits, current = (scratch[:, a:b].view(bits),), np.zeros(R, bool)
         self.current, self.pending = current, pending
         self.stats = np.zeros((len(problem.STATS), R), dtype)
@@ -130,8 +132,7 @@ class Stepper:
         velocity = momentum_buffer(velocity, delta, paper_form)
         c = problem.STATS.index(criterion)
         # each stage's compiled function and its arguments after (lo, hi), bound once
-        self.before = (before_gradient, R, (theta[:, a:b].view(bits),), trial_bits, current, failed,
-                       active, stale, reuse)
+        self.before = (before_gradient, R, current, failed, active, stale)
         after = partial(_after_gradient, copies=copy_out) if copy_out else after_gradient
         self.after = (after, R, self.stats, lanes.out, current, theta, grad, velocity,
                       delta, scratch, rate, lr_scale, failed, pending, retries, *rule)
@@ -140,8 +141,8 @@ class Stepper:
                       reuse, theta, delta, scratch, lanes.out[c], self.stats[c], pending,
                       lr_scale, retries, float(decrease), dtype.type(decrease), float(increase),
                       dtype.type(max_ratio))
-        self.finish = (after_trials, R, theta, delta, velocity, pending, failed, rule[1],
-                       *rule[4:])
+        self.finish = (after_trials, R, theta, delta, velocity, pending, failed, current,
+                       rule[1], *rule[4:])
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
@@ -158,9 +159,7 @@ class Stepper:
         """One training step of every run; its statistics at θ in `statistics()` until the
         next."""
         over = self.over
-        # (the record's comparison, where a lane holds a forward pass, outlasts a handoff; the
-        # rest of `before_gradient` is two flags per run)
-        (over if self.current.any() else _one_thread)(*self.before)
+        _one_thread(*self.before)  # (two flags per run: less than a handoff)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
         over(*self.after)

@@ -10,11 +10,11 @@ import numpy as np
 from numba import njit
 
 from moex.kernels.cpu import threads
-from moex.kernels.cpu.lanes import record_runs, stale_runs, to_host
+from moex.kernels.cpu.lanes import record_runs, to_host
 
 JIT = dict(nogil=True, error_model="numpy", cache=True, no_cfunc_wrapper=True)
 # The helpers the stage functions call (`_finite`, `_steps`, `_trials`, `_trial_point`, and
-# `lanes.stale_runs` / `record_runs`) are inlined by numba into their callers (each still callable
+# `lanes.record_runs`) are inlined by numba into their callers (each still callable
 # from Python): a function of its own costs a first run a compile pipeline of its own (wrappers,
 # optimisation, machine code). The stage functions' first compile 2.8-2.95 s instead of
 # 3.6-3.75 (Ice Lake VM, 2026-12-07, the trees in turn); the same bits. `_apply`, called from
@@ -33,8 +33,11 @@ def _finite(row) -> bool:
 
 
 @njit(no_cpython_wrapper=True, **JIT)
-def _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
+def _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end) -> bool:
+    """Run r's step taken (frozen: Δθ zeroed first), τ's columns clamped at 1; whether the clamp
+    moved any of them (θ is then not θ + Δθ)."""
     zero = delta.dtype.type(0.0)
+    clamped = False
     for p in range(theta.shape[1]):
         if frozen:
             delta[r, p] = zero
@@ -48,6 +51,8 @@ def _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end):
     for p in range(tau_start, tau_end):
         if theta[r, p] < 1.0:  # (NaN stays NaN, as torch.clamp_ leaves it)
             theta[r, p] = 1.0
+            clamped = True
+    return clamped
 
 
 @njit(inline="always", **JIT)
@@ -119,15 +124,13 @@ def _trial_point(r, theta, delta, scratch):
 
 
 @njit(**JIT)
-def before_gradient(lo, hi, now, then, current, failed, active, stale, reuse):
+def before_gradient(lo, hi, current, failed, active, stale):
     """Runs lo..hi-1 before the gradient at θ: active, the runs not failed; stale, those the
-    phase kernel runs forward, with the record (`reuse`) the active ones whose lanes do not hold
-    the forward pass at θ's bits `now` (`lanes.stale_runs`), without it all active ones."""
+    phase kernel runs forward: the active ones whose lanes do not hold the forward pass at θ
+    (`current`, which `after_trials` leaves set only where θ is the accepted trial's point)."""
     for r in range(lo, hi):
         active[r] = not failed[r]
-        stale[r] = active[r]
-    if reuse:
-        stale_runs(lo, hi, now, then, current, active, stale)
+        stale[r] = active[r] and not current[r]
 
 
 @njit(**JIT)
@@ -170,13 +173,17 @@ def after_trial(lo, hi, now, current, block_runs, first_block, last_block, reuse
 
 
 @njit(**JIT)
-def after_trials(lo, hi, theta, delta, velocity, pending, failed, paper_form, tau_start,
-                 tau_end):
+def after_trials(lo, hi, theta, delta, velocity, pending, failed, current, paper_form,
+                 tau_start, tau_end):
     """Runs lo..hi-1 after the adaptive rate's trials: each run's step taken, a run still
-    rejected (pending) or failed frozen (`apply_runs` with frozen = pending | failed)."""
+    rejected (pending) or failed frozen (`apply_runs` with frozen = pending | failed). A run that
+    took its step is at its accepted trial's point θ + Δθ, bit for bit (the same addition of the
+    same numbers: `_trial_point`'s), so its lanes stay current, unless τ's clamp moved θ; a
+    frozen run (θ unchanged) is no longer current."""
     for r in range(lo, hi):
-        _apply(r, theta, delta, velocity, pending[r] or failed[r], paper_form, tau_start,
-               tau_end)
+        frozen = pending[r] or failed[r]
+        clamped = _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end)
+        current[r] = current[r] and not (frozen or clamped)
 
 
 def adaptive_trial(delta, values, base, pending, lr_scale, *, retries, decrease: float,
