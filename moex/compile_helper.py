@@ -55,12 +55,13 @@ KERNELS = Path(__file__).resolve().parent / "kernels" / "cpu"
 
 @functools.cache
 def kernel_sources() -> bytes:
-    """sha256 over every Python source of the cpu kernels' package (`KERNELS`), name and text, in
-    name order: what their compiled code depends on. The key of their entries in numba's cache
+    """sha256 over every Python source of the cpu kernels' package (`KERNELS`) and the noise
+    module they inline (`moex/kernels/noise.py`), name and text, in name order: what their
+    compiled code depends on. The key of their entries in numba's cache
     (`moex.kernels.cpu.cache`) and part of the stamp's name. Read once a process: a process runs
     the kernels it imported."""
     digest = hashlib.sha256()
-    for path in sorted(KERNELS.glob("*.py")):
+    for path in sorted([*KERNELS.glob("*.py"), KERNELS.parent / "noise.py"]):
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
     return digest.digest()
 

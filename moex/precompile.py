@@ -15,7 +15,6 @@ from moex.config.train import GatingPhaseConfig
 from moex.kernels.cpu import phases
 from moex.kernels.cpu.closed_loop import closed_loop
 from moex.kernels.cpu.symbols import nearest_symbols
-from moex.kernels.noise import input_noise
 from moex.model import init_experts, init_gating, random_state
 
 
@@ -42,11 +41,11 @@ def compile_later_phases(dtype: str, sizes=None) -> None:
     gating = init_gating(model, 1, NI - K, generators, torch_dtype)
     ghat = torch.full((1, 1, 4, K), 1.0 / K, dtype=torch_dtype)
     problem = phases.GatingProblem(ghat, torch.zeros((1, 4, NI - K), dtype=torch_dtype), model,
-                                   GatingPhaseConfig(), seeds=[0])
+                                   GatingPhaseConfig(input_noise_var=1e-3), seeds=[0])
+    problem.resample(0)  # phase 2's input noise, where a run has some
     grads = {k: torch.zeros_like(v) for k, v in gating.items()}
     active = torch.ones(1, dtype=torch.bool)
     problem.value_and_grad(gating, grads, active)
-    input_noise([0], 0, (1,), 1.0, torch_dtype)  # phase 2's input noise, where a run has some
     nearest_symbols(torch.zeros((1, 2, 2)), torch.zeros((2, 2)), torch.arange(2))
 
 

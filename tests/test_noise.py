@@ -80,3 +80,33 @@ def test_the_gpu_backend_draws_the_cpus_bits_into_the_noise_columns_only(dtype):
     want = clean.clone()
     want[:, :, K:] += torch.as_tensor(noise.reshape(R * S, T, D))
     assert torch.equal(X.cpu(), want)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32], ids=["float64", "float32"])
+def test_the_cpu_backend_adds_the_same_bits_in_its_lanes_on_any_number_of_threads(dtype):
+    """`moex.kernels.cpu.noise.noisy_inputs`: the lanes' noise columns are the clean inputs plus
+    `input_noise`'s array laid out in lanes (lane r·S + s), bit for bit, on one thread and on
+    two (blocks shared out above `SPLIT` entries); the other columns and the padding lanes keep
+    their values."""
+    import numba
+
+    from moex.kernels.cpu.lanes import in_lanes
+    from moex.kernels.cpu.noise import SPLIT, noisy_inputs
+
+    R, S, T_FULL, T, D, K = 7, 5, 1001, 1000, 2, 3  # 35 lanes: the last block part padding
+    assert R * S * T * D >= SPLIT
+    seeds, step, variance = [3, 1 << 63, 9, 10, 11, 12, 13], 4, 0.01
+    x = np.random.default_rng(0).normal(size=(T, K + D, R * S)).astype(dtype)
+    clean = in_lanes(x)
+    noise = input_noise(seeds, step, (S, T_FULL, D), variance, dtype)[:, :, :T]
+    want = in_lanes(x + np.concatenate([np.zeros((T, K, R * S), dtype), noise.transpose(
+        2, 3, 0, 1).reshape(T, D, R * S)], 1))
+    saved = numba.get_num_threads()
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(threads)
+            inputs = clean.copy()
+            noisy_inputs(inputs, clean, seeds, step, variance, S=S, T_full=T_FULL, K=K)
+            assert np.array_equal(inputs, want), threads
+    finally:
+        numba.set_num_threads(saved)

@@ -24,6 +24,7 @@ from moex.kernels.cpu.lanes import (
     spread,
     to_host,
 )
+from moex.kernels.cpu.noise import noisy_inputs
 from moex.kernels.cpu.rnn import backward_pass, forward_pass
 from moex.kernels.cpu.simd import (
     JIT,
@@ -40,7 +41,6 @@ from moex.kernels.cpu.simd import (
 )
 from moex.kernels.cpu.step import Stepper
 from moex.kernels.cpu.threads import claim
-from moex.kernels.noise import input_noise
 
 # phase 1: the experts and β (Eqs. 9-13)
 
@@ -607,8 +607,5 @@ class GatingProblem(_Problem):
             return
         self.forget()
         R, S, T_g, K = self.shape
-        D = self.inputs.shape[2] - K
-        noise = input_noise(self.seeds, step, (S, T_g + self.model.delay, D),  # all of x_n
-                            self.phase.input_noise_var, self.inputs.dtype)[:, :, :T_g]
-        self.inputs[:, :, K:] = self.clean[:, :, K:] + in_lanes(
-            noise.transpose(2, 3, 0, 1).reshape(T_g, D, R * S))
+        noisy_inputs(self.inputs, self.clean, self.seeds, step, self.phase.input_noise_var, S=S,
+                     T_full=T_g + self.model.delay, K=K)  # (entries numbered over all of x_n)
