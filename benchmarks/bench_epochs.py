@@ -143,10 +143,11 @@ def gate_targets(runs: int, S: int, T: int, K: int) -> torch.Tensor:
 
 def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_size: int = 15,
              dtype: str = "float64", device: str = "cpu", series: int = 0,
-             length: int = 0, noise: float = 0.0) -> tuple[dict, Backend]:
+             length: int = 0, noise: float = 0.0, phases: tuple = ()) -> tuple[dict, Backend]:
     """{phase name: fn(n) training n epochs of `runs` networks} and the backend they train on
     (`moex.kernels.Backend`); `series` and `length` (0: the task's) shrink the data; `noise`:
-    phase 2's input noise variance (`train.gating.input_noise_var`)."""
+    phase 2's input noise variance (`train.gating.input_noise_var`, named in the phase's name);
+    `phases`: only the phases whose names contain one of these (all where empty)."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
     # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
     torch.set_num_threads(1 if chosen.name == "cpu" else threads)
@@ -186,17 +187,17 @@ def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_si
         train_gating(gating, targets.to(dtype), inputs, cfg.model, cfg.train.gating, rule=cfg.train,
                      backend=chosen)
 
-    out["phase 2, adaptive rate"] = phase2
-    return out, chosen
+    out["phase 2, adaptive rate" + (f", input noise {noise:g}" if noise else "")] = phase2
+    return {k: fn for k, fn in out.items() if not phases or any(p in k for p in phases)}, chosen
 
 
 def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repeats: int,
           context_size: int, dtype: str, device: str = "cpu", series: int = 0,
-          length: int = 0, base: int = 5, noise: float = 0.0) -> list[dict]:
+          length: int = 0, base: int = 5, noise: float = 0.0, phases: tuple = ()) -> list[dict]:
     """Rows of ms per network-epoch (`trainers` for the arguments)."""
     fns, chosen = trainers(task, runs, backend, threads=threads, context_size=context_size,
                            dtype=dtype, device=device, series=series, length=length,
-                           noise=noise)
+                           noise=noise, phases=phases)
     results = []
     for name, fn in fns.items():
         wall, cpu = _time(fn, steps, repeats, base, chosen.device.startswith("cuda"),
@@ -226,11 +227,12 @@ def rounds(sides: list[tuple], steps: int, base: int, repeats: int) -> list[list
 
 
 def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
-                context_size: int, dtypes: list[str], base: int = 5, noise: float = 0.0) -> None:
+                context_size: int, dtypes: list[str], base: int = 5, noise: float = 0.0,
+                phases: tuple = ()) -> None:
     """Prints a row per phase: CPU ms per network-epoch in each of two precisions, medians of
     `repeats` rounds that time both in turn (`rounds`), and their ratio round by round."""
     fns = {d: trainers(task, runs, "cpu", threads=threads, context_size=context_size,
-                       dtype=d, noise=noise)[0] for d in dtypes}
+                       dtype=d, noise=noise, phases=phases)[0] for d in dtypes}
     for name in fns[dtypes[0]]:
         a, b = ([1e3 * cpu / runs for _, cpu in side] for side in rounds(
             [(lambda: None, fns[d][name]) for d in dtypes], steps, base, repeats))
@@ -240,12 +242,13 @@ def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
 
 
 def thread_pairs(task: str, runs: int, *, threads: list[int], steps: int, repeats: int,
-                 context_size: int, dtype: str, base: int = 5, noise: float = 0.0) -> None:
+                 context_size: int, dtype: str, base: int = 5, noise: float = 0.0,
+                 phases: tuple = ()) -> None:
     """Prints a row per phase: wall ms per network-epoch on each of two numbers of threads,
     medians of `repeats` rounds that time both in turn (`rounds`), the speed-up and the CPU time
     ratio round by round."""
     fns, _ = trainers(task, runs, "cpu", threads=max(threads), context_size=context_size,
-                      dtype=dtype, noise=noise)
+                      dtype=dtype, noise=noise, phases=phases)
     for name, fn in fns.items():
         one, two = rounds([(partial(numba.set_num_threads, t), fn) for t in threads], steps,
                           base, repeats)
@@ -273,6 +276,8 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--noise", type=float, default=0.0,
                         help="phase 2's input noise variance (train.gating.input_noise_var)")
+    parser.add_argument("--phases", nargs="+", default=[],
+                        help="only the phases whose names contain one of these (default: all)")
     parser.add_argument("--kernels", action="store_true",
                         help="then print each compiled Triton kernel's registers and spills")
     parser.add_argument("--paired", action="store_true",
@@ -292,7 +297,7 @@ def main():
         for runs, size in itertools.product(args.runs, args.context_sizes):
             thread_pairs(args.task, runs, threads=args.threads, steps=args.steps,
                          repeats=args.repeats, context_size=size, dtype=args.dtype[0],
-                         base=args.base, noise=args.noise)
+                         base=args.base, noise=args.noise, phases=tuple(args.phases))
         return
     if len(args.dtype) == 2:
         first, second = args.dtype
@@ -300,7 +305,8 @@ def main():
               f"{second} | {first} / {second} |\n|---|---|---|---|---|---|---|---|")
         for runs, threads, size in itertools.product(args.runs, args.threads, args.context_sizes):
             dtype_pairs(args.task, runs, threads=threads, steps=args.steps, repeats=args.repeats,
-                        context_size=size, dtypes=args.dtype, base=args.base, noise=args.noise)
+                        context_size=size, dtypes=args.dtype, base=args.base, noise=args.noise,
+                        phases=tuple(args.phases))
         return
     print("| task | phase | runs | backend | threads | NC | CPU ms per network-epoch | "
           "wall ms per network-epoch |")
@@ -312,7 +318,7 @@ def main():
                     bench(args.task, runs, backend, threads=threads, steps=args.steps,
                           repeats=args.repeats, context_size=size, dtype=args.dtype[0],
                           device=args.device, series=args.series, length=args.length,
-                          base=args.base, noise=args.noise)
+                          base=args.base, noise=args.noise, phases=tuple(args.phases))
     if args.kernels:
         print_kernels()
 

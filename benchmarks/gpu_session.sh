@@ -9,8 +9,9 @@
 #      trajectories: every test id that holds "gpu", the CPU-only smoke and AOT tests left out),
 #      in half as many pytest-xdist workers as the machine has cores;
 #   2. ms per network-epoch of both phases, backend=gpu, 90 networks (a Table 2 batch) and 900,
-#      float64 and float32, beside backend=cpu on all cores, with each kernel's registers/spills
-#      as compiled (to set beside benchmarks/gpu_aot.py's prediction, BENCHMARKS.md);
+#      float64 and float32, phase 2 with input noise drawn on the device (90), beside backend=cpu
+#      on all cores, with each kernel's registers/spills as compiled (to set beside
+#      benchmarks/gpu_aot.py's prediction, BENCHMARKS.md);
 #   3. warps per program and lanes per program (MOEX_GPU_WARPS, MOEX_GPU_LANE_BUDGET) swept at
 #      90 networks, then the adaptive rate's candidates per call (MOEX_GPU_TRIALS 1, 4, 8);
 #   4. the closed loop with one Lyapunov tangent, 90 networks x 50 samples, extrapolated to the
@@ -101,6 +102,7 @@ for name in REGISTRY:
       $(declare -f epochs); py=$py; here=$here; device=$device; size='$size'
       epochs --runs $runs $big --kernels
       epochs --runs $f32runs --dtype float32
+      epochs --runs $runs --noise 1e-3 --phases 'phase 2'
       $py $here/benchmarks/bench_epochs.py --backends cpu --runs $runs --threads $cores $size"
   section 3 "warps x lanes per program, then candidates per call (float64, $runs networks)" \
       $(lim 220) bash -c "

@@ -37,6 +37,8 @@ def test_gpu_session_script_smoke_runs_every_section(tmp_path):
         # number of adaptive-rate candidates per call
         assert len(re.findall(rf"\| {phase} \| 2 \| \w+ \| \d \| 15 \| {number} \| {number} \|",
                               log)) == 5, phase
+    noisy = r"\| phase 2, adaptive rate, input noise 0.001 \| 2 \| gpu \| 1 \| 15 \| "
+    assert len(re.findall(rf"{noisy}{number} \| {number} \|", log)) == 1  # on the device
     assert "adaptive-rate candidates per call 2:" in log
     assert len(re.findall(rf"\| 2 x 2 \| cpu \| \w+ \| \d \| {number} \| \d+ \|", log)) == 2
     assert "registers" in log and "(the paper's criterion) in" in log
