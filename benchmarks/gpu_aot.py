@@ -80,7 +80,8 @@ class Launch:
 
 def signature(kernel, args, kwargs) -> tuple[dict, dict]:
     """The ASTSource signature and constexprs of one launch's arguments (a Python int as i32
-    or i64 by its value, a float as fp32, as Triton's launcher types them)."""
+    or i64 by its value, the int 1 as the constant 1 unless the kernel says not to specialize
+    that argument, a float as fp32, as Triton's launcher types them)."""
     types, constexprs = {}, {}
     for i, param in enumerate(kernel.params):
         value = args[i] if i < len(args) else kwargs.get(param.name, param.default)
@@ -90,6 +91,8 @@ def signature(kernel, args, kwargs) -> tuple[dict, dict]:
             types[param.name] = TYPES[value.dtype]
         elif isinstance(value, bool):
             types[param.name] = "i1"
+        elif isinstance(value, int) and value == 1 and not param.do_not_specialize:
+            types[param.name], constexprs[param.name] = "constexpr", 1
         elif isinstance(value, int):
             types[param.name] = "i32" if -2**31 <= value < 2**31 else "i64"
         elif isinstance(value, float):
@@ -133,7 +136,7 @@ def config(overrides: list[str]):
 
 
 def record(size: str, evaluation: bool = True) -> list[Launch]:
-    """The launches of one phase-1 step at each rate, one phase-2 step and (`evaluation`) an
+    """The launches of one phase-1 step at each rate, two phase-2 steps and (`evaluation`) an
     evaluation."""
     from moex.closed_loop import CHUNK, closed_loop_lyapunov, generate, trained_state
     from moex.data import load_task
@@ -161,7 +164,9 @@ def record(size: str, evaluation: bool = True) -> list[Launch]:
         targets = phase2_targets(beta, data, cfg.num_runs, dtype,
                                  cfg.train.gating.target_temperature)
         gating = init_gating(cfg.model, S, D, gens, dtype)
-        cfg.train.gating.steps, cfg.train.gating.input_noise_var = 1, 1e-3  # noise drawn too
+        # two steps with input noise: its kernel launched at step 0 and step 1 (the int 1 is
+        # a constant to Triton's launcher: a kernel must compile with it)
+        cfg.train.gating.steps, cfg.train.gating.input_noise_var = 2, 1e-3
         gating, _ = train_gating(gating, targets, series[:, :targets.shape[2]], cfg.model,
                                  cfg.train.gating, rule=cfg.train, backend=backend)
         if not evaluation:

@@ -77,7 +77,7 @@ def _normal(key, i, COEF):
     return tl.where((h2 >> 63) != 0, -radius * trig, radius * trig)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["step"])  # (an int 1 would be a constant without `.to`)
 def noise_kernel(X, CLEAN, WORDS, SCALE, COEF, step, S, T, T_FULL, D, C, K, TILES,
                  BLOCK: tl.constexpr):
     """Program (r·S + s)·TILES + tile: X[r·S + s, t, K + d] = CLEAN[...] + σ·z_i for the tile's
