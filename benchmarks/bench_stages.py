@@ -1,7 +1,7 @@
 """Where a training step's wall time goes on the cpu backend, stage by stage, on one and on two
 threads: each call the stepper (`moex.kernels.cpu.step`) and the problems' `evaluate` make — the
 chunks or blocks the threads share (`threads.share`), the update's stages over the runs
-(`threads.over`, or one thread below `step.SPLIT`), the run sums and σ² on the calling thread —
+(`threads.over`, or one thread below `threads.SPLIT`), the run sums and σ² on the calling thread —
 timed from the calling thread, per training step (the marginal cost: `base + steps` epochs
 minus `base`), and what is left (the training loop's Python). Two-Lissajous sizes at --runs
 networks (`bench_epochs.trainers`).
@@ -22,7 +22,7 @@ from collections import Counter, defaultdict
 import numba
 from bench_epochs import _clock, trainers, warm_up
 
-from moex.kernels.cpu import phases, step, threads
+from moex.kernels.cpu import phases, threads
 
 _time: defaultdict = defaultdict(float)
 _calls: Counter = Counter()
@@ -57,7 +57,7 @@ def install() -> None:
     call the wrapper in its recursion)."""
     threads.over = _timed("over the threads", threads.over, True)
     threads.share = _timed("shared by the threads", threads.share, True)
-    step._one_thread = _timed("one thread", step._one_thread, True)
+    threads.one = _timed("one thread", threads.one, True)
     for name in ("_expert_items", "gating_items", "_variances"):
         setattr(phases, name, _timed("calling thread", getattr(phases, name), False))
 

@@ -91,7 +91,8 @@ def test_the_cpu_backend_adds_the_same_bits_in_its_lanes_on_any_number_of_thread
     import numba
 
     from moex.kernels.cpu.lanes import in_lanes
-    from moex.kernels.cpu.noise import SPLIT, noisy_inputs
+    from moex.kernels.cpu.noise import noisy_inputs
+    from moex.kernels.cpu.threads import SPLIT
 
     R, S, T_FULL, T, D, K = 7, 5, 1001, 1000, 2, 3  # 35 lanes: the last block part padding
     assert R * S * T * D >= SPLIT

@@ -18,7 +18,7 @@ from moex.config.train import (
     TrainConfig,
 )
 from moex.kernels import get_backend
-from moex.kernels.cpu import phases, step
+from moex.kernels.cpu import phases, step, threads
 from moex.kernels.cpu.lanes import Forwarded
 from moex.model import init_experts, init_gating
 from moex.train import train_experts, train_gating
@@ -245,7 +245,7 @@ def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
     threads give them too."""
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba has one thread here")
-    monkeypatch.setattr(step, "SPLIT", 0)
+    monkeypatch.setattr(threads, "SPLIT", 0)
     before = numba.get_num_threads()
     made, stepper = [], phases._Problem.stepper
 

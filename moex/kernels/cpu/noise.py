@@ -12,7 +12,6 @@ from moex.kernels.cpu import threads
 from moex.kernels.cpu.simd import typed
 from moex.kernels.noise import U64, normal, stream_keys
 
-SPLIT = 1 << 16  # noise entries from which the blocks go to the threads (a handoff: ~55 µs)
 # nogil for the threads; no fast-math flags (`nsz` could flip a zero's sign), as `update.JIT`
 JIT = dict(nogil=True, error_model="numpy", cache=True, no_cfunc_wrapper=True)
 
@@ -43,8 +42,5 @@ def noisy_inputs(inputs, clean, seeds: list[int], step: int, variance: float, *,
     """`inputs`' noise columns := `clean`'s + the input noise of training step `step`."""
     keys = stream_keys(seeds, step)
     entries = len(seeds) * S * inputs.shape[1] * (inputs.shape[2] - K)
-    args = (keys, math.sqrt(variance), clean, inputs, S, T_full, K)
-    if entries >= SPLIT:
-        threads.over(add_noise, inputs.shape[0], *args)
-    else:
-        add_noise(0, inputs.shape[0], *args)
+    threads.by_size(entries)(add_noise, inputs.shape[0], keys, math.sqrt(variance), clean,
+                             inputs, S, T_full, K)

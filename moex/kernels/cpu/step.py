@@ -26,10 +26,10 @@ trial's forward pass, objective and ∂/∂o from the lanes (the trial computes 
 
 On more than one thread the evaluation's chunks of series or blocks are shared out as in the
 separate calls (`threads.over`), and so are the update's runs, with the staging copies of their
-rows, where the (R, P) buffers (or the copies) hold at least `SPLIT` entries (phase 1's buffers at
-R = 30: nothing of their size is left to one thread); smaller ones are one call, cheaper than a
-handoff, and so is each trial's judgement (`after_trial`: flags per run, and the next point of the
-runs still pending).
+rows, where the (R, P) buffers (or the copies) hold at least `threads.SPLIT` entries (phase 1's
+buffers at R = 30: nothing of their size is left to one thread); smaller ones are one call, cheaper
+than a handoff, and so is each trial's judgement (`after_trial`: flags per run, and the next point
+of the runs still pending).
 
 The record of the lanes' forward pass (with `reuse`) is θ + Δθ's own buffer: a run is current
 while its lanes hold the forward pass of its row of `scratch`, which nothing rewrites while it is
@@ -113,10 +113,10 @@ class Stepper:
         # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
         # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs)
         self.evaluations = {
-            True: (copies[0], _split(_entries(copies[0])), kernel_args(staged[0], written, True,
-                                                                         active, stale)),
-            False: (copies[1], _split(_entries(copies[1])), kernel_args(staged[1], written, False,
-                                                                          pending, pending))}
+            True: (copies[0], threads.by_size(_entries(copies[0])),
+                   kernel_args(staged[0], written, True, active, stale)),
+            False: (copies[1], threads.by_size(_entries(copies[1])),
+                    kernel_args(staged[1], written, False, pending, pending))}
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
@@ -146,7 +146,7 @@ class Stepper:
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
-        self.over = _split(theta.size)
+        self.over = threads.by_size(theta.size)
         self.runs = R
 
     def _evaluate(self, want_grad: bool) -> None:
@@ -159,7 +159,7 @@ class Stepper:
         """One training step of every run; its statistics at θ in `statistics()` until the
         next."""
         over = self.over
-        _one_thread(*self.before)  # (two flags per run: less than a handoff)
+        threads.one(*self.before)  # (two flags per run: less than a handoff)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
         over(*self.after)
@@ -167,7 +167,7 @@ class Stepper:
             self._evaluate(False)
             # (the trial judged, flags per run, and the next point of the runs still pending:
             # rarely more than a few rows, less than a handoff)
-            _one_thread(*self.trial)
+            threads.one(*self.trial)
             if not np.count_nonzero(self.pending):
                 break
         if self.adaptive:  # the step taken, runs still rejected frozen
@@ -181,23 +181,8 @@ class Stepper:
         return {name: values[i] for i, name in enumerate(self.problem.STATS)}
 
 
-SPLIT = 1 << 16  # entries of the (R, P) buffers from which the update's stages go to the threads:
-# a handoff costs 40-60 µs (55-61 on the AMD EPYC VM, 12-07), a pass over 2^16 entries ~30-60 µs
-# (phase 1 at R = 30: 6 · 10^5)
-
-
-def _split(entries: int):
-    """How to run a stage that passes over `entries` numbers: over the threads from `SPLIT` on,
-    else on the calling thread."""
-    return threads.over if entries >= SPLIT else _one_thread
-
-
 def _entries(copies: list) -> int:
     return sum(source.size for source, _ in copies)
-
-
-def _one_thread(kernel, items: int, *args) -> None:
-    kernel(0, items, *args)
 
 
 def _rows(lo: int, hi: int, copies: list) -> None:

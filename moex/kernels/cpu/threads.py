@@ -58,6 +58,22 @@ def count() -> int:
     return _read()
 
 
+SPLIT = 1 << 16  # numbers a call passes over from which it goes to the threads (`by_size`): a
+# handoff costs 40-60 µs (55-61 on the AMD EPYC VM, 12-07), a pass over 2^16 entries ~30-60 µs
+# (phase 1's (R, P) buffers at R = 30: 6 · 10^5)
+
+
+def by_size(entries: int):
+    """How to run a call that passes over `entries` numbers: `over` the threads from `SPLIT` on,
+    else `one` (a handoff would cost more than the pass)."""
+    return over if entries >= SPLIT else one
+
+
+def one(kernel, items: int, *args) -> None:
+    """kernel(0, items, *args) on the calling thread."""
+    kernel(0, items, *args)
+
+
 def over(kernel, items: int | range, *args) -> None:
     """kernel(lo, hi, *args) for contiguous ranges that cover 0..items-1 (or the range `items`),
     one per thread."""
