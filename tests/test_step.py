@@ -35,9 +35,11 @@ def one_thread():
     numba.set_num_threads(before)
 
 
-def _train(dtype, adaptive, form, learn_tau, steps=6, rate=0.05, retries=1000, noise=0.01):
-    """Both phases of R runs (run 1's experts give NaN: it fails and is frozen); phase 1 at
-    `rate`, trials given up after `retries`; phase 2 with input noise of variance `noise`."""
+def _train(dtype, adaptive, form, learn_tau, steps=6, rate=0.05, retries=1000, noise=0.01,
+           S=S):
+    """Both phases of R runs of S series (run 1's experts give NaN: it fails and is frozen);
+    phase 1 at `rate`, trials given up after `retries`; phase 2 with input noise of variance
+    `noise`."""
     model = ModelConfig(num_experts=2, learn_time_constants=learn_tau)
     model.experts.context_size, model.gating.context_size = 3, 4
     g = torch.Generator().manual_seed(0)
@@ -264,6 +266,47 @@ def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
         _same(one, _train(dtype, True, "paper", True))
     finally:
         numba.set_num_threads(before)
+
+
+@pytest.mark.parametrize("adaptive", [True, False])
+def test_each_run_updated_in_the_gradient_call_gives_the_separate_calls_bits(monkeypatch,
+                                                                               adaptive):
+    """Phase 1's kernel makes each run's sums and its update (`update.after_gradient`) inside
+    the stepper's gradient call, in the thread that finishes the run's last chunk of series
+    (`phases._expert_items`' `left`). With 3 series a chunk of 4 holds series of two runs and a
+    run's series lie in two chunks; on two threads (the chunks claimed in any order) every run
+    is updated once per call, after all its chunks, and the training gives the bits of the
+    separate calls on one thread."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread here")
+    before, calls, made = numba.get_num_threads(), [], []
+    evaluate, stepper = phases.ExpertProblem.evaluate, phases._Problem.stepper
+
+    def watched(self, args):
+        evaluate(self, args)
+        calls.append(args[-2].copy())  # each run's chunks left after the call
+
+    def counted(self, *args, **kwargs):
+        made.append(stepper(self, *args, **kwargs))
+        return made[-1]
+
+    try:
+        numba.set_num_threads(1)
+        monkeypatch.setattr(phases._Problem, "stepper", lambda self, *a, **k: None)
+        separate = _train(torch.float64, adaptive, "paper", True, S=3)
+        numba.set_num_threads(2)
+        monkeypatch.setattr(phases._Problem, "stepper", counted)
+        monkeypatch.setattr(phases.ExpertProblem, "evaluate", watched)
+        _same(separate, _train(torch.float64, adaptive, "paper", True, S=3))
+    finally:
+        numba.set_num_threads(before)
+    assert made[0].fused and not made[1].fused  # phase 1 fused, phase 2 not
+    # the calls without a stepper take arguments of the same types: one compiled kernel
+    left, update = made[0].evaluations[True][2][-2:]
+    assert numba.typeof((left, update)) == numba.typeof(step.idle(made[0].problem))
+    assert list(made[0].problem.chunks_of_run) == [1, 2, 2]
+    fused = [left for left in calls if left.size]
+    assert len(fused) == 6 and all((left == 0).all() for left in fused)  # one per step
 
 
 @pytest.mark.slow

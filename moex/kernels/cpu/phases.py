@@ -39,8 +39,9 @@ from moex.kernels.cpu.simd import (
     width,
     zeros,
 )
-from moex.kernels.cpu.step import Stepper
-from moex.kernels.cpu.threads import claim
+from moex.kernels.cpu.step import Stepper, idle
+from moex.kernels.cpu.threads import claim, done
+from moex.kernels.cpu.update import after_gradient
 
 # phase 1: the experts and β (Eqs. 9-13)
 
@@ -258,7 +259,8 @@ _CHUNKS, _FORWARD, _MIXTURE, _BACKWARD, _RUNS = range(5)
 @njit(nogil=True, **JIT)
 def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_grads, grads,
                   g_u0, g_log_sigma, g_beta, X, targets, floor, prior_std, attraction, want_grad,
-                  active, stale, reuse, block_runs, chunk, out, sizes, queue):  # pragma: no cover
+                  active, stale, reuse, block_runs, chunk, out, sizes, queue, left,
+                  update):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-1 step (the items of a stage are independent);
     the forward pass only in blocks that hold a `stale` run (`Forwarded`). With `reuse` (the
     stepper's record of the lanes covers every parameter the mixture reads, β and log σ too) a
@@ -272,10 +274,17 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     its histories are in that thread's cache, the threads claiming chunks lo.. below hi one at a
     time from `queue` (`threads.share`) (a series' mixture reads only its own K lanes, and
     a block's backward pass only the ∂L/∂o of its own series); _RUNS follows once every chunk is
-    done. The forward stage leaves each block's outputs also by lane (`Y_lane`), where the
-    mixture reads them and writes ∂L/∂o (`DY_lane`), which the backward stage takes back into
-    the block's layout by whole tiles of vectors (read along a lane in the block's layout, every
-    element was a load of a line of its own: as slow in float32 as in float64)."""
+    done, or, where `left` (R,) counts each run's chunks still to go (the stepper's gradient
+    call), run by run in the thread that finishes the run's last chunk (`threads.done`), each
+    run's sums then its `update.after_gradient` (`update`: its arguments after lo, hi): no pass
+    over the (R, P) buffers after the call (memory-bound: a second thread gained little there),
+    and a run's update made while the other thread computes chunks. Each run's sums and update
+    are the same arithmetic on the same numbers either way.
+
+    The forward stage leaves each block's outputs also by lane (`Y_lane`), where the mixture reads
+    them and writes ∂L/∂o (`DY_lane`), which the backward stage takes back into the block's layout
+    by whole tiles of vectors (read along a lane in the block's layout, every element was a load
+    of a line of its own: as slow in float32 as in float64)."""
     C0, C, Y, U, S1, S2, DY, partial, var, Y_lane, DY_lane = work
     w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
@@ -291,7 +300,14 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                 _expert_items(i0, i1, stage_of_chunk, params, u0, log_sigma, beta, net, work,
                               lane_grads, grads, g_u0, g_log_sigma, g_beta, X, targets, floor,
                               prior_std, attraction, want_grad, active, stale, reuse, block_runs,
-                              chunk, out, sizes, queue)
+                              chunk, out, sizes, queue, left, update)
+            if left.shape[0] > 0:  # the runs whose last chunk this was: their sums and update
+                for r in range(first // S, (last - 1) // S + 1):
+                    if done(left, r) == 1:
+                        if active[r]:
+                            _run_sums(r, S, T, targets, net, work, lane_grads, params, grads,
+                                      g_u0, g_log_sigma, floor, attraction, want_grad, out)
+                        after_gradient(r, r + 1, *update)
             c = lo + claim(queue)
         return
     for i in range(lo, hi):
@@ -429,6 +445,7 @@ class _Problem:
     # (R > 1) and would be staged (phase 1's β: a copy in and out of 20 000 numbers per run)
     ROWS: tuple[str, ...] = ()
     trials = 1  # adaptive-rate candidates per call: one (an accepted trial's pass is reused)
+    FINISHES = False  # whether the kernel makes each run's update in the stepper's gradient call
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.outputs(grads), self.lanes
@@ -482,6 +499,7 @@ class ExpertProblem(_Problem):
     KERNEL = (_expert_items, "phase-1 kernel")
     AFTER_FORWARD = ("beta", "log_sigma")
     ROWS = ("beta",)
+    FINISHES = True
 
     def __init__(self, inputs, targets, model, phase, *, num_runs, device="cpu"):
         inputs, targets = to_host(inputs), to_host(targets)
@@ -511,6 +529,10 @@ class ExpertProblem(_Problem):
         self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",), LB)
         self._stepper_record = np.zeros(0, bool)
         self.queue = np.zeros(1, np.int64)  # the threads' next chunk (`threads.share`)
+        self.chunks_of_run = np.zeros(R, np.int64)  # the chunks that hold series of each run
+        for first in range(0, R * S, self.chunk):
+            self.chunks_of_run[first // S:(min(first + self.chunk, R * S) - 1) // S + 1] += 1
+        self.idle = idle(self)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
@@ -521,19 +543,26 @@ class ExpertProblem(_Problem):
         run's sums (one thread is enough)."""
         R, S, T, K = self.shape
         log_sigma, floor, prior_std = args[2], *args[13:15]  # (`kernel_args`' order)
+        left = args[-2]
         _variances(0, R, log_sigma, floor, prior_std, self.lanes.work[8])
+        if left.size:  # (the stepper's gradient: each run's sums and update in the main call)
+            np.copyto(left, self.chunks_of_run)
         threads.share(_expert_items, -(-R * S // self.chunk), self.queue, _CHUNKS, *args)
-        _expert_items(0, R, _RUNS, *args)
+        if not left.size:
+            _expert_items(0, R, _RUNS, *args)
 
-    def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
-        """`_expert_items`' arguments after its stage (`reuse`: the stepper's, see there)."""
+    def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False,
+                    finish=None) -> tuple:
+        """`_expert_items`' arguments after its stage (`reuse`, `finish` = (left, update): the
+        stepper's, see there; none: `idle`)."""
         lanes = self.lanes
         return (per_network(p, True), p["u0"], p["log_sigma"], rows_of(p["beta"]), lanes.net,
                 tuple(lanes.work), lanes.lane_grads, per_network(g, True), g["u0"],
                 g["log_sigma"], rows_of(g["beta"]), self.inputs, self.targets,
                 float(self.model.sigma_min) ** 2, float(self.phase.gate_prior_std),
                 bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
-                lanes.block_runs, self.chunk, lanes.out, lanes.sizes, self.queue)
+                lanes.block_runs, self.chunk, lanes.out, lanes.sizes, self.queue,
+                *(finish or self.idle))
 
     def resample(self, step: int) -> None:
         pass

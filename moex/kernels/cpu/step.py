@@ -12,8 +12,9 @@ between them but the calls: the phase kernel per evaluation (`evaluate`) and the
 around it (`update.before_gradient`: the runs to compute; `after_gradient`: Δθ and the first trial's
 point θ + Δθ; `after_trial`: the trial judged and the next trial's point; `after_trials`: the step
 taken, and whose lanes still hold θ's forward pass), on whole rows of the flat buffer. Those run
-without fast-math flags: inside the fast-math phase kernel LLVM may drop their NaN and infinity
-checks, which decide whether a run failed. The statistics stay in an array until the loop reads them
+without fast-math flags (said outright: a function called from the fast-math phase kernel would
+inherit its flags), which would let LLVM drop their NaN and infinity checks, which decide whether
+a run failed. The statistics stay in an array until the loop reads them
 (`statistics`, where it logs). Each NumPy or PyTorch operation between the calls had cost 5-60 µs
 there (line_profiler), 10-50 times its time in a loop of its own (timeit): after a kernel that has
 filled the caches with its lanes, the interpreter's code and data come back from memory (the likely
@@ -24,12 +25,19 @@ A gradient step right after an accepted adaptive trial is at the trial's point: 
 trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
 1's mixture is a quarter of a step) and runs only BPTT and the sums.
 
+Phase 1's kernel makes `after_gradient` itself, run by run inside the gradient's call: the thread
+that finishes a run's last chunk of series makes the run's sums and its update (`FINISHES`,
+`phases._expert_items`' `left`), so that no pass over the (R, P) buffers follows the call, and a
+thread with no chunk left updates runs while the other ends its own. On two threads at R = 30 a
+step had spent 0.9-1.4 ms in the sums and in `after_gradient`'s passes over the buffers, which are
+bound by memory bandwidth and gained little from a second thread (BENCHMARKS.md).
+
 On more than one thread the evaluation's chunks of series or blocks are shared out as in the
-separate calls (`threads.over`), and so are the update's runs, with the staging copies of their
-rows, where the (R, P) buffers (or the copies) hold at least `threads.SPLIT` entries (phase 1's
-buffers at R = 30: nothing of their size is left to one thread); smaller ones are one call, cheaper
-than a handoff, and so is each trial's judgement (`after_trial`: flags per run, and the next point
-of the runs still pending).
+separate calls (`threads.share`), and so are the update's other stages' runs, with the staging
+copies of their rows, where the (R, P) buffers (or the copies) hold at least `threads.SPLIT` entries
+(phase 1's buffers at R = 30: nothing of their size is left to one thread); smaller ones are one
+call, cheaper than a handoff, and so is each trial's judgement (`after_trial`: flags per run, and
+the next point of the runs still pending).
 
 The record of the lanes' forward pass (with `reuse`) is θ + Δθ's own buffer: a run is current
 while its lanes hold the forward pass of its row of `scratch`, which nothing rewrites while it is
@@ -102,21 +110,20 @@ class Stepper:
                            if k not in rows and not np.shares_memory(staged[-1][k], flat)])
         grads = {k: v for k, v in views(grad).items() if k not in rows}
         written = {**problem.staging.outputs(grads), **{k: (grad, columns[k][0]) for k in rows}}
-        copy_out = [(written[k], grads[k]) for k in grads if written[k] is not grads[k]]
+        # the gradients the kernel writes into staging arrays (groups whose views of `grad` are
+        # strided, R > 1), copied into `grad` by `after_gradient`: their (R, n) arrays and first
+        # columns, one entry per staged group (the unused empty), so that the phase kernel that
+        # calls it compiles once whichever groups are learned
+        sources = [(written[k].reshape(R, -1), columns[k][0]) for k in grads
+                   if written[k] is not grads[k]]
+        sources += [(np.zeros((R, 0), dtype), 0)] * (len(problem.staging.grads) - len(sources))
         active, stale, pending = np.zeros((3, R), bool)
         forwarded = problem.forwarded
         # with the record, a gradient step after an accepted trial reuses the trial's forward
         # pass, objective and ∂/∂o (the trial computes them); the record compares the columns
         # that all of those read (phase 1's β among them: most of a row)
         reuse = forwarded.enabled
-        kernel_args = partial(problem.kernel_args, reuse=reuse)
-        # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
-        # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs)
-        self.evaluations = {
-            True: (copies[0], threads.by_size(_entries(copies[0])),
-                   kernel_args(staged[0], written, True, active, stale)),
-            False: (copies[1], threads.by_size(_entries(copies[1])),
-                    kernel_args(staged[1], written, False, pending, pending))}
+        kernel_args = trial_args = partial(problem.kernel_args, reuse=reuse)
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
@@ -133,9 +140,10 @@ class Stepper:
         c = problem.STATS.index(criterion)
         # each stage's compiled function and its arguments after (lo, hi), bound once
         self.before = (before_gradient, R, current, failed, active, stale)
-        after = partial(_after_gradient, copies=copy_out) if copy_out else after_gradient
-        self.after = (after, R, self.stats, lanes.out, current, theta, grad, velocity,
-                      delta, scratch, rate, lr_scale, failed, pending, retries, *rule)
+        update = (tuple(a for a, _ in sources), np.array([c for _, c in sources], np.int64),
+                  self.stats, lanes.out, current, theta, grad, velocity, delta, scratch, rate,
+                  lr_scale, failed, pending, retries, *rule)
+        self.after = (after_gradient, R, *update)
         self.trial = (after_trial, R, trial_bits, current,
                       lanes.block_runs, forwarded.first_block, forwarded.last_block,
                       reuse, theta, delta, scratch, lanes.out[c], self.stats[c], pending,
@@ -143,6 +151,21 @@ class Stepper:
                       dtype.type(max_ratio))
         self.finish = (after_trials, R, theta, delta, velocity, pending, failed, current,
                        rule[1], *rule[4:])
+        # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
+        # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs). Phase 1's
+        # kernel makes each run's sums and `after_gradient` inside the gradient's call, in the
+        # thread that finishes the run's last chunk (`left`: each run's chunks still to go)
+        self.fused = problem.FINISHES
+        if self.fused:
+            # its calls without the update (the trials', the separate calls') take arguments of
+            # the same types, so that one compiled kernel serves all (`left` empty: none read)
+            problem.idle = (np.zeros(0, np.int64), update)
+            kernel_args = partial(kernel_args, finish=(np.zeros(R, np.int64), update))
+        self.evaluations = {
+            True: (copies[0], threads.by_size(_entries(copies[0])),
+                   kernel_args(staged[0], written, True, active, stale)),
+            False: (copies[1], threads.by_size(_entries(copies[1])),
+                    trial_args(staged[1], written, False, pending, pending))}
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
@@ -162,7 +185,8 @@ class Stepper:
         threads.one(*self.before)  # (two flags per run: less than a handoff)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
-        over(*self.after)
+        if not self.fused:
+            over(*self.after)
         for _ in range(self.trials):
             self._evaluate(False)
             # (the trial judged, flags per run, and the next point of the runs still pending:
@@ -192,8 +216,15 @@ def _rows(lo: int, hi: int, copies: list) -> None:
         np.copyto(destination[lo:hi], source[lo:hi])
 
 
-def _after_gradient(lo: int, hi: int, *args, copies: list) -> None:
-    """Runs lo..hi-1: the gradients the kernel wrote copied out to the loop's buffer where they
-    differ (`copies`), then `after_gradient`."""
-    _rows(lo, hi, copies)
-    after_gradient(lo, hi, *args)
+def idle(problem) -> tuple:
+    """A phase kernel's `finish` for its calls before any stepper: no run's update (`left`
+    empty: nothing of it is read), in arguments of the types a paper-form stepper binds, so
+    that one compiled kernel serves both."""
+    R, dtype = problem.lanes.out.shape[1], problem.lanes.out.dtype
+    rows, flags = np.zeros((R, 0), dtype), np.zeros(R, bool)
+    groups = len(problem.staging.grads)
+    return np.zeros(0, np.int64), (
+        (rows,) * groups, np.zeros(groups, np.int64), np.zeros_like(problem.lanes.out),
+        problem.lanes.out, flags, rows, rows, None, rows, rows, np.zeros(0, dtype), np.zeros(R),
+        flags, flags, np.zeros(R, np.int64), dtype.type(0), True, True, 0, 0, 0)
+

@@ -104,6 +104,20 @@ def claim(typingctx, queue):
     return types.int64(queue), codegen
 
 
+@intrinsic
+def done(typingctx, counts, index):
+    """counts[index] before subtracting 1 from it, atomically, with acquire-release ordering:
+    the thread that takes a count from 1 to 0 sees every write the others made before theirs
+    (counts: a C-contiguous int64 array)."""
+    def codegen(context, builder, signature, arguments):
+        array = context.make_array(signature.args[0])(context, builder, arguments[0])
+        pointer = builder.gep(array.data, [arguments[1]])
+        one = context.get_constant(types.int64, 1)
+        return builder.atomic_rmw("sub", pointer, one, "acq_rel")
+
+    return types.int64(counts, index), codegen
+
+
 def _run(kernel, ranges: list, args: tuple) -> None:
     """kernel(lo, hi, *args) for each (lo, hi) of `ranges`, one per thread, the calling thread
     taking the first (alone, without the pool, where there is one)."""

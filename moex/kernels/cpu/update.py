@@ -12,7 +12,11 @@ from numba import njit
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import record_runs, to_host
 
-JIT = dict(nogil=True, error_model="numpy", cache=True, no_cfunc_wrapper=True)
+JIT = dict(nogil=True, fastmath=False, error_model="numpy", cache=True, no_cfunc_wrapper=True)
+# fastmath=False said outright: a function compiled without the option inherits its caller's,
+# and phase 1's kernel (fast-math: `simd.FASTMATH`) calls `after_gradient` for each run
+# (`phases._expert_items`): inherited, `nnan`/`ninf` made its finiteness checks pass a NaN (a
+# scratch test, numba 0.68: and the Python-called function then gave the same wrong answer)
 # The helpers the stage functions call (`_finite`, `_steps`, `_trials`, `_trial_point`, and
 # `lanes.record_runs`) are inlined by numba into their callers (each still callable
 # from Python): a function of its own costs a first run a compile pipeline of its own (wrappers,
@@ -134,13 +138,18 @@ def before_gradient(lo, hi, current, failed, active, stale):
 
 
 @njit(**JIT)
-def after_gradient(lo, hi, stats, out, current, theta, grad, velocity, delta, scratch, rate,
-                   lr_scale, failed, pending, retries, momentum, paper_form, adaptive,
-                   max_retries, tau_start, tau_end):
-    """Runs lo..hi-1: the statistics at θ kept, the step Δθ (taken at a fixed rate); with the
-    adaptive rate every run not failed pending, and where max_retries > 0 its first trial's
-    point θ + Δθ in `scratch` and its retries 0."""
+def after_gradient(lo, hi, sources, columns, stats, out, current, theta, grad, velocity, delta,
+                   scratch, rate, lr_scale, failed, pending, retries, momentum, paper_form,
+                   adaptive, max_retries, tau_start, tau_end):
+    """Runs lo..hi-1: the gradients the kernel wrote elsewhere copied into `grad` (each (R, n)
+    array of `sources` into the columns from its `columns` entry on), the statistics at θ kept,
+    the step Δθ (taken at a fixed rate); with the adaptive rate every run not failed pending,
+    and where max_retries > 0 its first trial's point θ + Δθ in `scratch` and its retries 0."""
     for r in range(lo, hi):  # (loops written out: array expressions took a first run seconds)
+        for g in range(len(sources)):
+            row, first = sources[g][r], columns[g]
+            for j in range(row.shape[0]):
+                grad[r, first + j] = row[j]
         for i in range(stats.shape[0]):
             stats[i, r] = out[i, r]
         current[r] = False  # the step changes θ: no lane holds its forward pass
