@@ -540,7 +540,8 @@ class ExpertProblem(_Problem):
     def evaluate(self, args: tuple) -> None:
         """One phase-1 step of every active run (`kernel_args`): σ² of every run, the chunks of
         series taken by the threads one at a time (`_expert_items`, `threads.share`), then every
-        run's sums (one thread is enough)."""
+        run's sums (one thread is enough), or with the stepper's `left` each run's sums and
+        update in the call, after the run's last chunk."""
         R, S, T, K = self.shape
         log_sigma, floor, prior_std = args[2], *args[13:15]  # (`kernel_args`' order)
         left = args[-2]
