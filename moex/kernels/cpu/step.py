@@ -28,7 +28,7 @@ trial's forward pass, objective and ∂/∂o from the lanes (the trial computes 
 Phase 1's kernel makes `after_gradient` itself, run by run inside the gradient's call: the thread
 that finishes a run's last chunk of series makes the run's sums and its update (`FINISHES`,
 `phases._expert_items`' `left`), so that no pass over the (R, P) buffers follows the call, and a
-thread with no chunk left updates runs while the other ends its own. On two threads at R = 30 a
+run is updated while the other thread still computes chunks. On two threads at R = 30 a
 step had spent 0.9-1.4 ms in the sums and in `after_gradient`'s passes over the buffers, which are
 bound by memory bandwidth and gained little from a second thread (BENCHMARKS.md).
 
@@ -111,19 +111,16 @@ class Stepper:
         grads = {k: v for k, v in views(grad).items() if k not in rows}
         written = {**problem.staging.outputs(grads), **{k: (grad, columns[k][0]) for k in rows}}
         # the gradients the kernel writes into staging arrays (groups whose views of `grad` are
-        # strided, R > 1), copied into `grad` by `after_gradient`: their (R, n) arrays and first
-        # columns, one entry per staged group (the unused empty), so that the phase kernel that
-        # calls it compiles once whichever groups are learned
+        # strided, R > 1), which `after_gradient` copies into `grad`
         sources = [(written[k].reshape(R, -1), columns[k][0]) for k in grads
                    if written[k] is not grads[k]]
-        sources += [(np.zeros((R, 0), dtype), 0)] * (len(problem.staging.grads) - len(sources))
         active, stale, pending = np.zeros((3, R), bool)
         forwarded = problem.forwarded
         # with the record, a gradient step after an accepted trial reuses the trial's forward
         # pass, objective and ∂/∂o (the trial computes them); the record compares the columns
         # that all of those read (phase 1's β among them: most of a row)
         reuse = forwarded.enabled
-        kernel_args = trial_args = partial(problem.kernel_args, reuse=reuse)
+        kernel_args = partial(problem.kernel_args, reuse=reuse)
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
@@ -140,9 +137,10 @@ class Stepper:
         c = problem.STATS.index(criterion)
         # each stage's compiled function and its arguments after (lo, hi), bound once
         self.before = (before_gradient, R, current, failed, active, stale)
-        update = (tuple(a for a, _ in sources), np.array([c for _, c in sources], np.int64),
-                  self.stats, lanes.out, current, theta, grad, velocity, delta, scratch, rate,
-                  lr_scale, failed, pending, retries, *rule)
+        update = _update(problem, sources, stats=self.stats, current=current, theta=theta,
+                         grad=grad, velocity=velocity, delta=delta, scratch=scratch, rate=rate,
+                         lr_scale=lr_scale, failed=failed, pending=pending, retries=retries,
+                         rule=rule)
         self.after = (after_gradient, R, *update)
         self.trial = (after_trial, R, trial_bits, current,
                       lanes.block_runs, forwarded.first_block, forwarded.last_block,
@@ -156,16 +154,17 @@ class Stepper:
         # kernel makes each run's sums and `after_gradient` inside the gradient's call, in the
         # thread that finishes the run's last chunk (`left`: each run's chunks still to go)
         self.fused = problem.FINISHES
+        gradient_args = kernel_args
         if self.fused:
             # its calls without the update (the trials', the separate calls') take arguments of
             # the same types, so that one compiled kernel serves all (`left` empty: none read)
             problem.idle = (np.zeros(0, np.int64), update)
-            kernel_args = partial(kernel_args, finish=(np.zeros(R, np.int64), update))
+            gradient_args = partial(kernel_args, finish=(np.zeros(R, np.int64), update))
         self.evaluations = {
             True: (copies[0], threads.by_size(_entries(copies[0])),
-                   kernel_args(staged[0], written, True, active, stale)),
+                   gradient_args(staged[0], written, True, active, stale)),
             False: (copies[1], threads.by_size(_entries(copies[1])),
-                    trial_args(staged[1], written, False, pending, pending))}
+                    kernel_args(staged[1], written, False, pending, pending))}
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
@@ -216,15 +215,29 @@ def _rows(lo: int, hi: int, copies: list) -> None:
         np.copyto(destination[lo:hi], source[lo:hi])
 
 
+def _update(problem, sources: list, *, stats, current, theta, grad, velocity, delta, scratch,
+            rate, lr_scale, failed, pending, retries, rule: tuple) -> tuple:
+    """`update.after_gradient`'s arguments after (lo, hi), `sources` ((R, n) array, first
+    column of `grad`) padded with empty ones to one per staged group of `problem`: the same
+    types whichever groups are learned, so that the phase kernel that calls it compiles once."""
+    R, dtype = theta.shape[0], theta.dtype
+    sources = sources + [(np.zeros((R, 0), dtype), 0)] * (len(problem.staging.grads)
+                                                          - len(sources))
+    return (tuple(a for a, _ in sources), np.array([c for _, c in sources], np.int64), stats,
+            problem.lanes.out, current, theta, grad, velocity, delta, scratch, rate, lr_scale,
+            failed, pending, retries, *rule)
+
+
 def idle(problem) -> tuple:
     """A phase kernel's `finish` for its calls before any stepper: no run's update (`left`
-    empty: nothing of it is read), in arguments of the types a paper-form stepper binds, so
-    that one compiled kernel serves both."""
-    R, dtype = problem.lanes.out.shape[1], problem.lanes.out.dtype
+    empty: nothing of it is read), in arguments of the types a paper-form stepper binds
+    (`_update`'s, velocity None), so that one compiled kernel serves both."""
+    out = problem.lanes.out
+    R, dtype = out.shape[1], out.dtype
     rows, flags = np.zeros((R, 0), dtype), np.zeros(R, bool)
-    groups = len(problem.staging.grads)
-    return np.zeros(0, np.int64), (
-        (rows,) * groups, np.zeros(groups, np.int64), np.zeros_like(problem.lanes.out),
-        problem.lanes.out, flags, rows, rows, None, rows, rows, np.zeros(0, dtype), np.zeros(R),
-        flags, flags, np.zeros(R, np.int64), dtype.type(0), True, True, 0, 0, 0)
+    return np.zeros(0, np.int64), _update(
+        problem, [], stats=np.zeros_like(out), current=flags, theta=rows, grad=rows,
+        velocity=None, delta=rows, scratch=rows, rate=np.zeros(0, dtype), lr_scale=np.zeros(R),
+        failed=flags, pending=flags, retries=np.zeros(R, np.int64),
+        rule=(dtype.type(0), True, True, 0, 0, 0))
 
