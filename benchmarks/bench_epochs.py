@@ -21,8 +21,14 @@ shared VM; a pair's two sides see the same minute.
 
 With two --threads and --paired (cpu): the same, for one set of trainers run on each number of
 threads in turn (`numba.set_num_threads` between the runs): wall ms per network-epoch on each, the
-speed-up (the first's wall time over the second's) as median (min-max), and the second's CPU time
-over the first's (what the threads cost in all).
+speed-up (the first's wall time over the second's) as median (min-max), the second's CPU time
+over the first's (what the threads cost in all), and the machine's own two-thread ceiling, probed
+before and after each round (`bench_peak.two_threads`: vector FMA chains on two threads at once
+against one; 2.00x where each thread has a core of its own), and the speed-up's median over the
+rounds whose ceiling (the lesser probe) is at least `CALM`. On a shared VM the ceiling moves with
+the host: on the 2-vCPU AMD EPYC VM it read 1.00x for seconds at a time (both vCPUs on one host
+core's two hardware threads, by the look of it: no steal time), 1.4-1.9x at others; a round in
+such a minute shows the host, not the kernels' scaling.
 
     python benchmarks/bench_epochs.py --runs 30 --threads 1 2 --paired --steps 40 --repeats 6
 """
@@ -37,6 +43,7 @@ from functools import partial
 
 import numba
 import torch
+from bench_peak import two_threads  # (benchmarks/ is the script's folder)
 
 from moex.config import Config
 from moex.data import load_task
@@ -210,20 +217,26 @@ def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repea
     return results
 
 
-def rounds(sides: list[tuple], steps: int, base: int, repeats: int) -> list[list[tuple]]:
+CALM = 1.9  # the machine's own two-thread ceiling from which a round shows the kernels' scaling
+
+
+def rounds(sides: list[tuple], steps: int, base: int, repeats: int, probe=lambda: None
+           ) -> tuple[list[list[tuple]], list]:
     """Per side (prepare, fn): `repeats` pairs (`marginal`: wall, cpu seconds per epoch) of
     fn(n) (n epochs), prepare() called before each, all sides warmed up first and then timed in
-    turn, round by round, the order alternating."""
+    turn, round by round, the order alternating; and probe() before each round and after the last
+(`repeats + 1` results)."""
     for prepare, fn in sides:
         prepare()
         warm_up(fn, steps, base)
-    times = [[] for _ in sides]
+    times, probed = [[] for _ in sides], []
     for round_ in range(repeats):
+        probed.append(probe())
         for i in range(len(sides))[::-1 if round_ % 2 else 1]:
             prepare, fn = sides[i]
             prepare()
             times[i].append(marginal(fn, steps, base))
-    return times
+    return times, probed + [probe()]
 
 
 def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
@@ -235,7 +248,7 @@ def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
                        dtype=d, noise=noise, phases=phases)[0] for d in dtypes}
     for name in fns[dtypes[0]]:
         a, b = ([1e3 * cpu / runs for _, cpu in side] for side in rounds(
-            [(lambda: None, fns[d][name]) for d in dtypes], steps, base, repeats))
+            [(lambda: None, fns[d][name]) for d in dtypes], steps, base, repeats)[0])
         print(f"| {task} | {name} | {runs} | {threads} | {context_size} | "
               f"{statistics.median(a):.2f} | {statistics.median(b):.2f} | {ratios(a, b)} |",
               flush=True)
@@ -246,16 +259,23 @@ def thread_pairs(task: str, runs: int, *, threads: list[int], steps: int, repeat
                  phases: tuple = ()) -> None:
     """Prints a row per phase: wall ms per network-epoch on each of two numbers of threads,
     medians of `repeats` rounds that time both in turn (`rounds`), the speed-up and the CPU time
-    ratio round by round."""
+    ratio round by round; the machine's own two-thread ceiling in each round, the lesser of
+    `bench_peak.two_threads` (FMA chains on two threads over one) before and after it; and the
+    speed-up's median over the rounds whose ceiling is at least `CALM` (n of them)."""
     fns, _ = trainers(task, runs, "cpu", threads=max(threads), context_size=context_size,
                       dtype=dtype, noise=noise, phases=phases)
     for name, fn in fns.items():
-        one, two = rounds([(partial(numba.set_num_threads, t), fn) for t in threads], steps,
-                          base, repeats)
+        (one, two), probed = rounds([(partial(numba.set_num_threads, t), fn) for t in threads],
+                                    steps, base, repeats, probe=two_threads)
         wall = [[1e3 * w / runs for w, _ in side] for side in (one, two)]
+        machine = [min(pair) for pair in itertools.pairwise(probed)]
+        calm = [a / b for a, b, c in zip(*wall, machine, strict=True) if c >= CALM]
         print(f"| {task} | {name} | {runs} | {context_size} | {statistics.median(wall[0]):.2f} | "
               f"{statistics.median(wall[1]):.2f} | {ratios(*wall, unit='x')} | "
-              f"{ratios([c for _, c in two], [c for _, c in one])} |", flush=True)
+              f"{ratios([c for _, c in two], [c for _, c in one])} | "
+              f"{ratios(machine, [1.0] * len(machine), unit='x')} | "
+              + (f"{statistics.median(calm):.2f}x ({len(calm)}) |" if calm else "none (0) |"),
+              flush=True)
 
 
 def main():
@@ -292,8 +312,9 @@ def main():
     if args.paired:
         first, second = args.threads
         print(f"| task | phase | runs | NC | wall ms per network-epoch, {first} thread(s) | "
-              f"{second} thread(s) | speed-up | CPU time, {second} / {first} |\n"
-              "|---|---|---|---|---|---|---|---|")
+              f"{second} thread(s) | speed-up | CPU time, {second} / {first} | machine's own "
+              f"{second} / {first} | speed-up where the machine's ≥ {CALM:.2f}x (rounds) |\n"
+              "|---|---|---|---|---|---|---|---|---|---|")
         for runs, size in itertools.product(args.runs, args.context_sizes):
             thread_pairs(args.task, runs, threads=args.threads, steps=args.steps,
                          repeats=args.repeats, context_size=size, dtype=args.dtype[0],
