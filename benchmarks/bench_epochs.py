@@ -19,18 +19,19 @@ turn, --repeats rounds, each round a pair (`marginal`, CPU time) and a ratio: th
 ratio's median (min-max). Separate processes' best times swung by a fifth within minutes on a
 shared VM; a pair's two sides see the same minute.
 
-With two --threads and --paired (cpu): the same, for one set of trainers run on each number of
-threads in turn (`numba.set_num_threads` between the runs): wall ms per network-epoch on each, the
-speed-up (the first's wall time over the second's) as median (min-max) and as the ratio of the
-two sides' best rounds, the second's CPU time over the first's (what the threads cost in all),
-and the machine's own two-thread ceiling, probed before and after each round
-(`bench_peak.two_threads`: vector FMA chains on two threads at once against one; 2.00x where each
-thread has a core of its own). On a shared VM the ceiling moves with the host: on the 2-vCPU AMD
-EPYC VM it read 1.00x for seconds at a time (both vCPUs on one host core's two hardware threads,
-by the look of it: no steal time), 1.4-1.9x at others, and a round's two sides then swing by a
-fifth or more. Contention only adds time, so each side's best round is the nearest to its
-uncontended time; the two-thread side needs both vCPUs free at once and reaches it less often, so
-the best rounds' ratio errs low.
+With --threads 1 N and --paired (cpu): the same, for one set of trainers run on one thread and on N
+in turn (`numba.set_num_threads` between the runs): wall ms per network-epoch on each, the
+speed-up (one thread's wall time over N's) as median (min-max) and as the ratio of the two sides'
+best rounds, and N threads' CPU time over one's (what the threads cost in all). And a control
+timed in the same rounds: the same networks as N separate trainings (R / N runs each, one thread
+each) all at once, which share nothing but the machine: their speed-up over one thread is what
+this machine gives N threads of this work at that minute, and N threads' speed-up over theirs
+shows what the kernels' threads lose to each other (the handoffs, the chunks' balance, the
+stages on one thread). On the 2-vCPU AMD EPYC VM the machine's own two-thread rate moved from
+1.0x to 2.0x within minutes (`bench_peak.py`'s last line: FMA chains on two threads at once), and
+a round's two sides then swung by a fifth or more. Contention only adds time, so each side's best
+round is the nearest to its uncontended time; the N-thread side needs every vCPU free at once
+and reaches it less often, so the best rounds' ratio errs low.
 
     python benchmarks/bench_epochs.py --runs 30 --threads 1 2 --paired --steps 40 --repeats 6
 """
@@ -41,11 +42,11 @@ import itertools
 import os
 import statistics
 import time
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import numba
 import torch
-from bench_peak import two_threads  # (benchmarks/ is the script's folder)
 
 from moex.config import Config
 from moex.data import load_task
@@ -219,23 +220,20 @@ def bench(task: str, runs: int, backend: str, *, threads: int, steps: int, repea
     return results
 
 
-def rounds(sides: list[tuple], steps: int, base: int, repeats: int, probe=lambda: None
-           ) -> tuple[list[list[tuple]], list]:
+def rounds(sides: list[tuple], steps: int, base: int, repeats: int) -> list[list[tuple]]:
     """Per side (prepare, fn): `repeats` pairs (`marginal`: wall, cpu seconds per epoch) of
     fn(n) (n epochs), prepare() called before each, all sides warmed up first and then timed in
-    turn, round by round, the order alternating; and probe() before each round and after the last
-(`repeats + 1` results)."""
+    turn, round by round, the order alternating."""
     for prepare, fn in sides:
         prepare()
         warm_up(fn, steps, base)
-    times, probed = [[] for _ in sides], []
+    times = [[] for _ in sides]
     for round_ in range(repeats):
-        probed.append(probe())
         for i in range(len(sides))[::-1 if round_ % 2 else 1]:
             prepare, fn = sides[i]
             prepare()
             times[i].append(marginal(fn, steps, base))
-    return times, probed + [probe()]
+    return times
 
 
 def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
@@ -247,32 +245,49 @@ def dtype_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
                        dtype=d, noise=noise, phases=phases)[0] for d in dtypes}
     for name in fns[dtypes[0]]:
         a, b = ([1e3 * cpu / runs for _, cpu in side] for side in rounds(
-            [(lambda: None, fns[d][name]) for d in dtypes], steps, base, repeats)[0])
+            [(lambda: None, fns[d][name]) for d in dtypes], steps, base, repeats))
         print(f"| {task} | {name} | {runs} | {threads} | {context_size} | "
               f"{statistics.median(a):.2f} | {statistics.median(b):.2f} | {ratios(a, b)} |",
               flush=True)
 
 
-def thread_pairs(task: str, runs: int, *, threads: list[int], steps: int, repeats: int,
+def thread_pairs(task: str, runs: int, *, threads: int, steps: int, repeats: int,
                  context_size: int, dtype: str, base: int = 5, noise: float = 0.0,
                  phases: tuple = ()) -> None:
-    """Prints a row per phase: wall ms per network-epoch on each of two numbers of threads,
-    medians of `repeats` rounds that time both in turn (`rounds`), the speed-up and the CPU time
-    ratio round by round; the speed-up of the best rounds (the fastest of each side's); and the
-    machine's own two-thread ceiling in each round, the lesser of `bench_peak.two_threads` (FMA
-    chains on two threads over one) before and after it."""
-    fns, _ = trainers(task, runs, "cpu", threads=max(threads), context_size=context_size,
+    """Prints a row per phase: wall ms per network-epoch on one thread and on `threads`, medians
+    of `repeats` rounds that time each side in turn (`rounds`); the speed-up and the CPU time ratio
+    round by round, and the speed-up of the two sides' best rounds; and the control: the same
+    `runs` networks as `threads` separate trainings of a part of the runs each, one thread each,
+    all at once (`at_once`): their speed-up over one thread, and the threads' speed-up over
+    theirs, round by round."""
+    parts = [trainers(task, runs * (i + 1) // threads - runs * i // threads, "cpu", threads=1,
+                      context_size=context_size, dtype=dtype, noise=noise, phases=phases)[0]
+             for i in range(threads)]
+    fns, _ = trainers(task, runs, "cpu", threads=threads, context_size=context_size,
                       dtype=dtype, noise=noise, phases=phases)
-    for name, fn in fns.items():
-        (one, two), probed = rounds([(partial(numba.set_num_threads, t), fn) for t in threads],
-                                    steps, base, repeats, probe=two_threads)
-        wall = [[1e3 * w / runs for w, _ in side] for side in (one, two)]
-        machine = [min(pair) for pair in itertools.pairwise(probed)]
-        print(f"| {task} | {name} | {runs} | {context_size} | {statistics.median(wall[0]):.2f} | "
-              f"{statistics.median(wall[1]):.2f} | {ratios(*wall, unit='x')} | "
-              f"{min(wall[0]) / min(wall[1]):.2f}x | "
-              f"{ratios([c for _, c in two], [c for _, c in one])} | "
-              f"{ratios(machine, [1.0] * len(machine), unit='x')} |", flush=True)
+    with ThreadPoolExecutor(threads) as pool:
+        for name, fn in fns.items():
+            sides = [(partial(numba.set_num_threads, t), fn) for t in (1, threads)]
+            sides.append((lambda: None, at_once(pool, [part[name] for part in parts])))
+            timed = rounds(sides, steps, base, repeats)
+            one, many, apart = ([1e3 * w / runs for w, _ in side] for side in timed)
+            cpu = [[c for _, c in side] for side in timed]
+            print(f"| {task} | {name} | {runs} | {context_size} | {statistics.median(one):.2f} | "
+                  f"{statistics.median(many):.2f} | {ratios(one, many, unit='x')} | "
+                  f"{min(one) / min(many):.2f}x | {ratios(cpu[1], cpu[0])} | "
+                  f"{ratios(one, apart, unit='x')} | {ratios(apart, many)} |", flush=True)
+
+
+def at_once(pool: ThreadPoolExecutor, fns: list):
+    """fn(n): each of `fns` trains n epochs on a thread of `pool` of its own, one kernel thread
+    each (`numba.set_num_threads` is per thread), all at once; returns when all are done."""
+    def train(fn, n):
+        numba.set_num_threads(1)
+        fn(n)
+
+    def fn(n):
+        list(pool.map(train, fns, [n] * len(fns)))
+    return fn
 
 
 def main():
@@ -300,22 +315,25 @@ def main():
     parser.add_argument("--paired", action="store_true",
                         help="two --threads in one process, paired round by round (cpu)")
     args = parser.parse_args()
-    if args.paired and (len(args.threads) != 2 or len(args.dtype) != 1
+    if args.paired and (len(args.threads) != 2 or args.threads[0] != 1 or len(args.dtype) != 1
                         or args.backends != ["cpu"]):
-        parser.error("--paired takes two --threads, one --dtype and the cpu backend")
+        parser.error("--paired takes two --threads, the first 1, one --dtype and the cpu backend")
+    if args.paired and min(args.runs) < args.threads[1]:
+        parser.error(f"--paired --runs {min(args.runs)}: at least one run per thread "
+                     f"({args.threads[1]})")
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "no GPU"
     print(f"# {os.uname().nodename}, {gpu}, {os.cpu_count()} CPUs; {' and '.join(args.dtype)}"
           + (f"; phase 2 with input noise of variance {args.noise:g}" if args.noise else ""))
     if args.paired:
-        first, second = args.threads
-        print(f"| task | phase | runs | NC | wall ms per network-epoch, {first} thread(s) | "
-              f"{second} thread(s) | speed-up | best round over best round | CPU time, {second} / "
-              f"{first} | machine's own {second} / {first} |\n"
-              "|---|---|---|---|---|---|---|---|---|---|")
+        second = args.threads[1]
+        print(f"| task | phase | runs | NC | wall ms per network-epoch, 1 thread | {second} "
+              f"threads | speed-up | best round over best round | CPU time, {second} / 1 | "
+              f"{second} trainings at once: speed-up | {second} threads over them |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|")
         for runs, size in itertools.product(args.runs, args.context_sizes):
-            thread_pairs(args.task, runs, threads=args.threads, steps=args.steps,
-                         repeats=args.repeats, context_size=size, dtype=args.dtype[0],
-                         base=args.base, noise=args.noise, phases=tuple(args.phases))
+            thread_pairs(args.task, runs, threads=second, steps=args.steps, repeats=args.repeats,
+                         context_size=size, dtype=args.dtype[0], base=args.base,
+                         noise=args.noise, phases=tuple(args.phases))
         return
     if len(args.dtype) == 2:
         first, second = args.dtype

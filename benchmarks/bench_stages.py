@@ -10,7 +10,10 @@ networks (`bench_epochs.trainers`).
     python benchmarks/bench_stages.py --runs 30 --threads 1 --dtype float32 --phases adaptive
 
 A stage whose time does not halve on two threads is where a two-thread step loses its speed-up
-(memory-bound passes, a thread waiting): BENCHMARKS.md quotes these rows.
+(memory-bound passes, a thread waiting): BENCHMARKS.md quotes these rows. The last row is the
+speed-up the code allows (Amdahl's law): the first thread count's step with its threads' calls
+divided among t threads and the rest (one thread's stages, the loop's Python) as it was. A
+machine whose second core is busy with other work falls short of it; the code cannot exceed it.
 """
 
 import argparse
@@ -24,6 +27,7 @@ from bench_epochs import _clock, trainers, warm_up
 
 from moex.kernels.cpu import phases, threads
 
+THREADED = ("shared by the threads", "over the threads")  # the stages the threads divide
 _time: defaultdict = defaultdict(float)
 _calls: Counter = Counter()
 _inside = [False]  # a call inside a timed call counts once, in the outer one
@@ -119,6 +123,12 @@ def main() -> None:
         print("| the rest (the training loop's Python) | "
               + " | ".join(f"{ms:.3f}" for ms in outside) + " |")
         print("| **a step** | " + " | ".join(f"**{measured[t][0]:.3f}**" for t in counts) + " |")
+        step, rows = measured[counts[0]]
+        shared = sum(ms for k, (ms, _) in rows.items() if k.startswith(THREADED))
+        print(f"| speed-up at best (the threads' calls of {counts[0]} thread(s) divided, the rest "
+              "as it is) | " + " | ".join(
+                  f"{step / (step - shared + shared * counts[0] / t):.2f}x" for t in counts)
+              + " |")
 
 
 if __name__ == "__main__":

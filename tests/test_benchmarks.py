@@ -112,7 +112,8 @@ def test_the_phase1_breakdown_times_every_stage(tmp_path):
 
 def test_the_stage_benchmark_times_each_stage_on_each_thread_count(tmp_path):
     """benchmarks/bench_stages.py: per phase a row per stage the step calls (the shared main call
-    among them), the rest, and the step, one column per thread count."""
+    among them), the rest, the step and the speed-up the code allows, one column per thread
+    count."""
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_stages.py"), "--runs",
                            "2", "--threads", "1", "--steps", "2", "--base", "1", "--series", "2",
                            "--length", "60"], capture_output=True, text=True, timeout=600,
@@ -127,6 +128,9 @@ def test_the_stage_benchmark_times_each_stage_on_each_thread_count(tmp_path):
                          part), phase
         assert re.search(rf"\| \*\*a step\*\* \| \*\*{number}\*\* \|", part), phase
         assert "the rest (the training loop's Python)" in part
+        # Amdahl's bound for the thread count the stages were timed on is that step itself
+        assert re.search(r"\| speed-up at best \(the threads' calls of 1 thread\(s\) divided, the "
+                         r"rest as it is\) \| 1\.00x \|", part), phase
 
 
 def test_the_host_share_benchmark_prints_a_share_per_phase(tmp_path):
@@ -172,31 +176,32 @@ def test_the_epoch_benchmark_pairs_two_precisions_round_by_round(tmp_path):
 
 
 def test_the_epoch_benchmark_pairs_two_thread_counts_round_by_round(tmp_path):
-    """With --paired and two --threads: a row per phase with the wall time on each, the
-    speed-up (median (min-max) of the rounds, and the best rounds' ratio), the CPU time ratio and the machine's own two-thread ceiling (medians (min-max));
-    --paired with one thread count is refused in one line, exit 2."""
-    script = [sys.executable, str(ROOT / "benchmarks" / "bench_epochs.py"), "--runs", "2",
-              "--series", "2", "--length", "30", "--steps", "2", "--base", "1", "--repeats", "2",
-              "--paired"]
-    done = subprocess.run(script + ["--threads", "1", "2"], capture_output=True, text=True,
-                          timeout=600, cwd=tmp_path)
+    """With --paired and --threads 1 2: a row per phase with the wall time on each, the speed-up
+    (median (min-max) of the rounds, and the best rounds' ratio), the CPU time ratio, and the
+    control of two trainings of half the runs at once (their speed-up, and the threads' over
+    theirs); --paired with one thread count, with a first count other than 1, or with fewer runs
+    than threads is refused in one line, exit 2."""
+    script = [sys.executable, str(ROOT / "benchmarks" / "bench_epochs.py"), "--series", "2",
+              "--length", "30", "--steps", "2", "--base", "1", "--repeats", "2", "--paired"]
+    done = subprocess.run(script + ["--runs", "2", "--threads", "1", "2"], capture_output=True,
+                          text=True, timeout=600, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     number = r"-?\d+\.\d+"
-    assert ("| speed-up | best round over best round | CPU time, 2 / 1 | machine's own 2 / 1 |"
-            in done.stdout)
+    assert ("| speed-up | best round over best round | CPU time, 2 / 1 | 2 trainings at once: "
+            "speed-up | 2 threads over them |") in done.stdout
+    spread, times = rf"{number} \({number}-{number}\)", rf"{number}x \({number}-{number}\)"
     for phase in ("phase 1, fixed rate", "phase 1, adaptive rate", "phase 2, adaptive rate"):
         found = re.search(rf"\| lissajous2 \| {phase} \| 2 \| 15 \| {number} \| {number} \| "
-                          rf"{number}x \(({number})-({number})\) \| ({number})x \| "
-                          rf"{number} \({number}-{number}\) \| {number}x \({number}-{number}\) \|",
+                          rf"{times} \| ({number})x \| {spread} \| {times} \| {spread} \|",
                           done.stdout)
-        assert found, phase
-        low, high, best = map(float, found.groups())
-        # (two rounds: the best rounds' ratio lies between the least and the most of the
-        # cross-round ratios, which the paired ratios' range does not bound; so only its sign)
-        assert low <= high and best > 0
-    refused = subprocess.run(script + ["--threads", "2"], capture_output=True, text=True,
-                             timeout=60, cwd=tmp_path)
-    assert refused.returncode == 2 and "--paired takes two --threads" in refused.stderr
+        assert found and float(found[1]) > 0, phase
+    for threads, runs, why in ((["2"], "2", "--paired takes two --threads, the first 1"),
+                               (["2", "1"], "2", "--paired takes two --threads, the first 1"),
+                               (["1", "2"], "1", "--paired --runs 1: at least one run per thread")):
+        refused = subprocess.run(script + ["--runs", runs, "--threads", *threads],
+                                 capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        assert refused.returncode == 2 and why in refused.stderr, threads
+        assert "Traceback" not in refused.stderr
 
 
 def test_the_gpu_profile_names_where_each_phase_spends_its_epoch():
