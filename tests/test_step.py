@@ -269,22 +269,28 @@ def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
 
 
 @pytest.mark.parametrize("adaptive", [True, False])
-def test_each_run_updated_in_the_gradient_call_gives_the_separate_calls_bits(monkeypatch,
-                                                                               adaptive):
-    """Phase 1's kernel makes each run's sums and its update (`update.after_gradient`) inside
-    the stepper's gradient call, in the thread that finishes the run's last chunk of series
-    (`phases._expert_items`' `left`). With 3 series a chunk of 4 holds series of two runs and a
-    run's series lie in two chunks; on two threads (the chunks claimed in any order) every run
-    is updated once per call, after all its chunks, and the training gives the bits of the
-    separate calls on one thread."""
+def test_each_run_finished_in_the_kernel_call_gives_the_separate_calls_bits(monkeypatch,
+                                                                           adaptive):
+    """Both phase kernels make each run's sums in the stepper's calls, and its update
+    (`update.after_gradient`) in the gradient's call, in the thread that finishes the run's last
+    chunk of series (phase 1) or block of lanes (phase 2) (the kernels' `left`). With 3 series a
+    phase-1 chunk of 4 holds series of two runs and a run's series lie in two chunks, and a
+    phase-2 block of 8 lanes holds three runs' lanes, the third's in two blocks; on two threads
+    (chunks and blocks claimed in any order) every run is finished once per call, after all its
+    chunks or blocks, and the training gives the bits of the separate calls on one thread."""
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba has one thread here")
-    before, calls, made = numba.get_num_threads(), [], []
-    evaluate, stepper = phases.ExpertProblem.evaluate, phases._Problem.stepper
+    before, calls, made = numba.get_num_threads(), {}, []
+    stepper = phases._Problem.stepper
 
-    def watched(self, args):
-        evaluate(self, args)
-        calls.append(args[-2].copy())  # each run's chunks left after the call
+    def watch(problem):
+        evaluate = problem.evaluate
+
+        def watched(self, args):
+            evaluate(self, args)
+            calls.setdefault(problem, []).append(args[-2].copy())  # each run's items left
+
+        monkeypatch.setattr(problem, "evaluate", watched)
 
     def counted(self, *args, **kwargs):
         made.append(stepper(self, *args, **kwargs))
@@ -296,17 +302,23 @@ def test_each_run_updated_in_the_gradient_call_gives_the_separate_calls_bits(mon
         separate = _train(torch.float64, adaptive, "paper", True, S=3)
         numba.set_num_threads(2)
         monkeypatch.setattr(phases._Problem, "stepper", counted)
-        monkeypatch.setattr(phases.ExpertProblem, "evaluate", watched)
+        watch(phases.ExpertProblem)
+        watch(phases.GatingProblem)
         _same(separate, _train(torch.float64, adaptive, "paper", True, S=3))
     finally:
         numba.set_num_threads(before)
-    assert made[0].fused and not made[1].fused  # phase 1 fused, phase 2 not
     # the calls without a stepper take arguments of the same types: one compiled kernel
-    left, update = made[0].evaluations[True][2][-2:]
-    assert numba.typeof((left, update)) == numba.typeof(step.idle(made[0].problem))
+    for made_ in made:
+        left, update = made_.evaluations[True][2][-2:]
+        assert numba.typeof((left, update)) == numba.typeof(step.idle(made_.problem))
     assert list(made[0].problem.chunks_of_run) == [1, 2, 2]
-    fused = [left for left in calls if left.size]
-    assert len(fused) == 6 and all((left == 0).all() for left in fused)  # one per step
+    assert list(made[1].problem.blocks_of_run) == [1, 1, 2]
+    # 6 steps of each phase, a gradient call each and (adaptive) trial calls; every run
+    # finished once in each
+    for problem in (phases.ExpertProblem, phases.GatingProblem):
+        finished = [left for left in calls[problem] if left.size]
+        assert len(finished) >= 6 * (1 + adaptive), problem
+        assert all((left == 0).all() for left in finished), problem
 
 
 @pytest.mark.slow

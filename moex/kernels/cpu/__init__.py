@@ -1,5 +1,6 @@
 """Compiled CPU backend (numba): the functions of `moex.kernels.reference`; a training step of all
-R runs is one compiled call per thread, then the sums per run on the calling thread.
+R runs is one compiled call per thread, the sums per run after it (in the training step: in the
+call, by the thread that finishes the run's last item, with the run's momentum step).
 
 Layout. Every independent recurrence is a *lane*: an (expert, series) pair of one run in phase 1
 (lane (r·S + s)·K + k: a series' K lanes side by side), a series of one run in phase 2 (lane

@@ -274,12 +274,12 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     its histories are in that thread's cache, the threads claiming chunks lo.. below hi one at a
     time from `queue` (`threads.share`) (a series' mixture reads only its own K lanes, and
     a block's backward pass only the ∂L/∂o of its own series); _RUNS follows once every chunk is
-    done, or, where `left` (R,) counts each run's chunks still to go (the stepper's gradient
-    call), run by run in the thread that finishes the run's last chunk (`threads.done`), each
-    run's sums then its `update.after_gradient` (`update`: its arguments after lo, hi): no pass
-    over the (R, P) buffers after the call (memory-bound: a second thread gained little there),
-    and a run's update made while the other thread computes chunks. Each run's sums and update
-    are the same arithmetic on the same numbers either way.
+    done, or, where `left` (R,) counts each run's chunks still to go (the stepper's calls), run
+    by run in the thread that finishes the run's last chunk (`threads.done`): each run's sums,
+    and in a gradient call then its `update.after_gradient` (`update`: its arguments after lo,
+    hi): no pass over the (R, P) buffers after the call (memory-bound: a second thread gained
+    little there), and a run's sums and update made while the other thread computes chunks.
+    Each run's sums and update are the same arithmetic on the same numbers either way.
 
     The forward stage leaves each block's outputs also by lane (`Y_lane`), where the mixture reads
     them and writes ∂L/∂o (`DY_lane`), which the backward stage takes back into the block's layout
@@ -307,7 +307,8 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                         if active[r]:
                             _run_sums(r, S, T, targets, net, work, lane_grads, params, grads,
                                       g_u0, g_log_sigma, floor, attraction, want_grad, out)
-                        after_gradient(r, r + 1, *update)
+                        if want_grad:
+                            after_gradient(r, r + 1, *update)
             c = lo + claim(queue)
         return
     for i in range(lo, hi):
@@ -388,18 +389,20 @@ def _softmax_objective(Y, targets, want_grad, DY, log_lik):  # pragma: no cover
 @njit(nogil=True, **JIT)
 def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0, X, targets,
                  entropy, sigma_min, attraction, want_grad, active, stale, reuse, block_runs,
-                 out, sizes, queue):  # pragma: no cover
+                 out, sizes, queue, left, update):  # pragma: no cover
     """Items lo..hi-1 of one stage of a phase-2 step: with `blocks`, blocks of lanes (weights
     spread to the lanes, forward where a `stale` run is (`Forwarded`), objective, backward),
     claimed one at a time from `queue` (`threads.share`); otherwise runs, after every block
-    (out[:, r]: objective, Σ ĝ ln g, KL, E^g; gradients gathered from the lanes). With `reuse`
-    (the stepper's) a call without gradients (an adaptive trial) computes ∂/∂o as well, and a
-    gradient call skips the objective where it skips the forward pass (as `_expert_items`)."""
+    (`_gating_run`). Where `left` (R,) counts each run's blocks still to go (the stepper's
+    calls), the thread that finishes a run's last block makes the run's sums, and in a gradient
+    call then its `update.after_gradient` (`update`: its arguments after lo, hi), as phase 1's
+    `_expert_items` does. With `reuse` (the stepper's) a call without gradients (an adaptive
+    trial) computes ∂/∂o as well, and a gradient call skips the objective where it skips the
+    forward pass (as `_expert_items`)."""
     C0, C, Y, U, S1, S2, DY, log_lik = work
     w_in, w_rec, w_out, b_c, b_o, eps, u0_lane = net
     l_w_in, l_w_rec, l_w_out, l_b_c, l_b_o, l_eps, l_u0 = lane_grads
     S, LB = u0.shape[1], width(X)
-    T, K = targets.shape[1], targets.shape[2]
     i = lo + claim(queue) if blocks else lo
     while i < hi:
         if blocks:
@@ -417,16 +420,35 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
                     backward_pass(DY[i], X[i], C0[i], C[i], U[i], u0_lane[i], w_rec[i], w_out[i],
                                   eps[i], l_w_in[i], l_w_rec[i], l_w_out[i], l_b_c[i], l_b_o[i],
                                   l_eps[i], l_u0[i], sizes)
+            if left.shape[0] > 0:  # the runs whose last block this was: their sums and update
+                for r in range(block_runs[i, 0], block_runs[i, 1] + 1):
+                    if done(left, r) == 1:
+                        if active[r]:
+                            _gating_run(r, params, work, lane_grads, grads, g_u0, targets,
+                                        entropy, sigma_min, attraction, want_grad, net, out)
+                        if want_grad:
+                            after_gradient(r, r + 1, *update)
         elif active[i]:
-            total = lane_sum(log_lik, i * S, (i + 1) * S)
-            out[1, i] = total
-            out[2, i] = entropy[i] - total
-            out[3, i] = out[2, i] / (S * T * K)
-            out[0, i] = total + run_lanes(i, S, T, u0_lane, S1, S2, sigma_min * sigma_min,
-                                          attraction, want_grad, l_u0, g_u0)
-            if want_grad:
-                gather(i, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
+            _gating_run(i, params, work, lane_grads, grads, g_u0, targets, entropy, sigma_min,
+                        attraction, want_grad, net, out)
         i = lo + claim(queue) if blocks else i + 1
+
+
+@njit(no_cpython_wrapper=True, **JIT)
+def _gating_run(r, params, work, lane_grads, grads, g_u0, targets, entropy, sigma_min,
+                attraction, want_grad, net, out):  # pragma: no cover
+    """Run r after its blocks: out[:, r] (objective, Σ ĝ ln g, KL, E^g) and its gradients
+    gathered from its lanes."""
+    S, T, K = g_u0.shape[1], targets.shape[1], targets.shape[2]
+    U, S1, S2, log_lik = work[3], work[4], work[5], work[7]
+    total = lane_sum(log_lik, r * S, (r + 1) * S)
+    out[1, r] = total
+    out[2, r] = entropy[r] - total
+    out[3, r] = out[2, r] / (S * T * K)
+    out[0, r] = total + run_lanes(r, S, T, net[6], S1, S2, sigma_min * sigma_min, attraction,
+                                  want_grad, lane_grads[6], g_u0)
+    if want_grad:
+        gather(r, S, params[5], lane_grads[:6], grads, U.shape[1] > 0)
 
 
 class _Problem:
@@ -445,7 +467,6 @@ class _Problem:
     # (R > 1) and would be staged (phase 1's β: a copy in and out of 20 000 numbers per run)
     ROWS: tuple[str, ...] = ()
     trials = 1  # adaptive-rate candidates per call: one (an accepted trial's pass is reused)
-    FINISHES = False  # whether the kernel makes each run's update in the stepper's gradient call
 
     def _call(self, params, grads, active, want_grad):
         p, g, lanes = self.staging.load(params), self.staging.outputs(grads), self.lanes
@@ -499,7 +520,6 @@ class ExpertProblem(_Problem):
     KERNEL = (_expert_items, "phase-1 kernel")
     AFTER_FORWARD = ("beta", "log_sigma")
     ROWS = ("beta",)
-    FINISHES = True
 
     def __init__(self, inputs, targets, model, phase, *, num_runs, device="cpu"):
         inputs, targets = to_host(inputs), to_host(targets)
@@ -540,13 +560,13 @@ class ExpertProblem(_Problem):
     def evaluate(self, args: tuple) -> None:
         """One phase-1 step of every active run (`kernel_args`): σ² of every run, the chunks of
         series taken by the threads one at a time (`_expert_items`, `threads.share`), then every
-        run's sums (one thread is enough), or with the stepper's `left` each run's sums and
-        update in the call, after the run's last chunk."""
+        run's sums (one thread is enough), or with the stepper's `left` each run's sums (and in
+        a gradient call its update) in the call, after the run's last chunk."""
         R, S, T, K = self.shape
         log_sigma, floor, prior_std = args[2], *args[13:15]  # (`kernel_args`' order)
         left = args[-2]
         _variances(0, R, log_sigma, floor, prior_std, self.lanes.work[8])
-        if left.size:  # (the stepper's gradient: each run's sums and update in the main call)
+        if left.size:  # (the stepper's: each run's sums and update in the main call)
             np.copyto(left, self.chunks_of_run)
         threads.share(_expert_items, -(-R * S // self.chunk), self.queue, _CHUNKS, *args)
         if not left.size:
@@ -612,24 +632,36 @@ class GatingProblem(_Problem):
         self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",), LB)
         self._stepper_record = np.zeros(0, bool)
         self.queue = np.zeros(1, np.int64)  # the threads' next block (`threads.share`)
+        self.blocks_of_run = np.zeros(R, np.int64)  # the blocks that hold lanes of each run
+        for first, last in self.lanes.block_runs:
+            self.blocks_of_run[first:last + 1] += 1
+        self.idle = idle(self)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
 
     def evaluate(self, args: tuple) -> None:
         """One phase-2 step of every active run (`kernel_args`): its blocks taken by the threads
-        one at a time (`threads.share`), then every run's sums (one thread is enough)."""
+        one at a time (`threads.share`), then every run's sums (one thread is enough), or with
+        the stepper's `left` each run's sums (and in a gradient call its update) in the call,
+        after the run's last block."""
+        left = args[-2]
+        if left.size:
+            np.copyto(left, self.blocks_of_run)
         threads.share(gating_items, self.lanes.net[0].shape[0], self.queue, True, *args)
-        gating_items(0, self.shape[0], False, *args)
+        if not left.size:
+            gating_items(0, self.shape[0], False, *args)
 
-    def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False) -> tuple:
-        """`gating_items`' arguments after its stage (`reuse`: the stepper's, see there)."""
+    def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False,
+                    finish=None) -> tuple:
+        """`gating_items`' arguments after its stage (`reuse`, `finish` = (left, update): the
+        stepper's, see there; none: `idle`)."""
         lanes = self.lanes
         return (per_network(p, False), p["u0"][:, :, None], lanes.net, tuple(lanes.work),
                 lanes.lane_grads, per_network(g, False), g["u0"][:, :, None], self.inputs,
                 self.targets, self.entropy, float(self.model.sigma_min),
                 bool(self.phase.attraction), want_grad, active, stale, bool(reuse),
-                lanes.block_runs, lanes.out, lanes.sizes, self.queue)
+                lanes.block_runs, lanes.out, lanes.sizes, self.queue, *(finish or self.idle))
 
     def resample(self, step: int) -> None:
         """Fresh input noise on x_n for this training step (nothing without noise)."""

@@ -25,12 +25,13 @@ A gradient step right after an accepted adaptive trial is at the trial's point: 
 trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
 1's mixture is a quarter of a step) and runs only BPTT and the sums.
 
-Phase 1's kernel makes `after_gradient` itself, run by run inside the gradient's call: the thread
-that finishes a run's last chunk of series makes the run's sums and its update (`FINISHES`,
-`phases._expert_items`' `left`), so that no pass over the (R, P) buffers follows the call, and a
-run is updated while the other thread still computes chunks. On two threads at R = 30 a
-step had spent 0.9-1.4 ms in the sums and in `after_gradient`'s passes over the buffers, which are
-bound by memory bandwidth and gained little from a second thread (BENCHMARKS.md).
+The phase kernels make each run's sums in every call, and `after_gradient` in the gradient's
+call, run by run: the thread that finishes a run's last chunk of series (phase 1) or block of
+lanes (phase 2) makes them (the kernels' `left`), so that no pass over the (R, P) buffers and no
+run sums on the calling thread follow the call, and a run is finished while the other thread still
+computes. On two threads at R = 30 a phase-1 step had spent 0.9-1.4 ms in the sums and in
+`after_gradient`'s passes over the buffers, which are bound by memory bandwidth and gained little
+from a second thread (BENCHMARKS.md).
 
 On more than one thread the evaluation's chunks of series or blocks are shared out as in the
 separate calls (`threads.share`), and so are the update's other stages' runs, with the staging
@@ -60,7 +61,6 @@ import torch
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import first_use, to_host
 from moex.kernels.cpu.update import (
-    after_gradient,
     after_trial,
     after_trials,
     before_gradient,
@@ -141,7 +141,6 @@ class Stepper:
                          grad=grad, velocity=velocity, delta=delta, scratch=scratch, rate=rate,
                          lr_scale=lr_scale, failed=failed, pending=pending, retries=retries,
                          rule=rule)
-        self.after = (after_gradient, R, *update)
         self.trial = (after_trial, R, trial_bits, current,
                       lanes.block_runs, forwarded.first_block, forwarded.last_block,
                       reuse, theta, delta, scratch, lanes.out[c], self.stats[c], pending,
@@ -150,19 +149,16 @@ class Stepper:
         self.finish = (after_trials, R, theta, delta, velocity, pending, failed, current,
                        rule[1], *rule[4:])
         # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
-        # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs). Phase 1's
-        # kernel makes each run's sums and `after_gradient` inside the gradient's call, in the
-        # thread that finishes the run's last chunk (`left`: each run's chunks still to go)
-        self.fused = problem.FINISHES
-        gradient_args = kernel_args
-        if self.fused:
-            # its calls without the update (the trials', the separate calls') take arguments of
-            # the same types, so that one compiled kernel serves all (`left` empty: none read)
-            problem.idle = (np.zeros(0, np.int64), update)
-            gradient_args = partial(kernel_args, finish=(np.zeros(R, np.int64), update))
+        # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs). The kernels
+        # make each run's sums, and in the gradient's call `after_gradient`, inside the call, in
+        # the thread that finishes the run's last chunk or block (`left`: each run's still to go)
+        kernel_args = partial(kernel_args, finish=(np.zeros(R, np.int64), update))
+        # the calls without a stepper (the separate calls) take arguments of the same types, so
+        # that one compiled kernel serves all (`left` empty: nothing of the update is read)
+        problem.idle = (np.zeros(0, np.int64), update)
         self.evaluations = {
             True: (copies[0], threads.by_size(_entries(copies[0])),
-                   gradient_args(staged[0], written, True, active, stale)),
+                   kernel_args(staged[0], written, True, active, stale)),
             False: (copies[1], threads.by_size(_entries(copies[1])),
                     kernel_args(staged[1], written, False, pending, pending))}
         self.trials = max_retries if adaptive else 0
@@ -184,8 +180,6 @@ class Stepper:
         threads.one(*self.before)  # (two flags per run: less than a handoff)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
-        if not self.fused:
-            over(*self.after)
         for _ in range(self.trials):
             self._evaluate(False)
             # (the trial judged, flags per run, and the next point of the runs still pending:
