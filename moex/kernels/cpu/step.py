@@ -120,7 +120,6 @@ class Stepper:
         # pass, objective and ∂/∂o (the trial computes them); the record compares the columns
         # that all of those read (phase 1's β among them: most of a row)
         reuse = forwarded.enabled
-        kernel_args = partial(problem.kernel_args, reuse=reuse)
         read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
         a, b = min(a for a, _ in read), max(b for _, b in read)
         bits = np.dtype(f"u{dtype.itemsize}")
@@ -152,15 +151,16 @@ class Stepper:
         # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs). The kernels
         # make each run's sums, and in the gradient's call `after_gradient`, inside the call, in
         # the thread that finishes the run's last chunk or block (`left`: each run's still to go)
-        kernel_args = partial(kernel_args, finish=(np.zeros(R, np.int64), update))
+        finishing = partial(problem.kernel_args, reuse=reuse,
+                            finish=(np.zeros(R, np.int64), update))
         # the calls without a stepper (the separate calls) take arguments of the same types, so
         # that one compiled kernel serves all (`left` empty: nothing of the update is read)
         problem.idle = (np.zeros(0, np.int64), update)
         self.evaluations = {
             True: (copies[0], threads.by_size(_entries(copies[0])),
-                   kernel_args(staged[0], written, True, active, stale)),
+                   finishing(staged[0], written, True, active, stale)),
             False: (copies[1], threads.by_size(_entries(copies[1])),
-                    kernel_args(staged[1], written, False, pending, pending))}
+                    finishing(staged[1], written, False, pending, pending))}
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
