@@ -10,10 +10,9 @@ separate calls: phase kernels, momentum update, adaptive-rate trial) and the ste
 inside, and the update functions between, through `threads.over` where the buffers are large);
 the script wraps them all to add up the time spent inside (a call inside another counted once).
 In the separate calls each phase's sums per run (a few µs) are called directly and count as host
-time. `--separate`: the
-training loop's separate calls (no stepper), for the comparison. Epoch and host times are
-marginal (`base + steps` epochs minus `base`, as `bench_epochs.py`), the pair with the least epoch
-time of `--repeats`. Two-Lissajous sizes.
+time. `--separate`: the training loop's separate calls (no stepper), for the comparison. Epoch
+and host times are marginal (`base + steps` epochs minus `base`, as `bench_epochs.py`), the pair
+with the least epoch time of `--repeats`. Two-Lissajous sizes.
 """
 
 import argparse
