@@ -271,13 +271,15 @@ def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
 @pytest.mark.parametrize("adaptive", [True, False])
 def test_each_run_finished_in_the_kernel_call_gives_the_separate_calls_bits(monkeypatch,
                                                                            adaptive):
-    """Both phase kernels make each run's sums in the stepper's calls, and its update
-    (`update.after_gradient`) in the gradient's call, in the thread that finishes the run's last
-    chunk of series (phase 1) or block of lanes (phase 2) (the kernels' `left`). With 3 series a
+    """Both phase kernels make each run's sums and its update (`update.after_run`: the momentum
+    step in the gradient's call; the trial judged and, where its trials end, the step taken in
+    an adaptive trial's) in the stepper's calls, in the thread that finishes the run's last chunk
+    of series (phase 1) or block of lanes (phase 2) (the kernels' `left`). With 3 series a
     phase-1 chunk of 4 holds series of two runs and a run's series lie in two chunks, and a
     phase-2 block of 8 lanes holds three runs' lanes, the third's in two blocks; on two threads
     (chunks and blocks claimed in any order) every run is finished once per call, after all its
-    chunks or blocks, and the training gives the bits of the separate calls on one thread."""
+    chunks or blocks, and the training gives the bits of the separate calls on one thread, with
+    phase-1 trials accepted, rejected and given up (adaptive: 2 retries)."""
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba has one thread here")
     before, calls, made = numba.get_num_threads(), {}, []
@@ -299,18 +301,21 @@ def test_each_run_finished_in_the_kernel_call_gives_the_separate_calls_bits(monk
     try:
         numba.set_num_threads(1)
         monkeypatch.setattr(phases._Problem, "stepper", lambda self, *a, **k: None)
-        separate = _train(torch.float64, adaptive, "paper", True, S=3)
+        kw = dict(S=3, rate=2.0, retries=2) if adaptive else dict(S=3)
+        separate = _train(torch.float64, adaptive, "paper", True, **kw)
         numba.set_num_threads(2)
         monkeypatch.setattr(phases._Problem, "stepper", counted)
         watch(phases.ExpertProblem)
         watch(phases.GatingProblem)
-        _same(separate, _train(torch.float64, adaptive, "paper", True, S=3))
+        _same(separate, _train(torch.float64, adaptive, "paper", True, **kw))
     finally:
         numba.set_num_threads(before)
     # the calls without a stepper take arguments of the same types: one compiled kernel
     for made_ in made:
         left, update = made_.evaluations[True][2][-2:]
         assert numba.typeof((left, update)) == numba.typeof(step.idle(made_.problem))
+    if adaptive:
+        assert {0, 1, 2} <= {row["retries"] for row in separate[3] if row["phase"] == "experts"}
     assert list(made[0].problem.chunks_of_run) == [1, 2, 2]
     assert list(made[1].problem.blocks_of_run) == [1, 1, 2]
     # 6 steps of each phase, a gradient call each and (adaptive) trial calls; every run
