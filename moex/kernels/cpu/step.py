@@ -12,11 +12,10 @@ between them but the calls: the phase kernel per evaluation (`evaluate`) and the
 around it (`update.before_gradient`: the runs to compute; `after_gradient`: Δθ and the first trial's
 point θ + Δθ; `after_trial`: the trial judged and the next trial's point; `after_trials`: the step
 taken, and whose lanes still hold θ's forward pass), on whole rows of the flat buffer, the last
-three inside the kernel's call. Those run
-without fast-math flags (said outright: a function called from the fast-math phase kernel would
-inherit its flags), which would let LLVM drop their NaN and infinity checks, which decide whether
-a run failed. The statistics stay in an array until the loop reads them
-(`statistics`, where it logs). Each NumPy or PyTorch operation between the calls had cost 5-60 µs
+three inside the kernel's call. Those run without fast-math flags (said outright: a function
+called from the fast-math phase kernel would inherit its flags), which would let LLVM drop their
+NaN and infinity checks, which decide whether a run failed. The statistics stay in an array until
+the loop reads them (`statistics`, where it logs). Each NumPy or PyTorch operation between the calls had cost 5-60 µs
 there (line_profiler), 10-50 times its time in a loop of its own (timeit): after a kernel that has
 filled the caches with its lanes, the interpreter's code and data come back from memory (the likely
 cause; not measured with counters on this VM). Host time per step at R = 1 is now 30-70 µs
@@ -139,7 +138,7 @@ class Stepper:
                            rule=rule, tries=tries, evaluated=evaluated, criterion=c,
                            judging=(float(decrease), dtype.type(decrease), float(increase),
                                     dtype.type(max_ratio)))
-        self.finish = (after_trials, R, *after[-1])  # (max_retries = 0: no trial call)
+        self.finish = (after_trials, R, *after[-1])
         # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
         # (the runs `stale` run forward), a trial at θ + Δθ (the `evaluated` runs). The kernels
         # make each run's sums and its update (`update.after_run`) inside the call, in the thread
@@ -156,7 +155,8 @@ class Stepper:
                     finishing(staged[1], written, False, evaluated, evaluated))}
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
-        # the update's stages shared out only where a pass over the buffers outlasts a handoff
+        # (max_retries = 0: the step taken after no trial, a pass over the buffers shared out
+        # where it outlasts a handoff)
         self.over = threads.by_size(theta.size)
         self.runs = R
 
