@@ -6,8 +6,8 @@ parameters) as a fraction of the epoch, per phase, one thread.
 
 The compiled calls of a training step are the ones through `moex.kernels.cpu.threads.over` (the
 separate calls: phase kernels, momentum update, adaptive-rate trial) and the stepper's
-(`moex.kernels.cpu.step`: each phase's `evaluate`, which makes each run's sums and update
-inside, and the update functions between);
+(`moex.kernels.cpu.step`: each phase's `evaluate`, which makes each run's sums and momentum step
+inside, and the update functions between, through `threads.over` where the buffers are large);
 the script wraps them all to add up the time spent inside (a call inside another counted once).
 In the separate calls each phase's sums per run (a few µs) are called directly and count as host
 time. `--separate`: the training loop's separate calls (no stepper), for the comparison. Epoch
@@ -24,7 +24,8 @@ from bench_epochs import outside_pairs, trainers
 from moex.kernels.cpu import phases, step, threads
 
 COMPILED = [(threads, "over"), (phases.ExpertProblem, "evaluate"),
-            (phases.GatingProblem, "evaluate"), (step, "before_gradient"), (step, "after_trials")]
+            (phases.GatingProblem, "evaluate"), (step, "before_gradient"), (step, "after_trial"),
+            (step, "after_trials")]
 
 
 def host_share(fn, steps: int, base: int, repeats: int) -> tuple[float, float]:

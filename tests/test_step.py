@@ -271,10 +271,9 @@ def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
 @pytest.mark.parametrize("adaptive", [True, False])
 def test_each_run_finished_in_the_kernel_call_gives_the_separate_calls_bits(monkeypatch,
                                                                            adaptive):
-    """Both phase kernels make each run's sums and its update (`update.after_run`: the momentum
-    step in the gradient's call; the trial judged and, where its trials end, the step taken in
-    an adaptive trial's) in the stepper's calls, in the thread that finishes the run's last chunk
-    of series (phase 1) or block of lanes (phase 2) (the kernels' `left`). With 3 series a
+    """Both phase kernels make each run's sums in the stepper's calls, and its update
+    (`update.after_gradient`) in the gradient's call, in the thread that finishes the run's last
+    chunk of series (phase 1) or block of lanes (phase 2) (the kernels' `left`). With 3 series a
     phase-1 chunk of 4 holds series of two runs and a run's series lie in two chunks, and a
     phase-2 block of 8 lanes holds three runs' lanes, the third's in two blocks; on two threads
     (chunks and blocks claimed in any order) every run is finished once per call, after all its

@@ -166,8 +166,7 @@ def test_the_steppers_trial_judges_as_the_separate_call_and_writes_the_next_poin
     kind = _as(dtype)
     now = (np.zeros((R, 1), kind["bits"]),)
     update.after_trial(0, R, now, np.zeros(R, bool), np.zeros((1, 2), np.int64),
-                       np.zeros(R, np.int64), np.zeros(R, np.int64), False,
-                       got["pending"].numpy().copy(), theta.numpy(),
+                       np.zeros(R, np.int64), np.zeros(R, np.int64), False, theta.numpy(),
                        got["delta"].numpy(), scratch.numpy(), got["values"].numpy(),
                        got["base"].numpy(), got["pending"].numpy(), got["lr_scale"].numpy(),
                        got["retries"].numpy(), 0.7, kind["float"](0.7), 1.05, kind["float"](1.1))

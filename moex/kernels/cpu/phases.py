@@ -41,7 +41,7 @@ from moex.kernels.cpu.simd import (
 )
 from moex.kernels.cpu.step import Stepper, idle
 from moex.kernels.cpu.threads import claim, done
-from moex.kernels.cpu.update import after_run
+from moex.kernels.cpu.update import after_gradient
 
 # phase 1: the experts and β (Eqs. 9-13)
 
@@ -276,10 +276,9 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
     a block's backward pass only the ∂L/∂o of its own series); _RUNS follows once every chunk is
     done, or, where `left` (R,) counts each run's chunks still to go (the stepper's calls), run
     by run in the thread that finishes the run's last chunk (`threads.done`): each run's sums,
-    then its update (`update.after_run`, `update`: its arguments after r, want_grad: the
-    momentum step in a gradient call, the trial judged and the step taken in an adaptive
-    trial's): no pass over the (R, P) buffers after the call (memory-bound: a second thread
-    gained little there), and a run's sums and update made while the other thread computes.
+    and in a gradient call then its `update.after_gradient` (`update`: its arguments after lo,
+    hi): no pass over the (R, P) buffers after the call (memory-bound: a second thread gained
+    little there), and a run's sums and update made while the other thread computes chunks.
     Each run's sums and update are the same arithmetic on the same numbers either way.
 
     The forward stage leaves each block's outputs also by lane (`Y_lane`), where the mixture reads
@@ -308,7 +307,8 @@ def _expert_items(lo, hi, stage, params, u0, log_sigma, beta, net, work, lane_gr
                         if active[r]:
                             _run_sums(r, S, T, targets, net, work, lane_grads, params, grads,
                                       g_u0, g_log_sigma, floor, attraction, want_grad, out)
-                        after_run(r, want_grad, *update)
+                        if want_grad:
+                            after_gradient(r, r + 1, *update)
             c = lo + claim(queue)
         return
     for i in range(lo, hi):
@@ -394,8 +394,8 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
     spread to the lanes, forward where a `stale` run is (`Forwarded`), objective, backward),
     claimed one at a time from `queue` (`threads.share`); otherwise runs, after every block
     (`_gating_run`). Where `left` (R,) counts each run's blocks still to go (the stepper's
-    calls), the thread that finishes a run's last block makes the run's sums, then its update
-    (`update.after_run`, `update`: its arguments after r, want_grad), as phase 1's
+    calls), the thread that finishes a run's last block makes the run's sums, and in a gradient
+    call then its `update.after_gradient` (`update`: its arguments after lo, hi), as phase 1's
     `_expert_items` does. With `reuse` (the stepper's) a call without gradients (an adaptive
     trial) computes ∂/∂o as well, and a gradient call skips the objective where it skips the
     forward pass (as `_expert_items`)."""
@@ -426,7 +426,8 @@ def gating_items(lo, hi, blocks, params, u0, net, work, lane_grads, grads, g_u0,
                         if active[r]:
                             _gating_run(r, params, work, lane_grads, grads, g_u0, targets,
                                         entropy, sigma_min, attraction, want_grad, net, out)
-                        after_run(r, want_grad, *update)
+                        if want_grad:
+                            after_gradient(r, r + 1, *update)
         elif active[i]:
             _gating_run(i, params, work, lane_grads, grads, g_u0, targets, entropy, sigma_min,
                         attraction, want_grad, net, out)
@@ -457,6 +458,10 @@ class _Problem:
     device = torch.device("cpu")
     STATS: tuple[str, ...] = ()
     KERNEL: tuple = ()  # (the compiled kernel, what the log calls it)
+    # the parameters that the objective after the forward pass reads besides the forward's
+    # (phase 1's mixture: β, log σ); with them in the stepper's record a gradient step reuses an
+    # accepted trial's objective and its ∂/∂o too (the kernels' `reuse`)
+    AFTER_FORWARD: tuple[str, ...] = ()
     # the groups the kernel takes as (rows, first column) pairs (`rows_of`): the stepper hands
     # it the training loop's (R, P) buffers themselves, where the groups' views are strided
     # (R > 1) and would be staged (phase 1's β: a copy in and out of 20 000 numbers per run)
@@ -513,6 +518,7 @@ class ExpertProblem(_Problem):
 
     STATS = ("objective", "log_likelihood", "log_prior", "E")
     KERNEL = (_expert_items, "phase-1 kernel")
+    AFTER_FORWARD = ("beta", "log_sigma")
     ROWS = ("beta",)
 
     def __init__(self, inputs, targets, model, phase, *, num_runs, device="cpu"):

@@ -11,11 +11,11 @@ are, at R = 1 all of them, and the buffers themselves for the groups the kernel 
 between them but the calls: the phase kernel per evaluation (`evaluate`) and the update functions
 around it (`update.before_gradient`: the runs to compute; `after_gradient`: Δθ and the first trial's
 point θ + Δθ; `after_trial`: the trial judged and the next trial's point; `after_trials`: the step
-taken, and whose lanes still hold θ's forward pass), on whole rows of the flat buffer, the last
-three inside the kernel's call. Those run without fast-math flags (said outright: a function
-called from the fast-math phase kernel would inherit its flags), which would let LLVM drop their
-NaN and infinity checks, which decide whether a run failed. The statistics stay in an array until
-the loop reads them (`statistics`, where it logs). Each NumPy or PyTorch operation between the calls had cost 5-60 µs
+taken, and whose lanes still hold θ's forward pass), on whole rows of the flat buffer. Those run
+without fast-math flags (said outright: a function called from the fast-math phase kernel would
+inherit its flags), which would let LLVM drop their NaN and infinity checks, which decide whether
+a run failed. The statistics stay in an array until the loop reads them
+(`statistics`, where it logs). Each NumPy or PyTorch operation between the calls had cost 5-60 µs
 there (line_profiler), 10-50 times its time in a loop of its own (timeit): after a kernel that has
 filled the caches with its lanes, the interpreter's code and data come back from memory (the likely
 cause; not measured with counters on this VM). Host time per step at R = 1 is now 30-70 µs
@@ -25,21 +25,20 @@ A gradient step right after an accepted adaptive trial is at the trial's point: 
 trial's forward pass, objective and ∂/∂o from the lanes (the trial computes ∂/∂o for it; phase
 1's mixture is a quarter of a step) and runs only BPTT and the sums.
 
-The phase kernels make each run's sums and its update in every call, run by run
-(`update.after_run`): the thread that finishes a run's last chunk of series (phase 1) or block of
-lanes (phase 2) makes them (the kernels' `left`): in the gradient's call `after_gradient`, in a
-trial's the trial judged (`after_trial`) and, where the run's trials end there, its step taken
-(`after_trials`). No pass over the (R, P) buffers and no run sums on the calling thread follow a
-call, and a run is finished while the other thread still computes. On two threads at R = 30 a
-phase-1 step had spent 0.9-1.4 ms in the sums and in `after_gradient`'s passes over the buffers,
-and an adaptive one another 0.4 ms in `after_trials`' pass, which are bound by memory bandwidth
-and gained little from a second thread (BENCHMARKS.md). A trial call's kernel reads the runs it
-evaluates from a copy of `pending` (`evaluated`), which the runs' own threads change as they judge
-them: a run's lanes' record reads its neighbours' flags (the blocks they share).
+The phase kernels make each run's sums in every call, and `after_gradient` in the gradient's
+call, run by run: the thread that finishes a run's last chunk of series (phase 1) or block of
+lanes (phase 2) makes them (the kernels' `left`), so that no pass over the (R, P) buffers and no
+run sums on the calling thread follow the call, and a run is finished while the other thread still
+computes. On two threads at R = 30 a phase-1 step had spent 0.9-1.4 ms in the sums and in
+`after_gradient`'s passes over the buffers, which are bound by memory bandwidth and gained little
+from a second thread (BENCHMARKS.md).
 
 On more than one thread the evaluation's chunks of series or blocks are shared out as in the
-separate calls (`threads.share`), and so are the staging copies of their rows where they hold at
-least `threads.SPLIT` entries; smaller ones are one call, cheaper than a handoff.
+separate calls (`threads.share`), and so are the update's other stages' runs, with the staging
+copies of their rows, where the (R, P) buffers (or the copies) hold at least `threads.SPLIT` entries
+(phase 1's buffers at R = 30: nothing of their size is left to one thread); smaller ones are one
+call, cheaper than a handoff, and so is each trial's judgement (`after_trial`: flags per run, and
+the next point of the runs still pending).
 
 The record of the lanes' forward pass (with `reuse`) is θ + Δθ's own buffer: a run is current
 while its lanes hold the forward pass of its row of `scratch`, which nothing rewrites while it is
@@ -61,7 +60,12 @@ import torch
 
 from moex.kernels.cpu import threads
 from moex.kernels.cpu.lanes import first_use, to_host
-from moex.kernels.cpu.update import after_trials, before_gradient, momentum_buffer
+from moex.kernels.cpu.update import (
+    after_trial,
+    after_trials,
+    before_gradient,
+    momentum_buffer,
+)
 
 
 class Stepper:
@@ -83,7 +87,7 @@ class Stepper:
                  failed, retries, criterion: str, momentum: float, paper_form: bool,
                  adaptive: bool, max_retries: int, decrease: float, increase: float,
                  max_ratio: float, tau):
-        self.problem = problem
+        self.problem, lanes = problem, problem.lanes
         theta, grad, velocity, delta, scratch = (to_host(buffers[k]) for k in (
             "theta", "grad", "velocity", "delta", "scratch"))
         R, dtype = theta.shape[0], theta.dtype
@@ -111,14 +115,18 @@ class Stepper:
         sources = [(written[k].reshape(R, -1), columns[k][0]) for k in grads
                    if written[k] is not grads[k]]
         active, stale, pending = np.zeros((3, R), bool)
+        forwarded = problem.forwarded
         # with the record, a gradient step after an accepted trial reuses the trial's forward
-        # pass, objective and ∂/∂o (the trial computes them): the record is the whole row of
-        # θ + Δθ, `scratch` itself (phase 1's β and log σ among it, which the objective reads).
-        # A current run's lanes hold the forward pass of its row (`after_trial` clears `current`
-        # where it writes a row; `after_gradient` for every run), which θ equals after
-        # `after_trials` where it keeps the run current
-        reuse = problem.forwarded.enabled
-        current = np.zeros(R, bool)
+        # pass, objective and ∂/∂o (the trial computes them); the record compares the columns
+        # that all of those read (phase 1's β among them: most of a row)
+        reuse = forwarded.enabled
+        read = [columns[k] for k in (*forwarded.names, *problem.AFTER_FORWARD) if k in columns]
+        a, b = min(a for a, _ in read), max(b for _, b in read)
+        bits = np.dtype(f"u{dtype.itemsize}")
+        # the record: a current run's lanes hold the forward pass of its row of θ + Δθ's bits,
+        # `scratch` itself (`after_trial` clears `current` where it writes a row; `after_gradient`
+        # for every run), which θ equals after `after_trials` where it keeps the run current
+        trial_bits, current = (scratch[:, a:b].view(bits),), np.zeros(R, bool)
         self.current, self.pending = current, pending
         self.stats = np.zeros((len(problem.STATS), R), dtype)
         rate, lr_scale, failed, retries = (to_host(x) for x in (rate, lr_scale, failed, retries))
@@ -128,35 +136,34 @@ class Stepper:
         c = problem.STATS.index(criterion)
         # each stage's compiled function and its arguments after (lo, hi), bound once
         self.before = (before_gradient, R, current, failed, active, stale)
-        # the trials' count ([k, the last trial's k]) and the runs a trial call evaluates: a
-        # copy of `pending` the kernel reads while the runs' own threads judge them
-        tries, evaluated = np.array([0, max_retries - 1], np.int64), np.zeros(R, bool)
-        self.tries, self.evaluated = tries, evaluated
-        after = _after_run(problem, sources, stats=self.stats, current=current, theta=theta,
-                           grad=grad, velocity=velocity, delta=delta, scratch=scratch, rate=rate,
-                           lr_scale=lr_scale, failed=failed, pending=pending, retries=retries,
-                           rule=rule, tries=tries, evaluated=evaluated, criterion=c,
-                           judging=(float(decrease), dtype.type(decrease), float(increase),
-                                    dtype.type(max_ratio)))
-        self.finish = (after_trials, R, *after[-1])
+        update = _update(problem, sources, stats=self.stats, current=current, theta=theta,
+                         grad=grad, velocity=velocity, delta=delta, scratch=scratch, rate=rate,
+                         lr_scale=lr_scale, failed=failed, pending=pending, retries=retries,
+                         rule=rule)
+        self.trial = (after_trial, R, trial_bits, current,
+                      lanes.block_runs, forwarded.first_block, forwarded.last_block,
+                      reuse, theta, delta, scratch, lanes.out[c], self.stats[c], pending,
+                      lr_scale, retries, float(decrease), dtype.type(decrease), float(increase),
+                      dtype.type(max_ratio))
+        self.finish = (after_trials, R, theta, delta, velocity, pending, failed, current,
+                       rule[1], *rule[4:])
         # each evaluation's staging copies and the phase kernel's arguments: the gradient at θ
-        # (the runs `stale` run forward), a trial at θ + Δθ (the `evaluated` runs). The kernels
-        # make each run's sums and its update (`update.after_run`) inside the call, in the thread
-        # that finishes the run's last chunk or block (`left`: each run's still to go)
+        # (the runs `stale` run forward), a trial at θ + Δθ (the `pending` runs). The kernels
+        # make each run's sums, and in the gradient's call `after_gradient`, inside the call, in
+        # the thread that finishes the run's last chunk or block (`left`: each run's still to go)
         finishing = partial(problem.kernel_args, reuse=reuse,
-                            finish=(np.zeros(R, np.int64), after))
+                            finish=(np.zeros(R, np.int64), update))
         # the calls without a stepper (the separate calls) take arguments of the same types, so
         # that one compiled kernel serves all (`left` empty: nothing of the update is read)
-        problem.idle = (np.zeros(0, np.int64), after)
+        problem.idle = (np.zeros(0, np.int64), update)
         self.evaluations = {
             True: (copies[0], threads.by_size(_entries(copies[0])),
                    finishing(staged[0], written, True, active, stale)),
             False: (copies[1], threads.by_size(_entries(copies[1])),
-                    finishing(staged[1], written, False, evaluated, evaluated))}
+                    finishing(staged[1], written, False, pending, pending))}
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
-        # (max_retries = 0: the step taken after no trial, a pass over the buffers shared out
-        # where it outlasts a handoff)
+        # the update's stages shared out only where a pass over the buffers outlasts a handoff
         self.over = threads.by_size(theta.size)
         self.runs = R
 
@@ -169,18 +176,19 @@ class Stepper:
     def __call__(self) -> None:
         """One training step of every run; its statistics at θ in `statistics()` until the
         next."""
+        over = self.over
         threads.one(*self.before)  # (two flags per run: less than a handoff)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
-        for k in range(self.trials):
-            # (each run judged, its next point written or its step taken, in the call)
-            self.tries[0] = k
-            np.copyto(self.evaluated, self.pending)
+        for _ in range(self.trials):
             self._evaluate(False)
+            # (the trial judged, flags per run, and the next point of the runs still pending:
+            # rarely more than a few rows, less than a handoff)
+            threads.one(*self.trial)
             if not np.count_nonzero(self.pending):
                 break
-        if self.adaptive and not self.trials:  # (every run frozen after no trial)
-            self.over(*self.finish)
+        if self.adaptive:  # the step taken, runs still rejected frozen
+            over(*self.finish)
 
     def statistics(self) -> dict[str, torch.Tensor]:
         """The last step's statistics at θ (before its update), (R,) each: read only where the
@@ -201,40 +209,29 @@ def _rows(lo: int, hi: int, copies: list) -> None:
         np.copyto(destination[lo:hi], source[lo:hi])
 
 
-def _after_run(problem, sources: list, *, stats, current, theta, grad, velocity, delta,
-               scratch, rate, lr_scale, failed, pending, retries, rule: tuple, tries, evaluated,
-               criterion: int, judging: tuple) -> tuple:
-    """`update.after_run`'s arguments after (r, want_grad): `after_gradient`'s after (lo, hi),
-    `sources` ((R, n) array, first column of `grad`) padded with empty ones to one per staged
-    group of `problem`; the trials' (`tries`, the runs evaluated, those pending); `after_trial`'s
-    (the record: `scratch`'s bits) and `after_trials`' after (lo, hi). The same types whichever
-    groups are learned, so that the phase kernel that calls it compiles once."""
+def _update(problem, sources: list, *, stats, current, theta, grad, velocity, delta, scratch,
+            rate, lr_scale, failed, pending, retries, rule: tuple) -> tuple:
+    """`update.after_gradient`'s arguments after (lo, hi), `sources` ((R, n) array, first
+    column of `grad`) padded with empty ones to one per staged group of `problem`: the same
+    types whichever groups are learned, so that the phase kernel that calls it compiles once."""
     R, dtype = theta.shape[0], theta.dtype
     sources = sources + [(np.zeros((R, 0), dtype), 0)] * (len(problem.staging.grads)
                                                           - len(sources))
-    out, forwarded = problem.lanes.out, problem.forwarded
-    update = (tuple(a for a, _ in sources), np.array([c for _, c in sources], np.int64), stats,
-              out, current, theta, grad, velocity, delta, scratch, rate, lr_scale, failed,
-              pending, retries, *rule)
-    judge = ((scratch.view(f"u{dtype.itemsize}"),), current, problem.lanes.block_runs,
-             forwarded.first_block, forwarded.last_block, forwarded.enabled, evaluated, theta,
-             delta, scratch, out[criterion], stats[criterion], pending, lr_scale, retries,
-             *judging)
-    step = (theta, delta, velocity, pending, failed, current, rule[1], *rule[4:])
-    return update, (tries, evaluated, pending), judge, step
+    return (tuple(a for a, _ in sources), np.array([c for _, c in sources], np.int64), stats,
+            problem.lanes.out, current, theta, grad, velocity, delta, scratch, rate, lr_scale,
+            failed, pending, retries, *rule)
 
 
 def idle(problem) -> tuple:
     """A phase kernel's `finish` for its calls before any stepper: no run's update (`left`
     empty: nothing of it is read), in arguments of the types a paper-form stepper binds
-    (`_after_run`'s, velocity None), so that one compiled kernel serves both."""
+    (`_update`'s, velocity None), so that one compiled kernel serves both."""
     out = problem.lanes.out
     R, dtype = out.shape[1], out.dtype
     rows, flags = np.zeros((R, 0), dtype), np.zeros(R, bool)
-    zero = dtype.type(0)
-    return np.zeros(0, np.int64), _after_run(
+    return np.zeros(0, np.int64), _update(
         problem, [], stats=np.zeros_like(out), current=flags, theta=rows, grad=rows,
         velocity=None, delta=rows, scratch=rows, rate=np.zeros(0, dtype), lr_scale=np.zeros(R),
         failed=flags, pending=flags, retries=np.zeros(R, np.int64),
-        rule=(zero, True, True, 0, 0, 0), tries=np.zeros(2, np.int64), evaluated=flags,
-        criterion=0, judging=(0.0, zero, 0.0, zero))
+        rule=(dtype.type(0), True, True, 0, 0, 0))
+

@@ -164,17 +164,15 @@ def after_gradient(lo, hi, sources, columns, stats, out, current, theta, grad, v
 
 
 @njit(**JIT)
-def after_trial(lo, hi, now, current, block_runs, first_block, last_block, reuse, evaluated,
-                theta, delta, scratch, values, base, pending, lr_scale, retries, decrease,
-                decrease_cast, increase, max_ratio):
-    """Runs lo..hi-1 after a trial that ran forward the blocks holding an `evaluated` run: the
-    lanes of those hold θ + Δθ's forward pass (`now`, the bits of `scratch`, which are the record
-    itself: `lanes.record_runs` with `then` None); the trial judged (`_trials`: the runs
-    `pending`, which are the evaluated ones until it judges them); the runs still pending have
-    their next trial's point in `scratch`, and their lanes are no longer current (their row of
-    the record changed)."""
+def after_trial(lo, hi, now, current, block_runs, first_block, last_block, reuse, theta, delta,
+                scratch, values, base, pending, lr_scale, retries, decrease, decrease_cast,
+                increase, max_ratio):
+    """Runs lo..hi-1: the lanes of those evaluated (pending) hold θ + Δθ's forward pass (`now`,
+    the bits of `scratch`, which are the record itself: `lanes.record_runs` with `then` None);
+    the trial judged (`_trials`); the runs still pending have their next trial's point in
+    `scratch`, and their lanes are no longer current (their row of the record changed)."""
     if reuse:
-        record_runs(lo, hi, now, None, evaluated, block_runs, first_block, last_block, current)
+        record_runs(lo, hi, now, None, pending, block_runs, first_block, last_block, current)
     _trials(lo, hi, delta, values, base, pending, lr_scale, retries, decrease, decrease_cast,
             increase, max_ratio)
     for r in range(lo, hi):
@@ -195,29 +193,6 @@ def after_trials(lo, hi, theta, delta, velocity, pending, failed, current, paper
         frozen = pending[r] or failed[r]
         clamped = _apply(r, theta, delta, velocity, frozen, paper_form, tau_start, tau_end)
         current[r] = current[r] and not (frozen or clamped)
-
-
-@njit(no_cpython_wrapper=True, **JIT)
-def after_run(r, want_grad, update, trial, judge, step):
-    """Run r's update, made inside the stepper's phase-kernel call by the thread that finishes
-    the run's last chunk or block (the kernels' `left`), after its sums: in the gradient's call
-    `after_gradient` (`update`: its arguments after lo, hi); in trial k of the adaptive rate
-    (`trial`: [k, the last trial's k], the runs this call evaluates, those pending) the trial
-    recorded and judged (`after_trial`, `judge`), and where the run's trials end in this call
-    (accepted, or rejected at the last trial; at the first, a run not tried: failed) the step
-    taken (`after_trials`, `step`). A run whose trials ended in an earlier call is left as it is
-    (its step taken; its lanes' record not set again: θ may be τ's clamp of its row of the
-    record). Each the same arithmetic on the same numbers as the calls after the kernel's, run by
-    run: the same bits."""
-    if want_grad:
-        after_gradient(r, r + 1, *update)
-        return
-    tries, evaluated, pending = trial
-    if tries[0] > 0 and not evaluated[r]:
-        return
-    after_trial(r, r + 1, *judge)
-    if not pending[r] or tries[0] == tries[1]:
-        after_trials(r, r + 1, *step)
 
 
 def adaptive_trial(delta, values, base, pending, lr_scale, *, retries, decrease: float,
