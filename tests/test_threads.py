@@ -139,28 +139,3 @@ def test_two_callers_at_once_each_get_every_item(two_threads):
     for t in callers:
         t.join(60)
     assert not errors and results == {"a": list(range(5)), "b": list(range(8))}
-
-
-def test_a_wait_past_the_watch_sleeps_and_still_ends_right(two_threads):
-    """The pool's waits watch a count for about a millisecond, then sleep: a worker whose range
-    outlasts the caller's watch (the caller then sleeps until it ends) and a worker that slept
-    between calls (its next range posted 50 ms later) still end each call whole, the worker's
-    writes seen by the caller."""
-    def kernel(lo, hi, seen):
-        if lo > 0:
-            time.sleep(0.05)
-        seen.extend(range(lo, hi))
-
-    for _ in range(3):
-        seen = []
-        threads.over(kernel, 6, seen)
-        assert sorted(seen) == list(range(6))
-        time.sleep(0.05)
-
-
-def test_the_watch_returns_at_a_change_or_after_its_loads():
-    """`threads._await`: True at once where the count differs from the one it was given; False
-    after its loads where it never does."""
-    flags = np.array([3, 5], np.int64)
-    assert threads._await(flags, 1, 4, 10**12)  # (10^12 loads would take minutes)
-    assert not threads._await(flags, 0, 3, 1000)
