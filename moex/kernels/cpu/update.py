@@ -14,9 +14,10 @@ from moex.kernels.cpu.lanes import record_runs, to_host
 
 JIT = dict(nogil=True, fastmath=False, error_model="numpy", cache=True, no_cfunc_wrapper=True)
 # fastmath=False said outright: a function compiled without the option inherits its caller's,
-# and phase 1's kernel (fast-math: `simd.FASTMATH`) calls `after_gradient` for each run
-# (`phases._expert_items`): inherited, `nnan`/`ninf` made its finiteness checks pass a NaN (a
-# scratch test, numba 0.68: and the Python-called function then gave the same wrong answer)
+# and both phase kernels (fast-math: `simd.FASTMATH`) call `after_gradient` for each run
+# (`phases._expert_items`, `gating_items`): inherited, `nnan`/`ninf` made its finiteness checks
+# pass a NaN (a scratch test, numba 0.68: and the Python-called function then gave the same
+# wrong answer)
 # The helpers the stage functions call (`_finite`, `_steps`, `_trials`, `_trial_point`, and
 # `lanes.record_runs`) are inlined by numba into their callers (each still callable
 # from Python): a function of its own costs a first run a compile pipeline of its own (wrappers,
