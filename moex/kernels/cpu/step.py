@@ -156,31 +156,27 @@ class Stepper:
         # the calls without a stepper (the separate calls) take arguments of the same types, so
         # that one compiled kernel serves all (`left` empty: nothing of the update is read)
         problem.idle = (np.zeros(0, np.int64), update)
-        evaluations = (finishing(staged[0], written, True, active, stale),
-                       finishing(staged[1], written, False, pending, pending))
-        # the calls over the threads, bound to the step's crew (`threads.Crew`): the phase
-        # kernel's at θ and at θ + Δθ, and the step taken
-        calls = [(kernel, rest) for kernel, _, _, *rest in map(problem.shared, evaluations)]
-        self.crew = threads.Crew(calls + [(after_trials, self.finish[2:])] * bool(adaptive))
         self.evaluations = {
-            want_grad: (copies[i], threads.by_size(_entries(copies[i])), evaluations[i],
-                        partial(self.crew.share, i))
-            for i, want_grad in enumerate((True, False))}
+            True: (copies[0], threads.by_size(_entries(copies[0])),
+                   finishing(staged[0], written, True, active, stale)),
+            False: (copies[1], threads.by_size(_entries(copies[1])),
+                    finishing(staged[1], written, False, pending, pending))}
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
-        self.over = threads.by_size(theta.size) is threads.over
+        self.over = threads.by_size(theta.size)
         self.runs = R
 
     def _evaluate(self, want_grad: bool) -> None:
-        copies, over, args, share = self.evaluations[want_grad]
+        copies, over, args = self.evaluations[want_grad]
         if copies:  # (the point itself written by the update before: θ, or θ + Δθ)
             over(_rows, self.runs, copies)
-        self.problem.evaluate(args, share)
+        self.problem.evaluate(args)
 
     def __call__(self) -> None:
         """One training step of every run; its statistics at θ in `statistics()` until the
         next."""
+        over = self.over
         threads.one(*self.before)  # (two flags per run: less than a handoff)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
@@ -192,10 +188,7 @@ class Stepper:
             if not np.count_nonzero(self.pending):
                 break
         if self.adaptive:  # the step taken, runs still rejected frozen
-            if self.over:
-                self.crew.over(2, self.runs)
-            else:
-                threads.one(*self.finish)
+            over(*self.finish)
 
     def statistics(self) -> dict[str, torch.Tensor]:
         """The last step's statistics at θ (before its update), (R,) each: read only where the
