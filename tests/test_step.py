@@ -315,8 +315,8 @@ def test_each_run_finished_in_the_kernel_call_gives_the_separate_calls_bits(monk
         assert numba.typeof((left, update)) == numba.typeof(step.idle(made_.problem))
     if adaptive:
         assert {0, 1, 2} <= {row["retries"] for row in separate[3] if row["phase"] == "experts"}
-    assert list(made[0].problem.chunks_of_run) == [1, 2, 2]
-    assert list(made[1].problem.blocks_of_run) == [1, 1, 2]
+    assert list(made[0].problem.items_of_run) == [1, 2, 2]
+    assert list(made[1].problem.items_of_run) == [1, 1, 2]
     # 6 steps of each phase, a gradient call each and (adaptive) trial calls; every run
     # finished once in each
     for problem in (phases.ExpertProblem, phases.GatingProblem):

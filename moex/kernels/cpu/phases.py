@@ -458,6 +458,7 @@ class _Problem:
     device = torch.device("cpu")
     STATS: tuple[str, ...] = ()
     KERNEL: tuple = ()  # (the compiled kernel, what the log calls it)
+    SUMS: int | bool = 0  # the kernel's third argument for the runs' sums (`evaluate`)
     # the parameters that the objective after the forward pass reads besides the forward's
     # (phase 1's mixture: β, log σ); with them in the stepper's record a gradient step reuses an
     # accepted trial's objective and its ∂/∂o too (the kernels' `reuse`)
@@ -505,6 +506,23 @@ class _Problem:
         """The same statistics without gradients (the adaptive-rate retry)."""
         return self._call(params, None, active, False)
 
+    def _before(self, args: tuple) -> None:
+        """What a step computes before its items (phase 1: σ²)."""
+
+    def evaluate(self, args: tuple) -> None:
+        """One step of every active run (`kernel_args`): the items (chunks of series, blocks of
+        lanes) taken by the threads one at a time (`shared`, `threads.share`), then every run's
+        sums (one thread is enough), or with the stepper's `left` each run's sums (and in a
+        gradient call its update) in the call, after the run's last item (`items_of_run`: the
+        items that hold each run's lanes)."""
+        self._before(args)
+        left = args[-2]
+        if left.size:
+            np.copyto(left, self.items_of_run)
+        threads.share(*self.shared(args))
+        if not left.size:
+            self.KERNEL[0](0, self.shape[0], self.SUMS, *args)
+
 
 class ExpertProblem(_Problem):
     """Phase 1 of R runs (Sec. 2.1.2, Eqs. 9-13): `value_and_grad` and `value` of ln L(D, θ)
@@ -518,6 +536,7 @@ class ExpertProblem(_Problem):
 
     STATS = ("objective", "log_likelihood", "log_prior", "E")
     KERNEL = (_expert_items, "phase-1 kernel")
+    SUMS = _RUNS  # (the kernel's stage that makes the runs' sums)
     AFTER_FORWARD = ("beta", "log_sigma")
     ROWS = ("beta",)
 
@@ -549,28 +568,22 @@ class ExpertProblem(_Problem):
         self.forwarded = Forwarded(self.lanes.block_runs, K * S, NET + ("u0",), LB)
         self._stepper_record = np.zeros(0, bool)
         self.queue = np.zeros(1, np.int64)  # the threads' next chunk (`threads.share`)
-        self.chunks_of_run = np.zeros(R, np.int64)  # the chunks that hold series of each run
+        self.items_of_run = np.zeros(R, np.int64)  # the chunks that hold series of each run
         for first in range(0, R * S, self.chunk):
-            self.chunks_of_run[first // S:(min(first + self.chunk, R * S) - 1) // S + 1] += 1
+            self.items_of_run[first // S:(min(first + self.chunk, R * S) - 1) // S + 1] += 1
         self.idle = idle(self)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
 
-    def evaluate(self, args: tuple) -> None:
-        """One phase-1 step of every active run (`kernel_args`): σ² of every run, the chunks of
-        series taken by the threads one at a time (`_expert_items`, `threads.share`), then every
-        run's sums (one thread is enough), or with the stepper's `left` each run's sums (and in
-        a gradient call its update) in the call, after the run's last chunk."""
-        R, S, T, K = self.shape
-        log_sigma, floor, prior_std = args[2], *args[13:15]  # (`kernel_args`' order)
-        left = args[-2]
-        _variances(0, R, log_sigma, floor, prior_std, self.lanes.work[8])
-        if left.size:  # (the stepper's: each run's sums and update in the main call)
-            np.copyto(left, self.chunks_of_run)
-        threads.share(_expert_items, -(-R * S // self.chunk), self.queue, _CHUNKS, *args)
-        if not left.size:
-            _expert_items(0, R, _RUNS, *args)
+    def _before(self, args: tuple) -> None:
+        """σ² of every run (`kernel_args`' order: log σ, then the floor and the prior's std)."""
+        _variances(0, self.shape[0], args[2], *args[13:15], self.lanes.work[8])
+
+    def shared(self, args: tuple) -> tuple:
+        """`threads.share`'s arguments: the chunks of series (`_expert_items`)."""
+        R, S = self.shape[:2]
+        return _expert_items, -(-R * S // self.chunk), self.queue, _CHUNKS, *args
 
     def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False,
                     finish=None) -> tuple:
@@ -603,6 +616,7 @@ class GatingProblem(_Problem):
 
     STATS = ("objective", "log_likelihood", "kl", "E_g")
     KERNEL = (gating_items, "phase-2 kernel")
+    SUMS = False  # (`gating_items` over runs, not blocks: the runs' sums)
 
     def __init__(self, gate_targets, inputs, model, phase, *, seeds, device="cpu"):
         gate_targets, inputs = to_host(gate_targets), to_host(inputs)
@@ -632,25 +646,17 @@ class GatingProblem(_Problem):
         self.forwarded = Forwarded(self.lanes.block_runs, S, NET + ("u0",), LB)
         self._stepper_record = np.zeros(0, bool)
         self.queue = np.zeros(1, np.int64)  # the threads' next block (`threads.share`)
-        self.blocks_of_run = np.zeros(R, np.int64)  # the blocks that hold lanes of each run
+        self.items_of_run = np.zeros(R, np.int64)  # the blocks that hold lanes of each run
         for first, last in self.lanes.block_runs:
-            self.blocks_of_run[first:last + 1] += 1
+            self.items_of_run[first:last + 1] += 1
         self.idle = idle(self)
 
     def _step(self, p, g, lanes, active, *, stale, want_grad):
         self.evaluate(self.kernel_args(p, g, want_grad, active, stale))
 
-    def evaluate(self, args: tuple) -> None:
-        """One phase-2 step of every active run (`kernel_args`): its blocks taken by the threads
-        one at a time (`threads.share`), then every run's sums (one thread is enough), or with
-        the stepper's `left` each run's sums (and in a gradient call its update) in the call,
-        after the run's last block."""
-        left = args[-2]
-        if left.size:
-            np.copyto(left, self.blocks_of_run)
-        threads.share(gating_items, self.lanes.net[0].shape[0], self.queue, True, *args)
-        if not left.size:
-            gating_items(0, self.shape[0], False, *args)
+    def shared(self, args: tuple) -> tuple:
+        """`threads.share`'s arguments: the blocks of lanes (`gating_items`)."""
+        return gating_items, self.lanes.net[0].shape[0], self.queue, True, *args
 
     def kernel_args(self, p, g, want_grad, active, stale, *, reuse=False,
                     finish=None) -> tuple:
