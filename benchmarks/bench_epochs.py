@@ -12,7 +12,10 @@ Two-Lissajous sizes: 10 series x 1000 steps, N = 2 experts, M = 10, M_g = 15, τ
 Each number is the marginal cost of an epoch (a run of 5 + --steps epochs minus a run of 5, so
 the set-up of a training call is left out), the best of --repeats such pairs after a warm-up
 (compilation), per network (divided by R). CPU time is process time (user + system, all
-threads), so with 2 threads it shows the cost and the wall time shows the speed-up.
+threads), so with 2 threads it shows the cost and the wall time shows the speed-up. On more
+than one thread (cpu) a step's calls go to its stepper's crew (`moex.kernels.cpu.threads.Crew`),
+whose loop the warm-up compiles, as a training compiles it for a phase of `step.LONG` seconds or
+more (a shorter phase's calls go through the pool unless numba's cache holds the loop).
 
 With two --dtype (cpu): both precisions' trainers in one process, each phase timed in both in
 turn, --repeats rounds, each round a pair (`marginal`, CPU time) and a ratio: the medians and the
@@ -52,6 +55,7 @@ from moex.config import Config
 from moex.data import load_task
 from moex.jobs import run_seeds
 from moex.kernels import Backend, get_backend
+from moex.kernels.cpu import step
 from moex.model import init_experts, init_gating
 from moex.tasks import task_config
 from moex.train import train_experts, train_gating
@@ -159,8 +163,11 @@ def trainers(task: str, runs: int, backend: str, *, threads: int = 1, context_si
     phase 2's input noise variance (`train.gating.input_noise_var`, named in the phase's name);
     `phases`: only the phases whose names contain one of these (all where empty)."""
     chosen = get_backend(backend, device if backend != "cpu" else "cpu")
-    # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`)
+    # the compiled kernels' threads do the parallel work (`moex.kernels.cpu.threads`); every
+    # phase counts as long (`step.LONG`): its stepper's crew loop is compiled in the warm-up, as
+    # a training's phase of 5 minutes or more compiles it (or loads it from the cache)
     torch.set_num_threads(1 if chosen.name == "cpu" else threads)
+    step.LONG = 0.0
     numba.set_num_threads(threads)
     cfg = Config(task=task_config(task))
     if task == "reber":

@@ -167,7 +167,7 @@ def _ascend(params: dict[str, torch.Tensor], fixed: dict[str, torch.Tensor],
         criterion=criterion, momentum=momentum, paper_form=paper_form, adaptive=adaptive,
         max_retries=rule.adaptive.max_retries, decrease=rule.adaptive.decrease,
         increase=rule.adaptive.increase, max_ratio=rule.adaptive.max_ratio,
-        tau=tau) if batch == 1 else None
+        tau=tau, steps=steps - start) if batch == 1 else None
 
     def calls() -> tuple[dict, torch.Tensor]:
         """One step as separate calls: the statistics at θ and the retries per run."""

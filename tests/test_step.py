@@ -240,14 +240,21 @@ def test_a_whole_step_is_one_call_however_many_trials(one_thread, monkeypatch):
     assert counts[0] == counts[1] > 0
 
 
+@pytest.mark.parametrize("crew", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
+def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype, crew):
     """On two threads the stepper shares out each stage (phase 1's chunks of runs, the update's
     runs: here however small the buffers) and gives one thread's bits; the separate calls on two
-    threads give them too."""
+    threads give them too. With `crew` every phase counts as long (`step.LONG` 0): from its
+    second step on the stepper's calls go to its crew's worker (`threads.Crew`), which the
+    staging copies' calls through the pool release every step; without, the crew's loop is
+    neither compiled nor loaded, and every call goes through the pool."""
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba has one thread here")
     monkeypatch.setattr(threads, "SPLIT", 0)
+    monkeypatch.setattr(step, "LONG", 0.0 if crew else float("inf"))
+    if not crew:  # (nor loaded: compiled in this process or cached by another test)
+        monkeypatch.setattr(threads, "_loaded", lambda *args: False)
     before = numba.get_num_threads()
     made, stepper = [], phases._Problem.stepper
 
@@ -262,6 +269,9 @@ def test_a_whole_step_on_two_threads_gives_the_bits_of_one(monkeypatch, dtype):
         monkeypatch.setattr(phases._Problem, "stepper", counted)
         _same(one, _train(dtype, True, "paper", True))
         assert len(made) == 2 and all(s is not None for s in made)
+        # the worker ended calls of every kind (its count of calls ended), or none at all
+        assert all(s.crew.ready == crew for s in made)
+        assert all((s.crew.control[0, 4] >= 3 * 4) == crew for s in made)
         monkeypatch.setattr(phases._Problem, "stepper", lambda self, *a, **k: None)
         _same(one, _train(dtype, True, "paper", True))
     finally:
@@ -287,8 +297,8 @@ def test_each_run_finished_in_the_kernel_call_gives_the_separate_calls_bits(monk
     def watch(problem):
         evaluate = problem.evaluate
 
-        def watched(self, args):
-            evaluate(self, args)
+        def watched(self, args, *share):
+            evaluate(self, args, *share)
             calls.setdefault(problem, []).append(args[-2].copy())  # each run's items left
 
         monkeypatch.setattr(problem, "evaluate", watched)

@@ -1,7 +1,9 @@
 """The kernels' thread pool (`moex.kernels.cpu.threads.over`): contiguous ranges that cover every
 item once, the calling thread taking the first; errors reach the caller after every thread ends.
 `share`: every thread claims items from one counter, each item taken exactly once. The pool:
-none of its threads carried into a forked child, two callers at once each served whole."""
+none of its threads carried into a forked child, two callers at once each served whole. A
+`Crew`: its calls as `share` and `over` make them, its worker out of its loop when idle or
+released, a failing call said, and none of its state carried into a forked child."""
 
 import os
 import threading
@@ -139,3 +141,106 @@ def test_two_callers_at_once_each_get_every_item(two_threads):
     for t in callers:
         t.join(60)
     assert not errors and results == {"a": list(range(5)), "b": list(range(8))}
+
+
+@numba.njit(nogil=True)
+def _doubled(lo, hi, values, failing):
+    """values[lo:hi] doubled; an error at the value `failing`."""
+    for i in range(lo, hi):
+        if values[i] == failing:
+            raise ValueError("a failing item")
+        values[i] *= 2
+
+
+def _bound(items: int):
+    """A crew of `_claiming` (shared) and `_doubled` (over), the kernels compiled first."""
+    queue, taken = np.zeros(1, np.int64), np.zeros(items + 1, np.int64)
+    values = np.arange(items, dtype=np.float64)
+    _claiming(0, 0, queue, taken, 1)
+    _doubled(0, 0, values, -1.0)
+    crew = threads.Crew([(_claiming, (queue, taken, 20_000)), (_doubled, (values, -1.0))])
+    return crew, queue, taken, values
+
+
+def _shared(crew, queue, taken, items: int) -> None:
+    taken[:] = 0
+    crew.share(0, _claiming, items, queue, queue, taken, 20_000)
+
+
+@pytest.mark.parametrize("items", [1, 7, 75])
+def test_a_crew_makes_the_calls_of_share_and_over(two_threads, monkeypatch, items):
+    """Through the pool while its loop is neither compiled nor in the cache; then on its worker
+    (its count of calls ended), on two threads and one: every item taken once, every value
+    doubled once."""
+    crew, queue, taken, values = _bound(items)
+    with monkeypatch.context() as patch:
+        patch.setattr(threads, "_loaded", lambda *args: False)
+        _shared(crew, queue, taken, items)
+    assert (taken[:items] == 1).all() and crew.futures[0] is None and not crew.ready
+    crew.compile()
+    for count in (2, 1, 2):
+        numba.set_num_threads(count)
+        _shared(crew, queue, taken, items)
+        assert (taken[:items] == 1).all() and taken[items] == 0
+    crew.over(1, items)
+    assert (values == 2 * np.arange(items)).all()
+    assert crew.control[0, 4] == crew.control[0, 0] == 2 + (items > 1)  # (2 shared, 1 over)
+
+
+def test_a_crews_worker_leaves_when_idle_or_released_and_comes_back(two_threads):
+    crew, queue, taken, _ = _bound(20)
+    crew.compile()
+    crew.PATIENCE = 60.0  # (however slow this minute: in its loop until released)
+    _shared(crew, queue, taken, 20)
+    assert crew.control[0, 6] == crew._SERVING and (taken[:20] == 1).all()
+    assert _cover(4) == list(range(4))  # (a call through the pool releases it)
+    assert crew.control[0, 6] == crew._OUT
+    crew.PATIENCE = 1e-3
+    _shared(crew, queue, taken, 20)
+    assert (taken[:20] == 1).all()
+    deadline = time.monotonic() + 30
+    while crew.control[0, 6] != crew._OUT and time.monotonic() < deadline:
+        time.sleep(0.01)  # (idle: it leaves)
+    assert crew.control[0, 6] == crew._OUT
+    crew.futures[0].result(30)
+    assert crew.control[0, 4] == 3  # (its calls ended: 2 shared, 1 to leave)
+    _shared(crew, queue, taken, 20)
+    assert (taken[:20] == 1).all() and crew.control[0, 4] == 4
+
+
+def test_a_failing_call_on_a_crews_worker_reaches_the_caller(two_threads):
+    crew, _, _, values = _bound(8)
+    crew.compile()
+    values[6] = -1.0  # (the bound failing value; the worker's range is 4..7)
+    with pytest.raises(RuntimeError, match="worker thread failed"):
+        crew.over(1, 8)
+    assert (values[:4] == 2 * np.arange(4)).all()  # the caller's range done, then the error
+    values[6] = 6.0
+    crew.over(1, 8)  # (the crew works on)
+    assert values[7] == 14.0
+
+
+def test_a_forked_child_starts_a_crew_worker_of_its_own(two_threads):
+    crew, queue, taken, _ = _bound(30)
+    crew.compile()
+    crew.PATIENCE = 60.0
+    _shared(crew, queue, taken, 30)
+    assert crew.control[0, 6] == crew._SERVING  # (the parent's worker in its loop)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:  # pragma: no cover (the child)
+        _shared(crew, queue, taken, 30)
+        os._exit(0 if (taken[:30] == 1).all() and crew.control[0, 4] == 2 else 1)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            crew.release()
+            assert os.waitstatus_to_exitcode(status) == 0
+            return
+        time.sleep(0.05)
+    crew.release()
+    os.kill(pid, 9)
+    os.waitpid(pid, 0)
+    pytest.fail("the forked child's crew call never returned")

@@ -509,17 +509,17 @@ class _Problem:
     def _before(self, args: tuple) -> None:
         """What a step computes before its items (phase 1: σ²)."""
 
-    def evaluate(self, args: tuple) -> None:
+    def evaluate(self, args: tuple, share=threads.share) -> None:
         """One step of every active run (`kernel_args`): the items (chunks of series, blocks of
-        lanes) taken by the threads one at a time (`shared`, `threads.share`), then every run's
-        sums (one thread is enough), or with the stepper's `left` each run's sums (and in a
-        gradient call its update) in the call, after the run's last item (`items_of_run`: the
-        items that hold each run's lanes)."""
+        lanes) taken by the threads one at a time (`shared`, through `share`: `threads.share`,
+        or a stepper's `threads.Crew`), then every run's sums (one thread is enough), or with the
+        stepper's `left` each run's sums (and in a gradient call its update) in the call, after
+        the run's last item (`items_of_run`: the items that hold each run's lanes)."""
         self._before(args)
         left = args[-2]
         if left.size:
             np.copyto(left, self.items_of_run)
-        threads.share(*self.shared(args))
+        share(*self.shared(args))
         if not left.size:
             self.KERNEL[0](0, self.shape[0], self.SUMS, *args)
 

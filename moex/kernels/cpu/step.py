@@ -53,6 +53,8 @@ A step gives the bits of the separate calls, on any number of threads: the same 
 functions on the same numbers in the same order (tests/test_step.py trains both ways).
 """
 
+import logging
+import time
 from functools import partial
 
 import numpy as np
@@ -67,6 +69,10 @@ from moex.kernels.cpu.update import (
     momentum_buffer,
 )
 
+logger = logging.getLogger("moex.kernels.cpu")
+LONG = 300.0  # seconds of a phase's steps from which its stepper compiles the crew's loop: it
+# saves 1-2.7 % of a step at 30 networks on two threads and costs 3-4 s of compile once
+
 
 class Stepper:
     """A problem's whole training step on the training loop's buffers
@@ -80,13 +86,14 @@ class Stepper:
             learned; rate (P,), lr_scale (R,) float64, failed (R,) bool, retries (R,) int64:
             the loop's tensors, updated in place.
         settings: criterion, momentum, paper_form, adaptive, max_retries, decrease, increase,
-            max_ratio (the rule), tau (τ's columns or None).
+            max_ratio (the rule), tau (τ's columns or None), steps (the steps the training
+            loop will take: whether to compile the crew's loop).
     """
 
     def __init__(self, problem, buffers: dict, columns: dict, fixed: dict, *, rate, lr_scale,
                  failed, retries, criterion: str, momentum: float, paper_form: bool,
                  adaptive: bool, max_retries: int, decrease: float, increase: float,
-                 max_ratio: float, tau):
+                 max_ratio: float, tau, steps: int = 0):
         self.problem, lanes = problem, problem.lanes
         theta, grad, velocity, delta, scratch = (to_host(buffers[k]) for k in (
             "theta", "grad", "velocity", "delta", "scratch"))
@@ -156,27 +163,47 @@ class Stepper:
         # the calls without a stepper (the separate calls) take arguments of the same types, so
         # that one compiled kernel serves all (`left` empty: nothing of the update is read)
         problem.idle = (np.zeros(0, np.int64), update)
+        evaluations = (finishing(staged[0], written, True, active, stale),
+                       finishing(staged[1], written, False, pending, pending))
+        # the calls over the threads, bound to the step's crew (`threads.Crew`): the phase
+        # kernel's at θ and at θ + Δθ, and the step taken
+        calls = [(kernel, rest) for kernel, _, _, *rest in map(problem.shared, evaluations)]
+        self.crew = threads.Crew(calls + [(after_trials, self.finish[2:])] * bool(adaptive))
         self.evaluations = {
-            True: (copies[0], threads.by_size(_entries(copies[0])),
-                   finishing(staged[0], written, True, active, stale)),
-            False: (copies[1], threads.by_size(_entries(copies[1])),
-                    finishing(staged[1], written, False, pending, pending))}
+            want_grad: (copies[i], threads.by_size(_entries(copies[i])), evaluations[i],
+                        partial(self.crew.share, i))
+            for i, want_grad in enumerate((True, False))}
+        self.steps, self.made = steps, 0  # the steps the training loop takes, and made
         self.trials = max_retries if adaptive else 0
         self.adaptive = adaptive
         # the update's stages shared out only where a pass over the buffers outlasts a handoff
-        self.over = threads.by_size(theta.size)
+        self.over = threads.by_size(theta.size) is threads.over
         self.runs = R
 
     def _evaluate(self, want_grad: bool) -> None:
-        copies, over, args = self.evaluations[want_grad]
+        copies, over, args, share = self.evaluations[want_grad]
         if copies:  # (the point itself written by the update before: θ, or θ + Δθ)
             over(_rows, self.runs, copies)
-        self.problem.evaluate(args)
+        self.problem.evaluate(args, share)
 
     def __call__(self) -> None:
         """One training step of every run; its statistics at θ in `statistics()` until the
-        next."""
-        over = self.over
+        next. The second step (the first with the kernels compiled) is timed: where the steps
+        left would take `LONG` seconds or more on more than one thread, the crew's loop is
+        compiled then (`threads.Crew`: 3-4 s once, then loaded from the cache)."""
+        self.made += 1
+        if self.made != 2:
+            self._step()
+            return
+        start = time.perf_counter()
+        self._step()
+        left = (time.perf_counter() - start) * (self.steps - self.made)
+        if left >= LONG and threads.count() > 1 and not self.crew.ready:
+            logger.info("compiling the loop of the kernels' threads for the %.0f s left of this "
+                        "phase (a few seconds, once: then loaded from the cache)", left)
+            self.crew.compile()
+
+    def _step(self) -> None:
         threads.one(*self.before)  # (two flags per run: less than a handoff)
         with first_use(*self.problem.KERNEL):
             self._evaluate(True)
@@ -188,7 +215,10 @@ class Stepper:
             if not np.count_nonzero(self.pending):
                 break
         if self.adaptive:  # the step taken, runs still rejected frozen
-            over(*self.finish)
+            if self.over:
+                self.crew.over(2, self.runs)
+            else:
+                threads.one(*self.finish)
 
     def statistics(self) -> dict[str, torch.Tensor]:
         """The last step's statistics at θ (before its update), (R,) each: read only where the
