@@ -96,7 +96,10 @@ def main(argv=None) -> None:
         print(f"vector FMA chains, {np.dtype(dtype).name} ({x.size} lanes): "
               f"{12 * 2 * x.size * steps / best / 1e9:.1f} Gflop/s per core "
               f"({12 * steps / best / 1e9:.2f} G vector FMAs per second)")
-    print(f"two threads' vector FMA rate over one thread's: {two_threads(args.steps // 4):.2f}x")
+    # (at least ~3 ms a timing: at the tests' 100 000 steps a timing of 0.08 ms read 0.11x, the
+    # scheduler's answer beside another test process's busy threads, not the machine's)
+    ceiling = two_threads(max(args.steps // 4, 1_000_000))
+    print(f"two threads' vector FMA rate over one thread's: {ceiling:.2f}x")
 
 
 def two_threads(steps: int = 6_000_000) -> float:

@@ -38,7 +38,10 @@ separate calls (`threads.share`), and so are the update's other stages' runs, wi
 copies of their rows, where the (R, P) buffers (or the copies) hold at least `threads.SPLIT` entries
 (phase 1's buffers at R = 30: nothing of their size is left to one thread); smaller ones are one
 call, cheaper than a handoff, and so is each trial's judgement (`after_trial`: flags per run, and
-the next point of the runs still pending).
+the next point of the runs still pending). Those calls go to the stepper's crew (`threads.Crew`:
+the other threads wait between them in compiled code, without the GIL) where its loop is compiled
+or cached, and a phase of `LONG` seconds or more compiles it at its second step; otherwise through
+the threads' pool.
 
 The record of the lanes' forward pass (with `reuse`) is θ + Δθ's own buffer: a run is current
 while its lanes hold the forward pass of its row of `scratch`, which nothing rewrites while it is

@@ -239,7 +239,6 @@ class Crew:
             if _hold(self.control[w]):
                 self._await(w, _post(self.control[w], -1, 0, 0))
 
-
     def _workers(self, job: int) -> int:
         """The workers a call takes: none (the pool instead) until the kernel is compiled for
         its call (its entry point known) and `_serve` for the crew's calls."""
