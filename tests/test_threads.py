@@ -244,3 +244,15 @@ def test_a_forked_child_starts_a_crew_worker_of_its_own(two_threads):
     os.kill(pid, 9)
     os.waitpid(pid, 0)
     pytest.fail("the forked child's crew call never returned")
+
+
+def test_a_crew_of_a_python_function_goes_through_the_pool(two_threads):
+    """A bound kernel that is no numba dispatcher (a benchmark's timing wrapper) has no compiled
+    entry point: its calls go through the pool, every item once."""
+    crew, _, _, values = _bound(6)
+    crew.compile()
+    seen = []
+    crew.kernels[1] = lambda lo, hi, *rest: (seen.append((lo, hi)), _doubled(lo, hi, *rest))
+    crew.over(1, 6)
+    assert sorted(seen) == [(0, 3), (3, 6)] and (values == 2 * np.arange(6)).all()
+    assert crew.control[0, 0] == 0  # (nothing posted to a worker)

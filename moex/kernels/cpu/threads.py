@@ -235,13 +235,15 @@ class Crew:
 
     def release(self) -> None:
         """Every worker out of its loop (a call through the pool comes)."""
-        for w in range(len(self.control)):
-            if _hold(self.control[w]):
-                self._await(w, _post(self.control[w], -1, 0, 0))
+        _release(self.control)
 
     def _workers(self, job: int) -> int:
-        """The workers a call takes: none (the pool instead) until the kernel is compiled for
-        its call (its entry point known) and `_serve` for the crew's calls."""
+        """The workers a call takes: none (the pool instead, or the calling thread alone) on
+        one thread, and until the kernel is compiled for its call (its entry point known) and
+        `_serve` for the crew's calls."""
+        workers = count() - 1
+        if workers < 1:
+            return 0
         if not self.addresses[job]:
             self.addresses[job] = _entry(self.kernels[job], (0, 0, *self.calls[job]))
             if not self.addresses[job]:
@@ -249,7 +251,7 @@ class Crew:
         if not self.ready and not self.looked:
             self.looked = True
             self.ready = _loaded(_serve, (self.control[0], 0, self.addresses, self.calls, 0))
-        return count() - 1 if self.ready else 0
+        return workers if self.ready else 0
 
     def _call(self, job: int, ranges: list, rest: tuple) -> None:
         for other in Crew.live:
@@ -288,8 +290,8 @@ class Crew:
 
 
 def _release(control: np.ndarray) -> None:
-    """The workers of a crew that is gone out of their loops (each row of `control`; a worker
-    waiting in its loop ends the call to leave at once)."""
+    """A crew's workers out of their loops (each row of `control`; a worker waiting in its loop
+    ends the call to leave at once): `Crew.release`, and a crew's finaliser once it is gone."""
     for row in control:
         if _hold(row):
             posted = _post(row, -1, 0, 0)
@@ -333,8 +335,12 @@ def _loaded(dispatcher, args: tuple) -> bool:
 
 def _entry(kernel, args: tuple) -> int:
     """The address of kernel's compiled function (numba's calling convention) for these
-    arguments' types, or 0 where it is not compiled for them."""
-    result = kernel.overloads.get(tuple(typeof(a, Purpose.argument) for a in args))
+    arguments' types, or 0 where it is not compiled for them or is no numba dispatcher (a
+    Python function: a benchmark's wrapper, say)."""
+    overloads = getattr(kernel, "overloads", None)
+    if overloads is None:
+        return 0
+    result = overloads.get(tuple(typeof(a, Purpose.argument) for a in args))
     if result is None:
         return 0
     return result.library.get_pointer_to_function(result.fndesc.llvm_func_name)
